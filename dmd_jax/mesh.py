@@ -1,0 +1,540 @@
+"""Meshes as index arrays: validation, the `MeshGraph`, batching, canonical frame and I/O.
+
+Everything here runs on the host in NumPy, once per mesh. The model only ever sees the
+index arrays of a `MeshGraph`, so no dense adjacency matrix is built anywhere.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+import warnings
+from collections.abc import Sequence
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+SUPPORTED_EXTENSIONS = (".obj", ".off", ".ply", ".stl")
+
+
+# --------------------------------------------------------------------------------------
+# Validation
+# --------------------------------------------------------------------------------------
+
+
+def validate_mesh(vertices, faces, *, name: str = "mesh") -> tuple[np.ndarray, np.ndarray]:
+    """Checks a triangle mesh and returns it as `(float64 [n, 3], int32 [f, 3])` copies.
+
+    Args:
+      vertices: array-like `[n_vertex, 3]` of real numbers (any float or int dtype).
+      faces: array-like `[n_face, 3]` of integer vertex indices.
+      name: how the mesh is called in error messages (a file name, say).
+
+    Raises:
+      ValueError: naming the problem, for empty meshes, wrong shapes or dtypes, NaN or
+        infinite coordinates, polygons, negative or out-of-range indices, and faces that
+        repeat a vertex.
+    """
+    v = np.asarray(vertices)
+    f = np.asarray(faces)
+    if v.dtype == object or f.dtype == object:
+        raise ValueError(f"{name}: vertices and faces must be numeric arrays, not ragged lists")
+    if v.ndim != 2 or v.shape[-1] != 3:
+        raise ValueError(f"{name}: vertices must have shape [n_vertex, 3], got {v.shape}")
+    if v.shape[0] == 0:
+        raise ValueError(f"{name}: the mesh has no vertices")
+    if not (np.issubdtype(v.dtype, np.floating) or np.issubdtype(v.dtype, np.integer)):
+        raise ValueError(f"{name}: vertices must be real numbers, got dtype {v.dtype}")
+    if f.ndim != 2:
+        raise ValueError(f"{name}: faces must have shape [n_face, 3], got {f.shape}")
+    if f.shape[0] == 0:
+        raise ValueError(f"{name}: the mesh has no faces")
+    if f.shape[1] != 3:
+        raise ValueError(
+            f"{name}: faces must be triangles ([n_face, 3]), got polygons with {f.shape[1]} "
+            "corners; triangulate them first (load_mesh(..., polygons='triangulate'))"
+        )
+    if np.issubdtype(f.dtype, np.floating):
+        if not np.all(np.isfinite(f)) or np.any(f != np.round(f)):
+            raise ValueError(f"{name}: face indices must be integers, got non-integral floats")
+    elif not np.issubdtype(f.dtype, np.integer):
+        raise ValueError(f"{name}: face indices must be integers, got dtype {f.dtype}")
+    v = v.astype(np.float64)
+    bad = ~np.isfinite(v).all(axis=1)
+    if bad.any():
+        idx = np.flatnonzero(bad)
+        raise ValueError(
+            f"{name}: {idx.size} vertices have NaN or infinite coordinates "
+            f"(first: vertex {idx[0]})"
+        )
+    f = f.astype(np.int64)
+    if f.min() < 0:
+        raise ValueError(f"{name}: negative face index {f.min()} (indices start at 0)")
+    if f.max() >= v.shape[0]:
+        raise ValueError(
+            f"{name}: face index {f.max()} is out of range for {v.shape[0]} vertices"
+        )
+    if v.shape[0] >= np.iinfo(np.int32).max or f.shape[0] >= np.iinfo(np.int32).max:
+        raise ValueError(f"{name}: mesh too large for int32 indices")
+    repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])
+    if repeated.any():
+        idx = np.flatnonzero(repeated)
+        raise ValueError(
+            f"{name}: {idx.size} faces repeat a vertex index (first: face {idx[0]} = "
+            f"{f[idx[0]].tolist()}); remove them, e.g. with trimesh's "
+            "remove_degenerate_faces"
+        )
+    return v, f.astype(np.int32)
+
+
+# --------------------------------------------------------------------------------------
+# MeshGraph
+# --------------------------------------------------------------------------------------
+
+
+class MeshGraph(NamedTuple):
+    """The index arrays of one mesh, or of a padded disjoint union of meshes.
+
+    Sizes are static shapes: `n_vertex = vertex_graph.shape[0]`,
+    `n_face = faces.shape[0]`, `n_graph = n_vertex_per_graph.shape[0]`. In a padded batch
+    the padding vertices and faces belong to an extra last graph and are `False` in the
+    masks; their edges carry weight 0.
+
+    Attributes:
+      faces: `[n_face, 3]` int32 vertex indices.
+      vertex_senders: `[n_vertex_edge]` int32; primal edges in both directions plus one
+        self loop per vertex, sorted by receiver.
+      vertex_receivers: `[n_vertex_edge]` int32, sorted ascending.
+      vertex_edge_weight: `[n_vertex_edge]` float32, `1/sqrt(d_s d_r)` with the degrees of
+        `A + I` (the symmetric GCN normalisation).
+      face_senders: `[n_face_edge]` int32; dual edges (faces sharing an edge; on a
+        non-manifold edge every pair of its faces) both ways plus self loops.
+      face_receivers: `[n_face_edge]` int32, sorted ascending.
+      face_edge_weight: `[n_face_edge]` float32, symmetric normalisation of the dual graph.
+      vertex_face_degree: `[n_vertex]` float32, number of faces incident to each vertex.
+      vertex_graph: `[n_vertex]` int32 graph id of every vertex.
+      face_graph: `[n_face]` int32 graph id of every face.
+      vertex_mask: `[n_vertex]` bool, `False` on padding.
+      face_mask: `[n_face]` bool, `False` on padding.
+      n_vertex_per_graph: `[n_graph]` int32, real (unpadded) vertex count of every graph.
+      n_face_per_graph: `[n_graph]` int32, real face count of every graph.
+    """
+
+    faces: np.ndarray
+    vertex_senders: np.ndarray
+    vertex_receivers: np.ndarray
+    vertex_edge_weight: np.ndarray
+    face_senders: np.ndarray
+    face_receivers: np.ndarray
+    face_edge_weight: np.ndarray
+    vertex_face_degree: np.ndarray
+    vertex_graph: np.ndarray
+    face_graph: np.ndarray
+    vertex_mask: np.ndarray
+    face_mask: np.ndarray
+    n_vertex_per_graph: np.ndarray
+    n_face_per_graph: np.ndarray
+
+    @property
+    def n_vertex(self) -> int:
+        return self.vertex_graph.shape[0]
+
+    @property
+    def n_face(self) -> int:
+        return self.faces.shape[0]
+
+    @property
+    def n_graph(self) -> int:
+        return self.n_vertex_per_graph.shape[0]
+
+
+def _symmetric_with_self_loops(
+    senders: np.ndarray, receivers: np.ndarray, n_node: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unique directed edges of `A + I`, sorted by receiver, and their GCN weights."""
+    loops = np.arange(n_node, dtype=np.int64)
+    s = np.concatenate([senders, receivers, loops])
+    r = np.concatenate([receivers, senders, loops])
+    key = np.unique(r * n_node + s)
+    r, s = np.divmod(key, n_node)
+    degree = np.bincount(r, minlength=n_node).astype(np.float64)
+    weight = 1.0 / np.sqrt(degree[s] * degree[r])
+    return s.astype(np.int32), r.astype(np.int32), weight.astype(np.float32)
+
+
+def vertex_edges(faces: np.ndarray, n_vertex: int) -> tuple[np.ndarray, np.ndarray]:
+    """Unique undirected primal edges `[n_edge, 2]` (sorted pairs) of a triangle mesh."""
+    f = np.asarray(faces, dtype=np.int64)
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    e = np.sort(e, axis=1)
+    key = np.unique(e[:, 0] * n_vertex + e[:, 1])
+    a, b = np.divmod(key, n_vertex)
+    return a, b
+
+
+def face_adjacency(faces: np.ndarray, n_vertex: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs of faces that share an edge, each unordered pair once (`a < b`).
+
+    On a non-manifold edge with k faces all k(k-1)/2 pairs are adjacent.
+    """
+    f = np.asarray(faces, dtype=np.int64)
+    n_face = f.shape[0]
+    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    key = e[:, 0] * n_vertex + e[:, 1]
+    face_of = np.tile(np.arange(n_face, dtype=np.int64), 3)
+    order = np.argsort(key, kind="stable")
+    key, face_of = key[order], face_of[order]
+    _, start, size = np.unique(key, return_index=True, return_counts=True)
+    # Each face-edge entry pairs with every entry of its edge group (vectorised).
+    group = np.repeat(np.arange(start.size), size)
+    reps = size[group]
+    first = np.repeat(np.arange(key.size), reps)
+    offset = np.arange(first.size) - np.repeat(np.cumsum(reps) - reps, reps)
+    second = start[group[first]] + offset
+    a, b = face_of[first], face_of[second]
+    keep = a < b
+    pair = np.unique(a[keep] * n_face + b[keep])
+    return np.divmod(pair, n_face)
+
+
+def build_mesh_graph(faces, n_vertex: int) -> MeshGraph:
+    """Builds the `MeshGraph` of one triangle mesh on the host.
+
+    Works on open boundaries, non-manifold edges, isolated vertices (self loop only, no
+    incident face) and several components.
+
+    Args:
+      faces: `[n_face, 3]` integer vertex indices (validated with `validate_mesh` first).
+      n_vertex: number of vertices, isolated ones included.
+    """
+    f = np.asarray(faces, dtype=np.int64)
+    if f.ndim != 2 or f.shape[1] != 3:
+        raise ValueError(f"faces must have shape [n_face, 3], got {f.shape}")
+    if f.size and (f.min() < 0 or f.max() >= n_vertex):
+        raise ValueError(f"face indices must lie in [0, {n_vertex}), got [{f.min()}, {f.max()}]")
+    n_face = f.shape[0]
+    a, b = vertex_edges(f, n_vertex)
+    vs, vr, vw = _symmetric_with_self_loops(a, b, n_vertex)
+    fa, fb = face_adjacency(f, n_vertex)
+    fs, fr, fw = _symmetric_with_self_loops(fa, fb, n_face)
+    degree = np.bincount(f.ravel(), minlength=n_vertex).astype(np.float32)
+    return MeshGraph(
+        faces=f.astype(np.int32),
+        vertex_senders=vs,
+        vertex_receivers=vr,
+        vertex_edge_weight=vw,
+        face_senders=fs,
+        face_receivers=fr,
+        face_edge_weight=fw,
+        vertex_face_degree=degree,
+        vertex_graph=np.zeros(n_vertex, np.int32),
+        face_graph=np.zeros(n_face, np.int32),
+        vertex_mask=np.ones(n_vertex, bool),
+        face_mask=np.ones(n_face, bool),
+        n_vertex_per_graph=np.array([n_vertex], np.int32),
+        n_face_per_graph=np.array([n_face], np.int32),
+    )
+
+
+def batch_mesh_graphs(graphs: Sequence[MeshGraph]) -> MeshGraph:
+    """Disjoint union of several graphs (indices offset, graph ids renumbered)."""
+    if not graphs:
+        raise ValueError("batch_mesh_graphs needs at least one graph")
+    v_off = np.cumsum([0] + [g.n_vertex for g in graphs[:-1]])
+    f_off = np.cumsum([0] + [g.n_face for g in graphs[:-1]])
+    g_off = np.cumsum([0] + [g.n_graph for g in graphs[:-1]])
+
+    def cat(field, offsets=None):
+        parts = [getattr(g, field) for g in graphs]
+        if offsets is not None:
+            parts = [p + o for p, o in zip(parts, offsets, strict=True)]
+        return np.concatenate(parts)
+
+    return MeshGraph(
+        faces=cat("faces", v_off).astype(np.int32),
+        vertex_senders=cat("vertex_senders", v_off).astype(np.int32),
+        vertex_receivers=cat("vertex_receivers", v_off).astype(np.int32),
+        vertex_edge_weight=cat("vertex_edge_weight"),
+        face_senders=cat("face_senders", f_off).astype(np.int32),
+        face_receivers=cat("face_receivers", f_off).astype(np.int32),
+        face_edge_weight=cat("face_edge_weight"),
+        vertex_face_degree=cat("vertex_face_degree"),
+        vertex_graph=cat("vertex_graph", g_off).astype(np.int32),
+        face_graph=cat("face_graph", g_off).astype(np.int32),
+        vertex_mask=cat("vertex_mask"),
+        face_mask=cat("face_mask"),
+        n_vertex_per_graph=cat("n_vertex_per_graph"),
+        n_face_per_graph=cat("n_face_per_graph"),
+    )
+
+
+class PaddedSizes(NamedTuple):
+    """Static sizes a batch is padded to (one compiled program per distinct value)."""
+
+    n_vertex: int
+    n_face: int
+    n_vertex_edge: int
+    n_face_edge: int
+    n_graph: int
+
+
+def bucket_size(n: int, *, minimum: int = 64) -> int:
+    """Rounds `n` up to the next of 2^k · {1, 1.25, 1.5, 1.75}: few shapes, ≤ 25 % waste."""
+    n = max(int(n), minimum)
+    k = int(np.floor(np.log2(n)))
+    for m in (1.0, 1.25, 1.5, 1.75, 2.0):
+        size = int(np.ceil(m * 2**k))
+        if size >= n:
+            return size
+    return 2 ** (k + 1)
+
+
+def padded_sizes_for(graph: MeshGraph, *, n_graph: int | None = None) -> PaddedSizes:
+    """Bucketed sizes that hold `graph` plus at least one padding vertex, face and graph."""
+    return PaddedSizes(
+        n_vertex=bucket_size(graph.n_vertex + 1),
+        n_face=bucket_size(graph.n_face + 1),
+        n_vertex_edge=bucket_size(graph.vertex_senders.shape[0] + 1),
+        n_face_edge=bucket_size(graph.face_senders.shape[0] + 1),
+        n_graph=(graph.n_graph + 1) if n_graph is None else n_graph,
+    )
+
+
+def pad_mesh_graph(graph: MeshGraph, sizes: PaddedSizes) -> MeshGraph:
+    """Pads a (batched) graph to static sizes with one extra padding graph, as jraph does.
+
+    Padding faces are the degenerate triangle `(p, p, p)` on the first padding vertex
+    `p`; padding edges are weight-0 self loops there. The masks are `False` on padding.
+    """
+    nv, nf = graph.n_vertex, graph.n_face
+    ne, nfe = graph.vertex_senders.shape[0], graph.face_senders.shape[0]
+    if (
+        sizes.n_vertex <= nv
+        or sizes.n_face < nf
+        or sizes.n_vertex_edge < ne
+        or sizes.n_face_edge < nfe
+        or sizes.n_graph <= graph.n_graph
+    ):
+        raise ValueError(
+            f"cannot pad a graph of {nv} vertices, {nf} faces, {ne}/{nfe} edges, "
+            f"{graph.n_graph} graphs to {sizes} (need room for one padding vertex and graph)"
+        )
+    pv, pf, pad_graph = nv, nf, sizes.n_graph - 1
+    extra_nodes_v = sizes.n_vertex - nv
+    extra_nodes_f = sizes.n_face - nf
+    extra_graphs = sizes.n_graph - graph.n_graph
+
+    def pad(x, n, value):
+        return np.concatenate([x, np.full((n,) + x.shape[1:], value, dtype=x.dtype)])
+
+    # Padding face edges need a padding face to sit on; with no padding face they go to
+    # face 0 with weight 0, which changes nothing.
+    face_pad_node = pf if extra_nodes_f > 0 else 0
+    return MeshGraph(
+        faces=pad(graph.faces, extra_nodes_f, pv),
+        vertex_senders=pad(graph.vertex_senders, sizes.n_vertex_edge - ne, pv),
+        vertex_receivers=pad(graph.vertex_receivers, sizes.n_vertex_edge - ne, pv),
+        vertex_edge_weight=pad(graph.vertex_edge_weight, sizes.n_vertex_edge - ne, 0.0),
+        face_senders=pad(graph.face_senders, sizes.n_face_edge - nfe, face_pad_node),
+        face_receivers=pad(graph.face_receivers, sizes.n_face_edge - nfe, face_pad_node),
+        face_edge_weight=pad(graph.face_edge_weight, sizes.n_face_edge - nfe, 0.0),
+        vertex_face_degree=pad(graph.vertex_face_degree, extra_nodes_v, 0.0),
+        vertex_graph=pad(graph.vertex_graph, extra_nodes_v, pad_graph),
+        face_graph=pad(graph.face_graph, extra_nodes_f, pad_graph),
+        vertex_mask=pad(graph.vertex_mask, extra_nodes_v, False),
+        face_mask=pad(graph.face_mask, extra_nodes_f, False),
+        n_vertex_per_graph=pad(graph.n_vertex_per_graph, extra_graphs, 0),
+        n_face_per_graph=pad(graph.n_face_per_graph, extra_graphs, 0),
+    )
+
+
+def pad_vertex_array(x: np.ndarray, n_vertex: int, value: float = 0.0) -> np.ndarray:
+    """Pads a per-vertex array `[n, ...]` to `[n_vertex, ...]` with `value`."""
+    x = np.asarray(x)
+    if x.shape[0] > n_vertex:
+        raise ValueError(f"cannot pad {x.shape[0]} rows down to {n_vertex}")
+    fill = np.full((n_vertex - x.shape[0],) + x.shape[1:], value, dtype=x.dtype)
+    return np.concatenate([x, fill])
+
+
+# --------------------------------------------------------------------------------------
+# Canonical frame
+# --------------------------------------------------------------------------------------
+
+
+class CanonicalFrame(NamedTuple):
+    """Centre and scale mapping a mesh so its bounding box is centred, longest side 1."""
+
+    centre: np.ndarray  # [3]
+    scale: float
+
+    def apply(self, vertices):
+        """World → canonical: `(v - centre) / scale`."""
+        return (vertices - self.centre) / self.scale
+
+    def invert(self, vertices):
+        """Canonical → world: `v * scale + centre` (the exact inverse of `apply`)."""
+        return vertices * self.scale + self.centre
+
+
+def canonical_frame(vertices) -> CanonicalFrame:
+    """The canonical frame of a vertex set: bounding-box centre, longest side as scale."""
+    v = np.asarray(vertices, dtype=np.float64)
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    scale = float((hi - lo).max())
+    if not np.isfinite(scale) or scale <= 0.0:
+        raise ValueError(
+            "the mesh has zero extent (all vertices coincide): no canonical frame exists"
+        )
+    return CanonicalFrame(centre=(lo + hi) / 2.0, scale=scale)
+
+
+def mean_edge_length(vertices, faces) -> float:
+    """Mean length of the unique undirected edges of a mesh."""
+    v = np.asarray(vertices, dtype=np.float64)
+    a, b = vertex_edges(faces, v.shape[0])
+    return float(np.linalg.norm(v[a] - v[b], axis=1).mean())
+
+
+# --------------------------------------------------------------------------------------
+# I/O
+# --------------------------------------------------------------------------------------
+
+
+def _count_polygons(path: Path) -> int:
+    """Number of faces with more than three corners in an OBJ or ASCII OFF file."""
+    suffix = path.suffix.lower()
+    count = 0
+    try:
+        with open(path, encoding="utf-8", errors="replace") as fh:
+            if suffix == ".obj":
+                for line in fh:
+                    if line.startswith("f ") and len(line.split()) > 4:
+                        count += 1
+            elif suffix == ".off":
+                lines = [ln.split("#")[0].split() for ln in fh.read().splitlines()]
+                lines = [ln for ln in lines if ln]
+                if not lines:
+                    return 0
+                head = lines[0]
+                start = 1
+                if head[0].upper().endswith("OFF") and len(head) == 1:
+                    head, start = lines[1], 2
+                elif head[0].upper().endswith("OFF"):
+                    head = head[1:]
+                n_v = int(head[0])
+                for ln in lines[start + n_v :]:
+                    if len(ln) >= 1 and ln[0].isdigit() and int(ln[0]) > 3:
+                        count += 1
+    except (OSError, ValueError, IndexError):
+        return 0
+    return count
+
+
+def load_mesh(path, *, polygons: str = "triangulate") -> tuple[np.ndarray, np.ndarray]:
+    """Reads a triangle mesh, keeping vertex order and count (no merging, no cleaning).
+
+    Args:
+      path: an `.obj`, `.off`, `.ply` or `.stl` file.
+      polygons: `"triangulate"` (fan-triangulate quads and n-gons, with a warning saying
+        how many) or `"reject"` (raise `ValueError`).
+
+    Returns:
+      `(vertices float64 [n, 3], faces int32 [f, 3])`, validated by `validate_mesh`.
+
+    Raises:
+      ValueError: unknown extension, unreadable or empty file, polygons with
+        `polygons="reject"`, or any problem `validate_mesh` names.
+      FileNotFoundError: the file does not exist.
+    """
+    import trimesh
+
+    path = Path(path)
+    if polygons not in ("triangulate", "reject"):
+        raise ValueError(f"polygons must be 'triangulate' or 'reject', got {polygons!r}")
+    if path.suffix.lower() not in SUPPORTED_EXTENSIONS:
+        raise ValueError(
+            f"{path}: unknown mesh format {path.suffix!r}; use one of "
+            + ", ".join(SUPPORTED_EXTENSIONS)
+        )
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such file")
+    if path.stat().st_size == 0:
+        raise ValueError(f"{path}: the file is empty")
+    n_poly = _count_polygons(path)
+    if n_poly and polygons == "reject":
+        raise ValueError(f"{path}: {n_poly} faces are polygons (more than 3 corners)")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            mesh = trimesh.load(
+                str(path), process=False, maintain_order=True, force="mesh", skip_materials=True
+            )
+    except Exception as exc:  # trimesh raises many types for corrupt files
+        raise ValueError(f"{path}: could not read the mesh ({type(exc).__name__}: {exc})") from exc
+    vertices = np.asarray(getattr(mesh, "vertices", np.zeros((0, 3))))
+    faces = np.asarray(getattr(mesh, "faces", np.zeros((0, 3), np.int64)))
+    if vertices.size == 0:
+        raise ValueError(f"{path}: the file holds no vertices (empty or corrupt)")
+    if faces.size == 0:
+        raise ValueError(f"{path}: the file holds no faces (a point cloud is not a mesh)")
+    if n_poly:
+        warnings.warn(
+            f"{path}: triangulated {n_poly} polygon faces (fan triangulation)", stacklevel=2
+        )
+    return validate_mesh(vertices, faces, name=str(path))
+
+
+def atomic_write(path, write_fn, *, overwrite: bool = False, protect=()) -> Path:
+    """Writes a file by `write_fn(tmp_path)` then renames it into place.
+
+    Args:
+      path: destination.
+      write_fn: callable that writes the whole file to the temporary path it is given.
+      overwrite: replace an existing file; without it an existing file is an error.
+      protect: paths that must never be written (the user's inputs).
+    """
+    path = Path(path)
+    for p in protect:
+        if Path(p).exists() and path.exists() and os.path.samefile(p, path):
+            raise ValueError(f"{path}: refusing to overwrite the input file")
+        if Path(p).resolve() == path.resolve():
+            raise ValueError(f"{path}: refusing to overwrite the input file")
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"{path}: already exists (pass overwrite=True / --overwrite)")
+    if not path.parent.is_dir():
+        raise FileNotFoundError(f"{path.parent}: output directory does not exist")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        write_fn(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def save_mesh(path, vertices, faces, *, overwrite: bool = False, protect=()) -> Path:
+    """Writes a triangle mesh atomically, keeping vertex order (OBJ, OFF, PLY or STL)."""
+    import trimesh
+
+    path = Path(path)
+    if path.suffix.lower() not in SUPPORTED_EXTENSIONS:
+        raise ValueError(
+            f"{path}: unknown mesh format {path.suffix!r}; use one of "
+            + ", ".join(SUPPORTED_EXTENSIONS)
+        )
+    v, f = validate_mesh(vertices, faces, name=str(path))
+    mesh = trimesh.Trimesh(vertices=v, faces=f, process=False)
+    file_type = path.suffix.lower()[1:]
+
+    def write(tmp):
+        data = mesh.export(file_type=file_type)
+        mode = "wb" if isinstance(data, bytes) else "w"
+        with open(tmp, mode) as fh:
+            fh.write(data)
+
+    return atomic_write(path, write, overwrite=overwrite, protect=protect)

@@ -1,0 +1,48 @@
+"""Shared fixtures: float64 JAX, a PRNG key, and the public meshes of ../shared."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+jax.config.update("jax_enable_x64", True)
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_MESHES = Path(os.environ.get("DMD_SHARED_MESHES", REPO.parent / "shared" / "meshes"))
+
+
+@pytest.fixture
+def key():
+    return jax.random.PRNGKey(0)
+
+
+@pytest.fixture
+def shared_meshes() -> Path:
+    if not SHARED_MESHES.is_dir():
+        pytest.skip(f"{SHARED_MESHES} is absent")
+    return SHARED_MESHES
+
+
+def shared_mesh_path(name: str) -> Path:
+    """Path of a file in ../shared/meshes, skipping the test when it is absent."""
+    path = SHARED_MESHES / name
+    if not path.is_file():
+        pytest.skip(f"{path} is absent")
+    return path
+
+
+def tetrahedron() -> tuple[np.ndarray, np.ndarray]:
+    v = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], dtype=np.float64)
+    f = np.array([[0, 1, 2], [0, 3, 1], [0, 2, 3], [1, 3, 2]], dtype=np.int32)
+    return v, f
+
+
+def icosphere(subdivisions: int = 2, radius: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    import trimesh
+
+    s = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    return np.asarray(s.vertices, np.float64), np.asarray(s.faces, np.int32)
