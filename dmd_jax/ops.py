@@ -58,7 +58,8 @@ def primal_to_dual(vertex_features, faces):
 def dual_to_primal(face_features, faces, vertex_face_degree):
     """D2P: each vertex's feature is the mean over its incident faces, `D_VF^-1 A_VF X_F`.
 
-    Vertices with no incident face (isolated, or padding) get zeros.
+    Vertices with `vertex_face_degree == 0` (isolated, or padding, even though padding
+    faces reference the first padding vertex) get zeros.
 
     Args:
       face_features: `[n_face, d]`.
@@ -75,8 +76,11 @@ def dual_to_primal(face_features, faces, vertex_face_degree):
         faces.reshape(-1),
         num_segments=n_vertex,
     )
-    degree = jnp.maximum(vertex_face_degree, 1.0).astype(face_features.dtype)
-    return summed / degree[:, None]
+    # Padding faces sit on a padding vertex whose degree is 0: zero it like an isolated
+    # vertex, or its feature would be the sum over all padding faces and grow per layer.
+    degree = vertex_face_degree.astype(face_features.dtype)
+    inverse = jnp.where(degree > 0, 1.0 / jnp.maximum(degree, 1.0), 0.0)
+    return summed * inverse[:, None]
 
 
 def dual_average_pool(vertex_features, face_features, faces):
