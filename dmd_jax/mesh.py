@@ -65,16 +65,13 @@ def validate_mesh(vertices, faces, *, name: str = "mesh") -> tuple[np.ndarray, n
     if bad.any():
         idx = np.flatnonzero(bad)
         raise ValueError(
-            f"{name}: {idx.size} vertices have NaN or infinite coordinates "
-            f"(first: vertex {idx[0]})"
+            f"{name}: {idx.size} vertices have NaN or infinite coordinates (first: vertex {idx[0]})"
         )
     f = f.astype(np.int64)
     if f.min() < 0:
         raise ValueError(f"{name}: negative face index {f.min()} (indices start at 0)")
     if f.max() >= v.shape[0]:
-        raise ValueError(
-            f"{name}: face index {f.max()} is out of range for {v.shape[0]} vertices"
-        )
+        raise ValueError(f"{name}: face index {f.max()} is out of range for {v.shape[0]} vertices")
     if v.shape[0] >= np.iinfo(np.int32).max or f.shape[0] >= np.iinfo(np.int32).max:
         raise ValueError(f"{name}: mesh too large for int32 indices")
     repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])
@@ -432,8 +429,30 @@ def _count_polygons(path: Path) -> int:
     return count
 
 
+def _merge_identical_vertices(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
+    """Merges bit-identical vertices, numbered in order of first appearance in `faces`.
+
+    STL stores a triangle soup (three vertices per face, no shared indices); without
+    this every face would be its own component and no graph op could see a neighbour.
+    """
+    f = np.asarray(faces, dtype=np.int64)
+    # Adding 0.0 turns -0.0 into 0.0, so the two zeros merge.
+    v = np.asarray(vertices, dtype=np.float64)[f.ravel()] + 0.0
+    _, first, inverse = np.unique(v, axis=0, return_index=True, return_inverse=True)
+    order = np.argsort(first)
+    rank = np.empty_like(order)
+    rank[order] = np.arange(order.size)
+    return v[first[order]], rank[inverse.reshape(-1)].reshape(f.shape)
+
+
 def load_mesh(path, *, polygons: str = "triangulate") -> tuple[np.ndarray, np.ndarray]:
     """Reads a triangle mesh, keeping vertex order and count (no merging, no cleaning).
+
+    OBJ, OFF and PLY keep the file's vertices exactly, unused ones included. STL has no
+    shared vertices (it stores a float32 triangle soup), so there bit-identical points
+    are merged and numbered in order of first appearance in the faces: the order and
+    count of the mesh that was saved come back only if it had no unused vertices and its
+    vertices were already numbered in order of first appearance.
 
     Args:
       path: an `.obj`, `.off`, `.ply` or `.stl` file.
@@ -475,10 +494,14 @@ def load_mesh(path, *, polygons: str = "triangulate") -> tuple[np.ndarray, np.nd
         raise ValueError(f"{path}: could not read the mesh ({type(exc).__name__}: {exc})") from exc
     vertices = np.asarray(getattr(mesh, "vertices", np.zeros((0, 3))))
     faces = np.asarray(getattr(mesh, "faces", np.zeros((0, 3), np.int64)))
-    if vertices.size == 0:
-        raise ValueError(f"{path}: the file holds no vertices (empty or corrupt)")
+    # Faces first: trimesh drops the vertices of an OBJ without faces, and "no faces"
+    # is then the useful message.
     if faces.size == 0:
         raise ValueError(f"{path}: the file holds no faces (a point cloud is not a mesh)")
+    if vertices.size == 0:
+        raise ValueError(f"{path}: the file holds no vertices (empty or corrupt)")
+    if path.suffix.lower() == ".stl":
+        vertices, faces = _merge_identical_vertices(vertices, faces)
     if n_poly:
         warnings.warn(
             f"{path}: triangulated {n_poly} polygon faces (fan triangulation)", stacklevel=2
@@ -518,7 +541,18 @@ def atomic_write(path, write_fn, *, overwrite: bool = False, protect=()) -> Path
 
 
 def save_mesh(path, vertices, faces, *, overwrite: bool = False, protect=()) -> Path:
-    """Writes a triangle mesh atomically, keeping vertex order (OBJ, OFF, PLY or STL)."""
+    """Writes a triangle mesh atomically (OBJ, OFF, PLY or STL).
+
+    OBJ and OFF keep vertex order and float64 coordinates: 17 decimals read back the
+    same float64 where `|x| >= 0.1` and within 1e-17 below. PLY keeps the order but trimesh
+    writes float32 coordinates. STL stores a float32 triangle soup: vertex order,
+    unused vertices and the sharing of vertices are lost (`load_mesh` merges identical
+    points again, see there).
+
+    Raises:
+      FileExistsError: `path` exists and `overwrite` is False.
+      ValueError: unknown extension, `path` in `protect`, or an invalid mesh.
+    """
     import trimesh
 
     path = Path(path)
@@ -532,7 +566,9 @@ def save_mesh(path, vertices, faces, *, overwrite: bool = False, protect=()) -> 
     file_type = path.suffix.lower()[1:]
 
     def write(tmp):
-        data = mesh.export(file_type=file_type)
+        # trimesh's default of 8 decimals would lose precision on small-scale meshes.
+        options = {"digits": 17} if file_type in ("obj", "off") else {}
+        data = mesh.export(file_type=file_type, **options)
         mode = "wb" if isinstance(data, bytes) else "w"
         with open(tmp, mode) as fh:
             fh.write(data)
