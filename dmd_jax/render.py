@@ -97,8 +97,9 @@ def render_meshes(
         depth = v[f].mean(axis=1) @ view
         order = np.argsort(depth)
         ax = fig.add_subplot(1, len(meshes), i + 1, projection="3d")
-        poly = Poly3DCollection(v[f[order]], facecolors=colors[order], edgecolors="none",
-                                linewidths=0)
+        poly = Poly3DCollection(
+            v[f[order]], facecolors=colors[order], edgecolors="none", linewidths=0
+        )
         ax.add_collection3d(poly)
         ax.set_xlim(-0.5, 0.5)
         ax.set_ylim(-0.5, 0.5)
