@@ -1,0 +1,641 @@
+"""Experiment configuration: frozen pytree dataclasses, presets and the ablation tables.
+
+Every config is a `flax.struct.dataclass`, so it is immutable, hashable and a pytree.
+Every field is static metadata (`pytree_node=False`): configs decide shapes, code paths
+and which loss terms are computed at all (`dmd_jax.losses` needs static weights), so a
+config has no leaves and can be a static argument of `jax.jit`.
+
+Configs serialise to plain JSON (`to_dict` / `from_dict`, `to_json` / `from_json`);
+`from_dict` is strict: unknown keys, missing nested sections of the wrong type and values
+of the wrong type raise `ValueError`. Checkpoints and bundled weights carry their config.
+
+Presets (`preset(name)`):
+
+* `paper`: the paper's width 512, FGT-8, feature extractor of 2 two-stream networks,
+  denoiser depth 2. Our reading of the architecture has 12,881,416 parameters
+  (`param_count(preset("paper").model)`, computed with `jax.eval_shape`); the paper says
+  "around 30 million". The paper gives no per-layer sizes (its figure is the only
+  source and is not in the text), so the gap comes from layers it does not describe: the
+  exact count of 4096-wide and hidden fully connected layers, the widths inside the
+  densely connected aggregators, and any extra layers in the heads. We do not invent
+  layers to reach 30 M.
+* `small`: width 48, trains on a 2-core CPU: one forward + backward pass of the full
+  FGT-8 model on a 5k-vertex mesh takes about 0.3 s there (see README, measured with
+  `benchmarks/` style timing: jitted, float32, median of 5).
+* `test`: width 8, for unit tests.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import re
+import types
+import typing
+from typing import Any
+
+from flax import struct
+
+VARIANT_NAMES = ("fgt8", "fgt3", "wo_t", "mt", "do_2s", "do_1s", "fgt_1s")
+SCHEMES = ("joint", "alter", "two_phase", "u_fe")
+SCHEDULES = ("constant", "cosine")
+DTYPES = ("float32", "float64")
+NOISE_KINDS = ("gaussian", "uniform", "gamma", "impulse")
+DATA_SOURCES = ("procedural", "folder")
+
+
+def _static(default: Any):
+    """A structural (non-pytree) field: part of the treedef, never traced."""
+    return struct.field(pytree_node=False, default=default)
+
+
+def _check(condition: bool, message: str) -> None:
+    if not condition:
+        raise ValueError(message)
+
+
+def _check_choice(name: str, value: Any, choices: tuple) -> None:
+    _check(value in choices, f"{name} must be one of {choices}, got {value!r}")
+
+
+def _check_positive_int(name: str, value: Any, *, minimum: int = 1) -> None:
+    _check(
+        isinstance(value, int) and not isinstance(value, bool) and value >= minimum,
+        f"{name} must be an integer >= {minimum}, got {value!r}",
+    )
+
+
+# --------------------------------------------------------------------------------------
+# JSON helpers
+# --------------------------------------------------------------------------------------
+
+
+class _ConfigMixin:
+    """`to_dict` / `from_dict` / JSON and nested edits, shared by every config class."""
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain nested dict of JSON types (tuples become lists)."""
+        out = {}
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            out[f.name] = value.to_dict() if isinstance(value, _ConfigMixin) else _to_json(value)
+        return out
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]):
+        """Inverse of `to_dict`; strict about keys and types.
+
+        Missing keys take their defaults; unknown keys raise `ValueError`.
+        """
+        if not isinstance(data, dict):
+            raise ValueError(f"{cls.__name__}: expected a dict, got {type(data).__name__}")
+        hints = typing.get_type_hints(cls)
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(data) - names)
+        if unknown:
+            raise ValueError(
+                f"{cls.__name__}: unknown key(s) {unknown}; known keys are {sorted(names)}"
+            )
+        kwargs = {}
+        for name, value in data.items():
+            kwargs[name] = _from_json(value, hints[name], f"{cls.__name__}.{name}")
+        return cls(**kwargs)
+
+    def to_json(self, **kwargs) -> str:
+        return json.dumps(self.to_dict(), **kwargs)
+
+    @classmethod
+    def from_json(cls, text: str):
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"{cls.__name__}: invalid JSON ({exc})") from exc
+        return cls.from_dict(data)
+
+    def with_edits(self, edits: dict[str, Any]):
+        """`dataclasses.replace` with nested dicts for nested configs; strict keys.
+
+        Example: `cfg.with_edits({"model": {"variant": "fgt3"}, "train": {"steps": 10}})`.
+        """
+        names = {f.name for f in dataclasses.fields(self)}
+        unknown = sorted(set(edits) - names)
+        if unknown:
+            raise ValueError(f"{type(self).__name__}: unknown field(s) {unknown} in edits")
+        updates = {}
+        for name, value in edits.items():
+            current = getattr(self, name)
+            if isinstance(current, _ConfigMixin) and isinstance(value, dict):
+                updates[name] = current.with_edits(value)
+            else:
+                updates[name] = value
+        return dataclasses.replace(self, **updates)
+
+
+def _to_json(value: Any) -> Any:
+    if isinstance(value, tuple | list):
+        return [_to_json(v) for v in value]
+    return value
+
+
+def _from_json(value: Any, hint: Any, where: str) -> Any:
+    """Converts a JSON value to the annotated type (lists → tuples), checking the type."""
+    origin = typing.get_origin(hint)
+    args = typing.get_args(hint)
+    if isinstance(hint, type) and issubclass(hint, _ConfigMixin):
+        return hint.from_dict(value)
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        for arg in args:
+            if arg is type(None):
+                continue
+            try:
+                return _from_json(value, arg, where)
+            except ValueError:
+                continue
+        raise ValueError(f"{where}: {value!r} matches none of {hint}")
+    if origin is tuple:
+        if not isinstance(value, list | tuple):
+            raise ValueError(f"{where}: expected a list, got {value!r}")
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_from_json(v, args[0], where) for v in value)
+        if len(args) != len(value):
+            raise ValueError(f"{where}: expected {len(args)} items, got {len(value)}")
+        return tuple(_from_json(v, a, where) for v, a in zip(value, args, strict=True))
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise ValueError(f"{where}: expected true/false, got {value!r}")
+        return value
+    if hint is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ValueError(f"{where}: expected an integer, got {value!r}")
+        return value
+    if hint is float:
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise ValueError(f"{where}: expected a number, got {value!r}")
+        return float(value)
+    if hint is str:
+        if not isinstance(value, str):
+            raise ValueError(f"{where}: expected a string, got {value!r}")
+        return value
+    raise ValueError(f"{where}: unsupported type {hint}")
+
+
+# --------------------------------------------------------------------------------------
+# Model
+# --------------------------------------------------------------------------------------
+
+
+@struct.dataclass
+class ModelConfig(_ConfigMixin):
+    """DMD-Net structure. All fields are static (they decide shapes and code paths).
+
+    Attributes:
+      width: hidden width of every two-stream network (paper: 512) and the number of
+        columns of the transformation `W_tf`.
+      fe_two_streams: two-stream networks in the feature extractor (paper: 2).
+      depth: two-stream networks in the denoiser (paper's depth ablation: best 2).
+      transformer_width: hidden width inside the transformer; `None` means `width`.
+      variant: structure ablation variant, one of `VARIANT_NAMES`: `fgt8` (the paper's
+        model), `fgt3`, `wo_t`, `mt`, `do_2s`, `do_1s`, `fgt_1s`.
+      n_agg: aggregators per stream in a two-stream network (paper: 3).
+      dense_layers: densely connected aggregators in the transformer before its last AGG.
+      mt_transforms: transformations in the cascade of the `mt` variant (>= 2): the
+        first `mt_transforms - 1` are `8 x 8` (ReLU after each), the last `8 x width`.
+      dropout: dropout rate after every ReLU (paper ablation: 0, 0.2, 0.35, 0.5).
+      attention: GAT-style attention coefficients instead of the fixed GCN weights.
+      stn: PointNet-style spatial transformer (3 x 3 per mesh) on the input coordinates.
+      stn_width: hidden width of the STN's per-vertex MLP (the next layer is twice it).
+      predict_offset: the denoiser predicts an offset added to the noisy positions
+        (`True`) or the positions themselves.
+      pdf_residual: add the primal stream's output to the fused PDF output (our choice;
+        see `dmd_jax.model.TwoStream`).
+      normalize_fe_normals: the feature extractor's normal part is unit length.
+      head_init_scale: variance scale of the denoiser head's initial kernel (small, so an
+        untrained offset model starts close to the identity).
+      dtype: parameter and computation dtype, `"float32"` or `"float64"`.
+    """
+
+    width: int = _static(64)
+    fe_two_streams: int = _static(2)
+    depth: int = _static(2)
+    transformer_width: int | None = _static(None)
+    variant: str = _static("fgt8")
+    n_agg: int = _static(3)
+    dense_layers: int = _static(3)
+    mt_transforms: int = _static(2)
+    dropout: float = _static(0.0)
+    attention: bool = _static(False)
+    stn: bool = _static(False)
+    stn_width: int = _static(64)
+    predict_offset: bool = _static(True)
+    pdf_residual: bool = _static(True)
+    normalize_fe_normals: bool = _static(True)
+    head_init_scale: float = _static(1e-2)
+    dtype: str = _static("float32")
+
+    def __post_init__(self):
+        _check_positive_int("width", self.width)
+        _check_positive_int("fe_two_streams", self.fe_two_streams)
+        _check_positive_int("depth", self.depth)
+        if self.transformer_width is not None:
+            _check_positive_int("transformer_width", self.transformer_width)
+        _check_choice("variant", self.variant, VARIANT_NAMES)
+        _check_positive_int("n_agg", self.n_agg)
+        _check_positive_int("dense_layers", self.dense_layers, minimum=0)
+        _check_positive_int("mt_transforms", self.mt_transforms, minimum=2)
+        _check(
+            isinstance(self.dropout, int | float) and 0.0 <= self.dropout < 1.0,
+            f"dropout must lie in [0, 1), got {self.dropout!r}",
+        )
+        _check_positive_int("stn_width", self.stn_width)
+        _check(
+            isinstance(self.head_init_scale, int | float) and self.head_init_scale > 0,
+            f"head_init_scale must be > 0, got {self.head_init_scale!r}",
+        )
+        _check_choice("dtype", self.dtype, DTYPES)
+
+    # Derived structure, one place for every variant's switches.
+    @property
+    def uses_feature_extractor(self) -> bool:
+        return self.variant not in ("do_2s", "do_1s")
+
+    @property
+    def uses_transformer(self) -> bool:
+        return self.variant in ("fgt8", "fgt3", "mt", "fgt_1s")
+
+    @property
+    def fe_two_stream(self) -> bool:
+        return self.variant != "fgt_1s"
+
+    @property
+    def denoiser_two_stream(self) -> bool:
+        return self.variant not in ("do_1s", "fgt_1s")
+
+    @property
+    def transform_in_dim(self) -> int:
+        """Rows of `W_tf`: 8 for `[xyz ‖ features]`, 3 for xyz alone (FGT-3)."""
+        return 3 if self.variant == "fgt3" else 8
+
+    @property
+    def n_transforms(self) -> int:
+        return self.mt_transforms if self.variant == "mt" else 1
+
+    @property
+    def hidden_transformer_width(self) -> int:
+        return self.width if self.transformer_width is None else self.transformer_width
+
+
+# --------------------------------------------------------------------------------------
+# Loss, training, noise, data
+# --------------------------------------------------------------------------------------
+
+
+@struct.dataclass
+class LossConfig(_ConfigMixin):
+    """Loss weights (the paper's final values) and curvature scales (all static).
+
+    Attributes:
+      vertex, normal, curvature, chamfer, feature: the weights λ_V, λ_N, λ_κ, λ_C, λ_FE.
+      gamma_h, gamma_g: γ_H and γ_G of the curvature loss (paper appendix C).
+      chamfer_block: rows per block of the blockwise chamfer distance.
+    """
+
+    vertex: float = _static(1.0)
+    normal: float = _static(0.2)
+    curvature: float = _static(0.01)
+    chamfer: float = _static(0.05)
+    feature: float = _static(1.0)
+    gamma_h: float = _static(1e-6)
+    gamma_g: float = _static(1.0)
+    chamfer_block: int = _static(1024)
+
+    def __post_init__(self):
+        for name in ("vertex", "normal", "curvature", "chamfer", "feature"):
+            value = getattr(self, name)
+            _check(
+                isinstance(value, int | float) and 0.0 <= value < float("inf"),
+                f"loss weight {name} must be a finite number >= 0, got {value!r}",
+            )
+        _check(self.gamma_h > 0 and self.gamma_g > 0, "gamma_h and gamma_g must be > 0")
+        _check_positive_int("chamfer_block", self.chamfer_block)
+
+    @classmethod
+    def all_ones(cls, **kwargs) -> LossConfig:
+        """The weights the paper's ablation studies use: every λ = 1."""
+        return cls(vertex=1.0, normal=1.0, curvature=1.0, chamfer=1.0, feature=1.0, **kwargs)
+
+    def weights(self):
+        """The weights as a `dmd_jax.losses.LossWeights`."""
+        from dmd_jax.losses import LossWeights
+
+        return LossWeights(
+            vertex=self.vertex,
+            normal=self.normal,
+            curvature=self.curvature,
+            chamfer=self.chamfer,
+            feature=self.feature,
+        )
+
+
+@struct.dataclass
+class TrainConfig(_ConfigMixin):
+    """Optimiser, schedule and training scheme (all static).
+
+    Attributes:
+      lr, b1, b2, eps: Adam (paper: lr 1e-4, β1 0.9, β2 0.999).
+      schedule: `constant`, or `cosine`: linear warm-up over `warmup_steps` (0: none),
+        then cosine decay to `lr * min_lr_ratio` at `steps`.
+      warmup_steps: linear warm-up steps of `cosine`.
+      min_lr_ratio: final learning rate of `cosine` as a fraction of `lr`.
+      grad_clip: global-norm gradient clipping; 0 turns it off (the paper is silent; we
+        clip at 1 so one impulse-noise outlier batch cannot blow up Adam's moments).
+      steps: optimiser steps.
+      batch_size: meshes per step.
+      scheme: `joint`, `alter`, `two_phase` or `u_fe` (paper's training scheme ablation).
+      alter_period: steps per half-cycle of `alter` (paper: 1, odd/even iterations).
+      two_phase_split: fraction of `steps` spent pre-training the feature extractor in
+        `two_phase` (the paper says "several epochs").
+      eval_every, ckpt_every, log_every: intervals in steps; 0 turns one off.
+      ckpt_keep: checkpoints kept on disk.
+      rotate: random rotation augmentation (the paper's route to rotation equivariance).
+      seed: seed of parameter init, shuffling and noise.
+    """
+
+    lr: float = _static(1e-4)
+    b1: float = _static(0.9)
+    b2: float = _static(0.999)
+    eps: float = _static(1e-8)
+    schedule: str = _static("constant")
+    warmup_steps: int = _static(0)
+    min_lr_ratio: float = _static(0.05)
+    grad_clip: float = _static(1.0)
+    steps: int = _static(10_000)
+    batch_size: int = _static(4)
+    scheme: str = _static("joint")
+    alter_period: int = _static(1)
+    two_phase_split: float = _static(0.5)
+    eval_every: int = _static(1000)
+    ckpt_every: int = _static(1000)
+    ckpt_keep: int = _static(3)
+    log_every: int = _static(100)
+    rotate: bool = _static(True)
+    seed: int = _static(0)
+
+    @property
+    def learning_rate(self) -> float:
+        """Alias of `lr`."""
+        return self.lr
+
+    @property
+    def two_phase_fe_steps(self) -> int:
+        """Steps of the feature-extractor pre-training phase of `two_phase`."""
+        return max(1, min(self.steps - 1, round(self.steps * self.two_phase_split)))
+
+    def __post_init__(self):
+        _check(self.lr > 0, f"lr must be > 0, got {self.lr}")
+        _check(0 <= self.b1 < 1 and 0 <= self.b2 < 1, "b1 and b2 must lie in [0, 1)")
+        _check(self.eps > 0, f"eps must be > 0, got {self.eps}")
+        _check_choice("schedule", self.schedule, SCHEDULES)
+        _check_positive_int("warmup_steps", self.warmup_steps, minimum=0)
+        _check(0.0 <= self.min_lr_ratio <= 1.0, "min_lr_ratio must lie in [0, 1]")
+        _check(self.grad_clip >= 0, f"grad_clip must be >= 0, got {self.grad_clip}")
+        _check_positive_int("steps", self.steps)
+        _check_positive_int("batch_size", self.batch_size)
+        _check_choice("scheme", self.scheme, SCHEMES)
+        _check_positive_int("alter_period", self.alter_period)
+        _check(0.0 < self.two_phase_split < 1.0, "two_phase_split must lie in (0, 1)")
+        for name in ("eval_every", "ckpt_every", "log_every"):
+            _check_positive_int(name, getattr(self, name), minimum=0)
+        _check_positive_int("ckpt_keep", self.ckpt_keep)
+        _check_positive_int("seed", self.seed, minimum=0)
+
+
+@struct.dataclass
+class NoiseConfig(_ConfigMixin):
+    """What the mixed-noise sampler draws during training (all static).
+
+    Attributes:
+      kinds: noise types drawn uniformly per mesh.
+      canonical_levels: `((kind, (level, ...)), ...)` levels in the canonical frame;
+        `None` takes the paper's five levels per type from `dmd_jax.noise`.
+      edge_levels: levels relative to the mean edge length; `None` takes the defaults of
+        `dmd_jax.noise`.
+      p_edge: probability that a mesh gets an edge-relative level instead of a
+        canonical-frame one.
+    """
+
+    kinds: tuple[str, ...] = _static(NOISE_KINDS)
+    canonical_levels: tuple[tuple[str, tuple[float, ...]], ...] | None = _static(None)
+    edge_levels: tuple[float, ...] | None = _static(None)
+    p_edge: float = _static(0.5)
+
+    def __post_init__(self):
+        _check(len(self.kinds) > 0, "noise kinds must not be empty")
+        for kind in self.kinds:
+            _check_choice("noise kind", kind, NOISE_KINDS)
+        if self.canonical_levels is not None:
+            for kind, levels in self.canonical_levels:
+                _check_choice("noise kind", kind, NOISE_KINDS)
+                _check(len(levels) > 0 and all(x > 0 for x in levels), "levels must be > 0")
+        if self.edge_levels is not None:
+            _check(all(x > 0 for x in self.edge_levels), "edge levels must be > 0")
+        _check(0.0 <= self.p_edge <= 1.0, f"p_edge must lie in [0, 1], got {self.p_edge}")
+
+    def settings(self) -> dict[str, Any]:
+        """Keyword arguments of `dmd_jax.pipeline.NoiseSettings` (unset fields left out,
+        so the sampler's defaults apply)."""
+        out: dict[str, Any] = {"kinds": self.kinds, "p_edge": self.p_edge}
+        if self.canonical_levels is not None:
+            out["canonical_levels"] = dict(self.canonical_levels)
+        if self.edge_levels is not None:
+            out["edge_levels"] = self.edge_levels
+        return out
+
+
+@struct.dataclass
+class DataConfig(_ConfigMixin):
+    """Where the training meshes come from and how they are split (all static).
+
+    Attributes:
+      source: `procedural` (the built-in shape categories) or `folder` (category/*.obj).
+      root: the folder for `source="folder"`.
+      categories: categories to use; `None` means all.
+      test_inter_categories: categories held out entirely (the paper's test-inter).
+      instances_per_category: procedural shapes generated per category.
+      target_vertices: vertex count procedural shapes are remeshed to.
+      test_fraction: fraction of each training category's instances kept for test-intra.
+      seed: seed of the generator and of the split.
+    """
+
+    source: str = _static("procedural")
+    root: str | None = _static(None)
+    categories: tuple[str, ...] | None = _static(None)
+    test_inter_categories: tuple[str, ...] = _static(())
+    instances_per_category: int = _static(40)
+    target_vertices: int = _static(2000)
+    test_fraction: float = _static(0.2)
+    seed: int = _static(0)
+
+    def __post_init__(self):
+        _check_choice("data source", self.source, DATA_SOURCES)
+        _check(
+            self.source != "folder" or self.root is not None,
+            "data source 'folder' needs a root directory",
+        )
+        _check_positive_int("instances_per_category", self.instances_per_category)
+        _check_positive_int("target_vertices", self.target_vertices, minimum=4)
+        _check(0.0 <= self.test_fraction < 1.0, "test_fraction must lie in [0, 1)")
+        _check_positive_int("seed", self.seed, minimum=0)
+
+
+@struct.dataclass
+class ExperimentConfig(_ConfigMixin):
+    """Everything one run needs; what checkpoints and bundled weights carry."""
+
+    name: str = _static("default")
+    model: ModelConfig = ModelConfig()
+    loss: LossConfig = LossConfig()
+    train: TrainConfig = TrainConfig()
+    noise: NoiseConfig = NoiseConfig()
+    data: DataConfig = DataConfig()
+
+
+# --------------------------------------------------------------------------------------
+# Presets and ablations
+# --------------------------------------------------------------------------------------
+
+
+def _paper() -> ExperimentConfig:
+    return ExperimentConfig(
+        name="paper",
+        model=ModelConfig(width=512, fe_two_streams=2, depth=2, variant="fgt8"),
+        loss=LossConfig(),
+        train=TrainConfig(steps=200_000, batch_size=4),
+    )
+
+
+def _small() -> ExperimentConfig:
+    return ExperimentConfig(
+        name="small",
+        model=ModelConfig(width=48, fe_two_streams=2, depth=2, variant="fgt8", stn_width=32),
+        loss=LossConfig(),
+        train=TrainConfig(steps=20_000, batch_size=4),
+        data=DataConfig(target_vertices=2000),
+    )
+
+
+def _test() -> ExperimentConfig:
+    return ExperimentConfig(
+        name="test",
+        model=ModelConfig(width=8, fe_two_streams=2, depth=2, variant="fgt8", stn_width=8),
+        loss=LossConfig(chamfer_block=256),
+        train=TrainConfig(steps=20, batch_size=2, eval_every=10, ckpt_every=10, log_every=5),
+        data=DataConfig(instances_per_category=2, target_vertices=200),
+    )
+
+
+PRESETS = {"paper": _paper, "small": _small, "test": _test}
+
+
+def preset(name: str) -> ExperimentConfig:
+    """The named preset (`paper`, `small` or `test`) as an `ExperimentConfig`."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}")
+    return PRESETS[name]()
+
+
+# The paper's structure ablation (appendix D): display name -> ModelConfig edits.
+VARIANTS: dict[str, dict[str, Any]] = {
+    "FGT-8": {"variant": "fgt8"},
+    "FGT-3": {"variant": "fgt3"},
+    "W/O T": {"variant": "wo_t"},
+    "MT": {"variant": "mt"},
+    "DO-2S": {"variant": "do_2s"},
+    "DO-1S": {"variant": "do_1s"},
+    "FGT-1S": {"variant": "fgt_1s"},
+}
+
+_ALL_ONES = {"vertex": 1.0, "normal": 1.0, "curvature": 1.0, "chamfer": 1.0, "feature": 1.0}
+
+
+def _loss_row(vertex, normal, curvature, chamfer) -> dict[str, Any]:
+    return {
+        "loss": {
+            "vertex": vertex,
+            "normal": normal,
+            "curvature": curvature,
+            "chamfer": chamfer,
+            "feature": 1.0,
+        }
+    }
+
+
+# Every ablation study of appendix D: study -> row name -> ExperimentConfig edits. All
+# studies except "loss" and "scheme" use all-ones loss weights (paper, appendix D).
+ABLATIONS: dict[str, dict[str, dict[str, Any]]] = {
+    "structure": {
+        name: {"model": edit, "loss": dict(_ALL_ONES)} for name, edit in VARIANTS.items()
+    },
+    "depth": {
+        f"DMD-Net {d}": {"model": {"depth": d}, "loss": dict(_ALL_ONES)} for d in (1, 2, 3, 4)
+    },
+    "dropout": {
+        f"Dr={r}": {"model": {"dropout": r}, "loss": dict(_ALL_ONES)} for r in (0.0, 0.2, 0.35, 0.5)
+    },
+    "attention": {
+        "With Attention": {"model": {"attention": True}, "loss": dict(_ALL_ONES)},
+        "Without Attention": {"model": {"attention": False}, "loss": dict(_ALL_ONES)},
+    },
+    "stn": {
+        "With STN": {"model": {"stn": True}, "loss": dict(_ALL_ONES)},
+        "Without STN": {"model": {"stn": False}, "loss": dict(_ALL_ONES)},
+    },
+    # Scheme rows: the paper states all weights 1 for Joint; Alter, 2-Phase and U-FE
+    # switch the feature-extractor term on and off inside the training loop.
+    "scheme": {
+        "Joint": {"train": {"scheme": "joint"}, "loss": dict(_ALL_ONES)},
+        "Alter": {"train": {"scheme": "alter"}, "loss": dict(_ALL_ONES)},
+        "2-Phase": {"train": {"scheme": "two_phase"}, "loss": dict(_ALL_ONES)},
+        "U-FE": {"train": {"scheme": "u_fe"}, "loss": dict(_ALL_ONES)},
+    },
+    # Loss table columns λ_V, λ_N, λ_κ, λ_C; λ_FE stays 1.
+    "loss": {
+        "With All": _loss_row(1.0, 1.0, 1.0, 1.0),
+        "Without Vertex": _loss_row(0.0, 1.0, 1.0, 1.0),
+        "Without Normal": _loss_row(1.0, 0.0, 1.0, 1.0),
+        "Without Curvature": _loss_row(1.0, 1.0, 0.0, 1.0),
+        "Without Chamfer": _loss_row(1.0, 1.0, 1.0, 0.0),
+        "Without Vertex and Chamfer": _loss_row(0.0, 1.0, 1.0, 0.0),
+    },
+}
+
+
+def variant_config(model: ModelConfig, name: str) -> ModelConfig:
+    """`model` with the structure-ablation edits of `name` (a key of `VARIANTS`, or a
+    variant id such as `"fgt3"`)."""
+    if name in VARIANTS:
+        return model.with_edits(VARIANTS[name])
+    if name in VARIANT_NAMES:
+        return model.with_edits({"variant": name})
+    raise ValueError(
+        f"unknown variant {name!r}; choose one of {list(VARIANTS)} or {list(VARIANT_NAMES)}"
+    )
+
+
+def ablation_config(base: ExperimentConfig, study: str, row: str) -> ExperimentConfig:
+    """`base` with the edits of one row of one ablation study of `ABLATIONS`."""
+    if study not in ABLATIONS:
+        raise ValueError(f"unknown ablation study {study!r}; choose one of {list(ABLATIONS)}")
+    rows = ABLATIONS[study]
+    if row not in rows:
+        raise ValueError(f"unknown row {row!r} of study {study!r}; choose one of {list(rows)}")
+    slug = re.sub(r"[^a-z0-9.]+", "_", row.lower()).strip("_")
+    return base.with_edits(rows[row]).with_edits({"name": f"{base.name}-{study}-{slug}"})
+
+
+def param_count(model: ModelConfig) -> int:
+    """Number of learnable parameters of `DMDNet(model)` (shapes only, no compute)."""
+    from dmd_jax.model import param_count as _count
+
+    return _count(model)
