@@ -16,6 +16,24 @@ def _cmd_info(args: argparse.Namespace) -> int:
     import dmd_jax
 
     print(f"dmd_jax {dmd_jax.__version__}, jax {jax.__version__}, devices {jax.devices()}")
+    if getattr(args, "preset", None) is not None:
+        from dmd_jax.config import preset, variant_config
+        from dmd_jax.model import param_count, param_counts_by_module
+
+        model = preset(args.preset).model
+        if args.variant is not None:
+            model = variant_config(model, args.variant)
+        print(
+            f"preset {args.preset}, variant {model.variant}, width {model.width}, "
+            f"depth {model.depth}"
+        )
+        for name, count in param_counts_by_module(model).items():
+            print(f"  {name:<18} {count:>12,d} parameters")
+        print(f"  {'total':<18} {param_count(model):>12,d} parameters")
+        if args.preset == "paper":
+            print("  (the paper says about 30 M; dmd_jax.config explains the difference)")
+    elif getattr(args, "variant", None) is not None:
+        raise ValueError("--variant needs --preset")
     return 0
 
 
@@ -165,6 +183,12 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("info", help="versions, devices, presets and parameter counts")
+    p.add_argument(
+        "--preset",
+        choices=("paper", "small", "test"),
+        help="print the parameter count of a preset's model",
+    )
+    p.add_argument("--variant", help="structure-ablation variant, e.g. FGT-3 or fgt3")
     p.set_defaults(func=_cmd_info)
 
     p = sub.add_parser("denoise", help="denoise a mesh file")
