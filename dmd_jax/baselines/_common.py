@@ -1,0 +1,274 @@
+"""Shared pieces of the classic denoisers: host-side neighbourhoods and JAX kernels.
+
+Neighbourhoods are index arrays built once per mesh in NumPy/SciPy (sparse products,
+no Python loops over elements); the filters themselves are gathers plus
+`jax.ops.segment_*` reductions inside `jax.jit`. Every public filter runs in the
+mesh's canonical frame (centre and longest bounding-box side 1) and maps the result
+back, so it is translation and scale equivariant and keeps float32 accurate when
+64-bit JAX is off.
+"""
+
+from __future__ import annotations
+
+import collections
+import inspect
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.sparse as sp
+
+from dmd_jax.geometry import safe_norm, safe_normalize
+from dmd_jax.mesh import canonical_frame, face_adjacency, validate_mesh, vertex_edges
+
+# How many times each jitted core has been traced; tests read it to check that a
+# second call on a mesh of the same size reuses the compiled program.
+TRACE_COUNTS: collections.Counter = collections.Counter()
+
+
+def count_trace(name: str) -> None:
+    """Records one trace of the jitted core `name` (runs at trace time only)."""
+    TRACE_COUNTS[name] += 1
+
+
+# --------------------------------------------------------------------------------------
+# Calling convention
+# --------------------------------------------------------------------------------------
+
+
+def run_in_canonical_frame(vertices, faces, core: Callable, *, name: str) -> np.ndarray:
+    """Validates a mesh, runs `core(v, f)` in its canonical frame and maps back.
+
+    Args:
+      vertices: `[n_vertex, 3]` array-like.
+      faces: `[n_face, 3]` array-like of vertex indices.
+      core: `core(vertices [n, 3] float64 canonical, faces [f, 3] int32) -> [n, 3]`.
+      name: the method's name, for error messages.
+
+    Returns:
+      `[n_vertex, 3]` float64 NumPy array in the input's frame.
+    """
+    v, f = validate_mesh(vertices, faces, name=name)
+    frame = canonical_frame(v)
+    out = np.asarray(core(frame.apply(v), f), dtype=np.float64)
+    if not np.all(np.isfinite(out)):
+        raise FloatingPointError(f"{name}: the filter produced non-finite vertices")
+    return frame.invert(out)
+
+
+def default_params(fn: Callable) -> dict:
+    """The keyword-only parameters of a filter and their defaults."""
+    return {
+        p.name: p.default
+        for p in inspect.signature(fn).parameters.values()
+        if p.kind is inspect.Parameter.KEYWORD_ONLY
+    }
+
+
+def check_positive(name: str, **values) -> None:
+    """Raises `ValueError` unless every value is a finite number > 0."""
+    for key, val in values.items():
+        if not np.isfinite(val) or val <= 0:
+            raise ValueError(f"{name}: {key} must be a finite number > 0, got {val!r}")
+
+
+def check_count(name: str, **values) -> None:
+    """Raises `ValueError` unless every value is an integer >= 0."""
+    for key, val in values.items():
+        if isinstance(val, bool) or int(val) != val or val < 0:
+            raise ValueError(f"{name}: {key} must be an integer >= 0, got {val!r}")
+
+
+def float_dtype():
+    """float64 when 64-bit JAX is enabled, else float32."""
+    return jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
+
+
+# --------------------------------------------------------------------------------------
+# Host-side neighbourhoods
+# --------------------------------------------------------------------------------------
+
+
+def _i32(x) -> np.ndarray:
+    return np.ascontiguousarray(x, dtype=np.int32)
+
+
+def edge_face_counts(faces: np.ndarray, n_vertex: int) -> tuple[np.ndarray, ...]:
+    """Unique undirected edges `(a, b)` with `a < b` and the number of faces on each."""
+    f = np.asarray(faces, dtype=np.int64)
+    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    key, count = np.unique(e[:, 0] * n_vertex + e[:, 1], return_counts=True)
+    a, b = np.divmod(key, n_vertex)
+    return a, b, count
+
+
+def umbrella_weights(faces: np.ndarray, n_vertex: int) -> tuple[np.ndarray, ...]:
+    """Weights of the uniform umbrella operator with VCG/MeshLab's boundary rule.
+
+    An interior vertex averages its 1-ring neighbours (each edge weighted by its number
+    of faces, i.e. uniformly on a manifold). A vertex on a boundary edge averages
+    itself and its neighbours along boundary edges only, so open boundaries are
+    smoothed as curves instead of shrinking into the surface. This is
+    `vcg::tri::Smooth::AccumulateLaplacianInfo`, which pymeshlab's Taubin and
+    Laplacian filters use.
+
+    Returns:
+      `(senders [m], receivers [m], weight [m], self_weight [n_vertex])`: the average
+      at `v` is `(self_weight[v] x_v + Σ weight x_s) / (self_weight[v] + Σ weight)`.
+    """
+    a, b, count = edge_face_counts(faces, n_vertex)
+    boundary_edge = count == 1
+    on_boundary = np.zeros(n_vertex, bool)
+    on_boundary[a[boundary_edge]] = True
+    on_boundary[b[boundary_edge]] = True
+    senders = np.concatenate([a, b])
+    receivers = np.concatenate([b, a])
+    c = np.concatenate([count, count]).astype(np.float64)
+    be = np.concatenate([boundary_edge, boundary_edge])
+    weight = np.where(on_boundary[receivers], be.astype(np.float64), c)
+    keep = weight > 0
+    order = np.argsort(receivers[keep], kind="stable")
+    return (
+        _i32(senders[keep][order]),
+        _i32(receivers[keep][order]),
+        weight[keep][order],
+        on_boundary.astype(np.float64),
+    )
+
+
+def vertex_face_incidence(faces: np.ndarray, n_vertex: int) -> sp.csr_matrix:
+    """Sparse `[n_face, n_vertex]` 0/1 incidence matrix."""
+    f = np.asarray(faces, dtype=np.int64)
+    n_face = f.shape[0]
+    rows = np.repeat(np.arange(n_face), 3)
+    return sp.csr_matrix((np.ones(3 * n_face), (rows, f.ravel())), shape=(n_face, n_vertex))
+
+
+def face_ring_pairs(
+    faces: np.ndarray, n_vertex: int, *, include_self: bool = True
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs `(i, j)` of faces sharing at least one vertex, sorted by `i`.
+
+    This is the vertex-based 1-ring face neighbourhood that Sun et al. (2007), Zheng et
+    al. (2011) and Zhang et al. (2015) filter over.
+
+    Returns:
+      `(receivers, senders)` int32: face `i = receivers[k]` gathers from `senders[k]`.
+    """
+    inc = vertex_face_incidence(faces, n_vertex)
+    ring = (inc @ inc.T).tocoo()
+    i, j = ring.row.astype(np.int64), ring.col.astype(np.int64)
+    if not include_self:
+        keep = i != j
+        i, j = i[keep], j[keep]
+    order = np.lexsort((j, i))
+    return _i32(i[order]), _i32(j[order])
+
+
+def vertex_k_ring_pairs(
+    faces: np.ndarray, n_vertex: int, rings: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs `(v, u)` with `u` within `rings` edges of `v` (self included), sorted by `v`."""
+    a, b = vertex_edges(faces, n_vertex)
+    adj = sp.coo_matrix((np.ones(a.size), (a, b)), shape=(n_vertex, n_vertex))
+    adj = (adj + adj.T + sp.identity(n_vertex)).tocsr()
+    reach = adj
+    for _ in range(rings - 1):
+        reach = reach @ adj
+    reach = reach.tocoo()
+    v, u = reach.row.astype(np.int64), reach.col.astype(np.int64)
+    order = np.lexsort((u, v))
+    return _i32(v[order]), _i32(u[order])
+
+
+def dual_edges(faces: np.ndarray, n_vertex: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs of faces sharing an edge, each unordered pair once."""
+    fa, fb = face_adjacency(faces, n_vertex)
+    return _i32(fa), _i32(fb)
+
+
+def vertex_corner_arrays(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`(vertex [3 f], face [3 f])` of every corner, for vertex-from-face segment sums."""
+    f = np.asarray(faces)
+    return _i32(f.ravel()), _i32(np.repeat(np.arange(f.shape[0]), 3))
+
+
+def boundary_vertex_mask(faces: np.ndarray, n_vertex: int) -> np.ndarray:
+    """`[n_vertex]` bool, `True` on vertices of edges that belong to one face only."""
+    a, b, count = edge_face_counts(faces, n_vertex)
+    mask = np.zeros(n_vertex, bool)
+    mask[a[count == 1]] = True
+    mask[b[count == 1]] = True
+    return mask
+
+
+# --------------------------------------------------------------------------------------
+# JAX kernels shared by the normal-filtering methods
+# --------------------------------------------------------------------------------------
+
+
+def face_centroids(vertices, faces):
+    """Face centroids `[n_face, 3]`."""
+    return vertices[faces].mean(axis=1)
+
+
+def gaussian(dist_sq, sigma):
+    """`exp(-d² / (2σ²))` from squared distances."""
+    return jnp.exp(-0.5 * dist_sq / (sigma * sigma))
+
+
+def mean_adjacent_centroid_distance(vertices, faces, dual_a, dual_b):
+    """Mean distance between the centroids of faces sharing an edge (a scalar).
+
+    A mesh without two edge-adjacent faces gets 1 (any positive value: its filters
+    then only see each face itself).
+    """
+    if dual_a.shape[0] == 0:
+        return jnp.asarray(1.0, vertices.dtype)
+    c = face_centroids(vertices, faces)
+    return jnp.mean(safe_norm(c[dual_a] - c[dual_b]))
+
+
+def weighted_normal_average(weights, normals, receivers, senders, n_face):
+    """`normalize(Σ_j w_ij n_j)` per receiving face; zero-sum faces keep their normal."""
+    acc = jax.ops.segment_sum(
+        weights[:, None] * normals[senders],
+        receivers,
+        num_segments=n_face,
+        indices_are_sorted=True,
+    )
+    out = safe_normalize(acc)
+    return jnp.where(safe_norm(acc, keepdims=True) > 0, out, normals)
+
+
+def fit_vertices_to_normals(vertices, faces, normals, corner_vertex, corner_face, free, iterations):
+    """Sun et al. (2007) vertex update, repeated: moves vertices onto the face planes.
+
+    `x_i ← x_i + (1/|F_i|) Σ_{j∈F_i} n_j (n_j · (c_j − x_i))` with the current face
+    centroids `c_j` and fixed target normals `n_j` (Jacobi: all vertices at once). Zheng
+    et al. (2011) and Zhang et al. (2015) use the same update.
+
+    Args:
+      vertices: `[n_vertex, 3]`.
+      faces: `[n_face, 3]` int32.
+      normals: `[n_face, 3]` unit target normals.
+      corner_vertex, corner_face: `[3 n_face]` int32 corner arrays.
+      free: `[n_vertex]` float, 1 where a vertex may move, 0 where it is held fixed.
+      iterations: int (may be traced).
+    """
+    n_vertex = vertices.shape[0]
+    degree = jax.ops.segment_sum(
+        jnp.ones(corner_vertex.shape[0], vertices.dtype), corner_vertex, num_segments=n_vertex
+    )
+    scale = free / jnp.maximum(degree, 1.0)
+    nc = normals[corner_face]
+
+    def body(_, x):
+        c = face_centroids(x, faces)
+        d = c[corner_face] - x[corner_vertex]
+        move = nc * jnp.sum(nc * d, axis=-1, keepdims=True)
+        step = jax.ops.segment_sum(move, corner_vertex, num_segments=n_vertex)
+        return x + scale[:, None] * step
+
+    return jax.lax.fori_loop(0, iterations, body, vertices)
