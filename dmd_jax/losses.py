@@ -199,6 +199,12 @@ def _curvatures(vertices, faces):
     return geometry.mean_curvature(v, f)[:n], geometry.gaussian_curvature(v, f)[:n]
 
 
+def _vertex_features(vertices, faces):
+    """`geometry.vertex_features` with finite gradients on faces with coincident corners."""
+    v, f = _without_coincident_faces(vertices, faces)
+    return geometry.vertex_features(v, f)[: vertices.shape[0]]
+
+
 def curvature_terms(pred, target, faces, *, vertex_mask=None):
     """The two unweighted curvature losses `(L_H, L_G)` (eqs. L_H and L_G).
 
@@ -525,7 +531,7 @@ def total_loss(
         if pred_features is None:
             raise ValueError("weights.feature > 0 needs pred_features (the extractor output)")
         if target_features is None:
-            target_features = geometry.vertex_features(target, faces)
+            target_features = _vertex_features(target, faces)
         terms["feature"] = feature_extractor_loss(
             pred_features, target_features, vertex_mask=vertex_mask
         )
