@@ -1,0 +1,271 @@
+"""Noise of `dmd_jax.noise`: determinism, statistics, units, and the paper's noise table."""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import numpy as np
+import pytest
+from conftest import icosphere
+
+from dmd_jax import noise
+from dmd_jax.mesh import canonical_frame, mean_edge_length
+from dmd_jax.noise import (
+    EDGE_LEVELS,
+    NOISE_KINDS,
+    PAPER_LEVELS,
+    NoiseSpec,
+    add_mixed_noise,
+    add_noise,
+    sample_noise_spec,
+)
+
+
+def _cube_points(n=20000, seed=0):
+    """Points filling a unit cube: canonical scale 1 up to sampling (then exactly 1)."""
+    v = np.random.default_rng(seed).uniform(-0.5, 0.5, size=(n, 3))
+    v[0], v[1] = -0.5, 0.5  # pin the bounding box to side 1
+    return v
+
+
+def _displacement(kind, level, n=20000, **kwargs):
+    v = _cube_points(n)
+    noisy = add_noise(jax.random.PRNGKey(1), v, None, kind, level, **kwargs)
+    return np.asarray(noisy) - v
+
+
+# --------------------------------------------------------------------------------------
+# Determinism
+# --------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("kind", NOISE_KINDS)
+def test_same_key_same_bits_different_key_different_noise(kind):
+    v, f = icosphere(2)
+    a = np.asarray(add_noise(jax.random.PRNGKey(7), v, f, kind, 0.02))
+    b = np.asarray(add_noise(jax.random.PRNGKey(7), v, f, kind, 0.02))
+    c = np.asarray(add_noise(jax.random.PRNGKey(8), v, f, kind, 0.02))
+    assert a.dtype == np.float64
+    assert np.array_equal(a.view(np.uint64), b.view(np.uint64))
+    assert not np.array_equal(a, c)
+    assert not np.array_equal(a, v)
+
+
+def test_mixed_noise_is_deterministic():
+    v, f = icosphere(1)
+    key = jax.random.PRNGKey(3)
+    (a, spec_a), (b, spec_b) = add_mixed_noise(key, v, f), add_mixed_noise(key, v, f)
+    assert spec_a == spec_b
+    assert np.array_equal(np.asarray(a), np.asarray(b))
+
+
+# --------------------------------------------------------------------------------------
+# Statistics of each kind (unit-cube points: canonical scale exactly 1)
+# --------------------------------------------------------------------------------------
+
+
+def test_gaussian_statistics():
+    d = _displacement("gaussian", 0.03)
+    # 60000 samples: the standard error of the mean is 1.2e-4, of the std 0.3 %.
+    assert abs(d.mean()) < 6e-4
+    np.testing.assert_allclose(d.std(), 0.03, rtol=0.015)
+    np.testing.assert_allclose(d.std(axis=0), 0.03, rtol=0.025)
+
+
+def test_uniform_statistics():
+    d = _displacement("uniform", 0.05)
+    assert np.abs(d).max() <= 0.05
+    assert np.abs(d).max() > 0.0499
+    np.testing.assert_allclose(d.var(), 0.05**2 / 3, rtol=0.02)
+    assert abs(d.mean()) < 1e-3
+
+
+def test_gamma_statistics():
+    level = 0.02
+    x = _displacement("gamma", level) / level
+    m = np.abs(x)
+    # Γ(shape 2, rate 2): mean 1, variance 1/2, E[X²] 3/2; a random sign per coordinate.
+    np.testing.assert_allclose(m.mean(), 1.0, rtol=0.02)
+    np.testing.assert_allclose(m.var(), 0.5, rtol=0.05)
+    np.testing.assert_allclose(np.mean(x**2), 1.5, rtol=0.03)
+    np.testing.assert_allclose(np.mean(x > 0), 0.5, atol=0.01)
+    assert m.min() > 0
+
+
+def test_impulse_statistics_per_coordinate():
+    x = _displacement("impulse", 0.1, impulse_p=0.15, impulse_q=0.1) / 0.1
+    plus, minus, zero = np.isclose(x, 1.0), np.isclose(x, -1.0), x == 0.0
+    assert np.all(plus | minus | zero)
+    np.testing.assert_allclose(plus.mean(), 0.15, atol=0.006)
+    np.testing.assert_allclose(minus.mean(), 0.10, atol=0.006)
+
+
+def test_impulse_vertex_mode():
+    p, q, level = 0.15, 0.15, 0.1
+    d = _displacement("impulse", level, impulse_p=p, impulse_q=q, impulse_mode="vertex")
+    r = np.linalg.norm(d, axis=1)
+    moved = r > 0
+    np.testing.assert_allclose(moved.mean(), p, atol=0.01)
+    # |1 + q z| with z ~ N(0, 1) has mean 1 here (q small): E|1 + q z| ≈ 1.
+    np.testing.assert_allclose(r[moved].mean(), level, rtol=0.02)
+    np.testing.assert_allclose(r[moved].std(), q * level, rtol=0.08)
+    # Directions are uniform on the sphere: mean direction near 0.
+    assert np.linalg.norm((d[moved] / r[moved, None]).mean(axis=0)) < 0.06
+
+
+@pytest.mark.parametrize(
+    "kind, level, paper_reference",
+    [
+        ("gamma", 0.03, 13.345),
+        ("gamma", 0.04, 23.724),
+        ("gamma", 0.05, 37.069),
+        ("gaussian", 0.025, 6.176),
+        ("gaussian", 0.05, 24.705),
+        ("gaussian", 0.1, 98.82),
+        ("impulse", 0.05, 7.408),
+        ("impulse", 0.1, 29.633),
+        ("impulse", 0.2, 118.531),
+        ("uniform", 0.05, 8.233),
+        ("uniform", 0.1, 32.932),
+        ("uniform", 0.2, 131.729),
+    ],
+)
+def test_paper_noise_table_reference_vertex_errors(kind, level, paper_reference):
+    # The paper's noise table gives, for each noise, the vertex error of the noisy mesh
+    # (x 1e-4, per-coordinate mean squared error in the canonical frame). Its values
+    # sit about 1.2 % under level² E[X²] for every kind; allow 5 %.
+    d = _displacement(kind, level)
+    np.testing.assert_allclose(np.mean(d**2) * 1e4, paper_reference, rtol=0.05)
+
+
+# --------------------------------------------------------------------------------------
+# Units
+# --------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("kind", NOISE_KINDS)
+def test_canonical_units_follow_the_bounding_box(kind):
+    v, f = icosphere(2)
+    key = jax.random.PRNGKey(4)
+    base = np.asarray(add_noise(key, v, f, kind, 0.02)) - v
+    scale, shift = 37.5, np.array([3.0, -20.0, 1e3])
+    moved = np.asarray(add_noise(key, v * scale + shift, f, kind, 0.02)) - (v * scale + shift)
+    np.testing.assert_allclose(moved, base * scale, rtol=1e-9, atol=1e-9)
+    # The noise is level × (longest bounding-box side) × unit noise.
+    unit = np.asarray(noise.unit_noise(key, v.shape, kind, dtype=np.float64))
+    np.testing.assert_allclose(base, 0.02 * canonical_frame(v).scale * unit, rtol=1e-12, atol=1e-15)
+
+
+@pytest.mark.parametrize("kind", NOISE_KINDS)
+def test_edge_units_follow_the_mean_edge_length(kind):
+    key = jax.random.PRNGKey(5)
+    coarse, f_coarse = icosphere(1)
+    fine, f_fine = icosphere(3)
+    for v, f in [(coarse, f_coarse), (fine, f_fine)]:
+        d = np.asarray(add_noise(key, v, f, kind, 0.3, units="edge")) - v
+        unit = np.asarray(noise.unit_noise(key, v.shape, kind, dtype=np.float64))
+        np.testing.assert_allclose(d, 0.3 * mean_edge_length(v, f) * unit, rtol=1e-12, atol=1e-15)
+    # Same bounding box, edges 4x shorter: canonical noise keeps its size, edge noise shrinks.
+    ratio = mean_edge_length(coarse, f_coarse) / mean_edge_length(fine, f_fine)
+    assert 3.5 < ratio < 4.5
+
+
+def test_integer_vertices_become_float():
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]])
+    out = add_noise(jax.random.PRNGKey(0), v, np.array([[0, 1, 2]]), "gaussian", 0.1)
+    assert np.issubdtype(np.asarray(out).dtype, np.floating)
+
+
+def test_zero_level_is_identity():
+    v, f = icosphere(1)
+    for kind in NOISE_KINDS:
+        out = add_noise(jax.random.PRNGKey(0), v, f, kind, 0.0)
+        np.testing.assert_array_equal(np.asarray(out), v)
+
+
+# --------------------------------------------------------------------------------------
+# Mixed noise
+# --------------------------------------------------------------------------------------
+
+
+def test_paper_and_edge_levels():
+    assert set(PAPER_LEVELS) == set(NOISE_KINDS)
+    for kind in NOISE_KINDS:
+        levels = PAPER_LEVELS[kind]
+        assert len(levels) == 5 and list(levels) == sorted(levels) and levels[0] > 0
+    assert EDGE_LEVELS == (0.1, 0.2, 0.3, 0.4, 0.5)
+    # Values the paper itself uses are among the training levels.
+    assert {0.005, 0.01, 0.05} <= set(PAPER_LEVELS["gaussian"])
+    assert 0.035 in PAPER_LEVELS["uniform"] and 0.015 in PAPER_LEVELS["gamma"]
+
+
+def test_sample_noise_spec_covers_every_setting():
+    seen = set()
+    for i in range(400):
+        spec = sample_noise_spec(jax.random.PRNGKey(i))
+        assert isinstance(spec, NoiseSpec)
+        levels = EDGE_LEVELS if spec.units == "edge" else PAPER_LEVELS[spec.kind]
+        assert spec.level in levels
+        seen.add((spec.kind, spec.units))
+    assert seen == {(k, u) for k in NOISE_KINDS for u in ("canonical", "edge")}
+
+
+def test_sample_noise_spec_options():
+    keys = [jax.random.PRNGKey(i) for i in range(40)]
+    assert {sample_noise_spec(k, p_edge=0.0).units for k in keys} == {"canonical"}
+    assert {sample_noise_spec(k, p_edge=1.0).units for k in keys} == {"edge"}
+    specs = [
+        sample_noise_spec(k, kinds=["uniform"], canonical_levels=[0.07], p_edge=0.0) for k in keys
+    ]
+    assert set(specs) == {NoiseSpec("uniform", 0.07, "canonical")}
+    spec = sample_noise_spec(keys[0], canonical_levels=None, edge_levels=None)
+    assert spec == sample_noise_spec(keys[0])
+
+
+def test_add_mixed_noise_matches_add_noise():
+    v, f = icosphere(1)
+    key = jax.random.PRNGKey(11)
+    noisy, spec = add_mixed_noise(key, v, f)
+    k_spec, k_noise = jax.random.split(key)
+    assert spec == sample_noise_spec(k_spec)
+    ref = add_noise(k_noise, v, f, spec.kind, spec.level, units=spec.units)
+    np.testing.assert_array_equal(np.asarray(noisy), np.asarray(ref))
+
+
+# --------------------------------------------------------------------------------------
+# Bad arguments
+# --------------------------------------------------------------------------------------
+
+
+def test_bad_arguments_raise_value_error():
+    v, f = icosphere(1)
+    key = jax.random.PRNGKey(0)
+    with pytest.raises(ValueError, match="kind"):
+        add_noise(key, v, f, "poisson", 0.1)
+    with pytest.raises(ValueError, match="units"):
+        add_noise(key, v, f, "gaussian", 0.1, units="metres")
+    with pytest.raises(ValueError, match=">= 0"):
+        add_noise(key, v, f, "gaussian", -0.1)
+    with pytest.raises(ValueError, match=">= 0"):
+        add_noise(key, v, f, "gaussian", math.nan)
+    with pytest.raises(ValueError, match="number"):
+        add_noise(key, v, f, "gaussian", "big")
+    with pytest.raises(ValueError, match="faces"):
+        add_noise(key, v, None, "gaussian", 0.1, units="edge")
+    with pytest.raises(ValueError, match="vertices"):
+        add_noise(key, v[:, :2], f, "gaussian", 0.1)
+    with pytest.raises(ValueError, match="impulse_p"):
+        add_noise(key, v, f, "impulse", 0.1, impulse_p=1.5)
+    with pytest.raises(ValueError, match="<= 1"):
+        add_noise(key, v, f, "impulse", 0.1, impulse_p=0.6, impulse_q=0.6)
+    with pytest.raises(ValueError, match="impulse_mode"):
+        add_noise(key, v, f, "impulse", 0.1, impulse_mode="face")
+    with pytest.raises(ValueError, match="kind"):
+        sample_noise_spec(key, kinds=["gaussian", "speckle"])
+    with pytest.raises(ValueError, match="p_edge"):
+        sample_noise_spec(key, p_edge=2.0)
+    with pytest.raises(ValueError, match="empty"):
+        sample_noise_spec(key, canonical_levels={"gaussian": ()}, kinds=["gaussian"], p_edge=0)
+    with pytest.raises(ValueError, match=">= 0"):
+        sample_noise_spec(key, edge_levels=(0.1, -0.2), p_edge=1.0)
