@@ -29,11 +29,11 @@ from collections.abc import Callable
 import numpy as np
 
 from dmd_jax.baselines._common import default_params
-from dmd_jax.baselines.bmd import bmd
-from dmd_jax.baselines.l0 import l0
-from dmd_jax.baselines.laplacian import laplacian, taubin
-from dmd_jax.baselines.nifp import nifp
+from dmd_jax.baselines.bilateral_mesh import bmd
+from dmd_jax.baselines.l0_minimization import l0
 from dmd_jax.baselines.normal_filtering import bnf, fefp, gnf
+from dmd_jax.baselines.robust_projection import nifp
+from dmd_jax.baselines.smoothing import laplacian, taubin
 
 REGISTRY: dict[str, Callable[..., np.ndarray]] = {
     "laplacian": laplacian,

@@ -19,8 +19,8 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
 
-from dmd_jax.geometry import safe_norm, safe_normalize
-from dmd_jax.mesh import canonical_frame, face_adjacency, validate_mesh, vertex_edges
+from dmd_jax.geometry import safe_norm
+from dmd_jax.mesh import canonical_frame, face_adjacency, validate_mesh
 
 # How many times each jitted core has been traced; tests read it to check that a
 # second call on a mesh of the same size reuses the compiled program.
@@ -166,22 +166,6 @@ def face_ring_pairs(
     return _i32(i[order]), _i32(j[order])
 
 
-def vertex_k_ring_pairs(
-    faces: np.ndarray, n_vertex: int, rings: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """Pairs `(v, u)` with `u` within `rings` edges of `v` (self included), sorted by `v`."""
-    a, b = vertex_edges(faces, n_vertex)
-    adj = sp.coo_matrix((np.ones(a.size), (a, b)), shape=(n_vertex, n_vertex))
-    adj = (adj + adj.T + sp.identity(n_vertex)).tocsr()
-    reach = adj
-    for _ in range(rings - 1):
-        reach = reach @ adj
-    reach = reach.tocoo()
-    v, u = reach.row.astype(np.int64), reach.col.astype(np.int64)
-    order = np.lexsort((u, v))
-    return _i32(v[order]), _i32(u[order])
-
-
 def dual_edges(faces: np.ndarray, n_vertex: int) -> tuple[np.ndarray, np.ndarray]:
     """Pairs of faces sharing an edge, each unordered pair once."""
     fa, fb = face_adjacency(faces, n_vertex)
@@ -231,15 +215,20 @@ def mean_adjacent_centroid_distance(vertices, faces, dual_a, dual_b):
 
 
 def weighted_normal_average(weights, normals, receivers, senders, n_face):
-    """`normalize(Σ_j w_ij n_j)` per receiving face; zero-sum faces keep their normal."""
+    """`normalize(Σ_j w_ij n_j)` per receiving face; zero-sum faces keep their normal.
+
+    Only an exactly zero sum counts as zero: products of small areas and range weights
+    are legitimately tiny (`safe_normalize`'s 1e-10 floor would freeze such faces).
+    """
     acc = jax.ops.segment_sum(
         weights[:, None] * normals[senders],
         receivers,
         num_segments=n_face,
         indices_are_sorted=True,
     )
-    out = safe_normalize(acc)
-    return jnp.where(safe_norm(acc, keepdims=True) > 0, out, normals)
+    norm = jnp.sqrt(jnp.sum(acc * acc, axis=-1, keepdims=True))
+    ok = norm > 0
+    return jnp.where(ok, acc / jnp.where(ok, norm, 1.0), normals)
 
 
 def fit_vertices_to_normals(vertices, faces, normals, corner_vertex, corner_face, free, iterations):

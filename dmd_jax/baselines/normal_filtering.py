@@ -167,7 +167,10 @@ def _bnf_core(
     count_trace("bnf")
     n_face = faces.shape[0]
     c = face_centroids(x, faces)
+    # Areas relative to their mean: the normalised average is unchanged and the sums
+    # stay far from underflow on meshes with many small faces.
     area = face_areas(x, faces)
+    area = area / jnp.maximum(jnp.mean(area), jnp.finfo(x.dtype).tiny)
     sc = sigma_c * mean_adjacent_centroid_distance(x, faces, dual_a, dual_b)
     # Centroids and areas do not change while only the normals are filtered.
     spatial = area[ring_s] * gaussian(_sq(c[ring_r] - c[ring_s]), sc)
@@ -242,39 +245,55 @@ def bnf(
 
 
 def _patch_pairs(ring_r: np.ndarray, ring_s: np.ndarray, n_face: int):
-    """All unordered pairs `(k, l)` of faces inside each patch (ring sorted by patch)."""
+    """Pairs of faces inside each patch, as indices into a list of distinct pairs.
+
+    The ring must be sorted by patch. A pair `(k, l)` lies in every patch holding
+    both faces, so normal differences are computed once per distinct pair.
+
+    Returns:
+      `(patch [m], pair [m], first [p], second [p])`: entry i says that patch
+      `patch[i]` holds the faces `first[pair[i]] < second[pair[i]]`.
+    """
     indptr = np.concatenate([[0], np.cumsum(np.bincount(ring_r, minlength=n_face))])
     nnz = ring_r.size
     later = indptr[ring_r.astype(np.int64) + 1] - np.arange(nnz) - 1
     first = np.repeat(np.arange(nnz), later)
     offset = np.arange(first.size) - np.repeat(np.cumsum(later) - later, later)
     second = first + 1 + offset
-    return _i32(ring_r[first]), _i32(ring_s[first]), _i32(ring_s[second])
+    k, l = ring_s[first].astype(np.int64), ring_s[second].astype(np.int64)
+    key, pair = np.unique(np.minimum(k, l) * n_face + np.maximum(k, l), return_inverse=True)
+    uk, ul = np.divmod(key, n_face)
+    return _i32(ring_r[first]), _i32(pair), _i32(uk), _i32(ul)
 
 
 def _patch_inner_edges(ring_r, ring_s, dual_a, dual_b, n_face: int):
-    """Triples `(patch j, a, b)`: faces a < b share an edge and both lie in patch j."""
-    da = np.concatenate([dual_a, dual_b]).astype(np.int64)
-    db = np.concatenate([dual_b, dual_a]).astype(np.int64)
-    keep = da < db
-    da, db = da[keep], db[keep]
-    order = np.argsort(da, kind="stable")
-    da, db = da[order], db[order]
-    indptr = np.concatenate([[0], np.cumsum(np.bincount(da, minlength=n_face))])
-    # For every ring entry (j, a), every edge-neighbour b > a of a ...
-    deg = indptr[ring_s.astype(np.int64) + 1] - indptr[ring_s.astype(np.int64)]
+    """Inner edges of each patch: `(patch [m], edge [m])`, indices into the dual edges.
+
+    An inner edge of patch j is a dual edge `(dual_a[e], dual_b[e])` whose two faces
+    both lie in patch j. The ring must be sorted by patch.
+    """
+    ends = np.concatenate([dual_a, dual_b]).astype(np.int64)
+    other = np.concatenate([dual_b, dual_a]).astype(np.int64)
+    edge_id = np.tile(np.arange(dual_a.size), 2)
+    keep = ends < other
+    ends, other, edge_id = ends[keep], other[keep], edge_id[keep]
+    order = np.argsort(ends, kind="stable")
+    other, edge_id = other[order], edge_id[order]
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(ends, minlength=n_face))])
+    # For every ring entry (j, a), every edge (a, b) with b > a ...
+    a = ring_s.astype(np.int64)
+    deg = indptr[a + 1] - indptr[a]
     entry = np.repeat(np.arange(ring_r.size), deg)
-    start = np.repeat(indptr[ring_s.astype(np.int64)], deg)
     offset = np.arange(entry.size) - np.repeat(np.cumsum(deg) - deg, deg)
+    slot = np.repeat(indptr[a], deg) + offset
     j = ring_r[entry].astype(np.int64)
-    a = ring_s[entry].astype(np.int64)
-    b = db[start + offset]
+    b = other[slot]
     # ... kept when b is in patch j too (ring keys are sorted because the ring is).
     keys = ring_r.astype(np.int64) * n_face + ring_s
     query = j * n_face + b
     pos = np.clip(np.searchsorted(keys, query), 0, keys.size - 1)
     inside = keys[pos] == query
-    return _i32(j[inside]), _i32(a[inside]), _i32(b[inside])
+    return _i32(j[inside]), _i32(edge_id[slot][inside])
 
 
 def _radius_pairs(points: np.ndarray, radius: float):
@@ -288,7 +307,7 @@ def _radius_pairs(points: np.ndarray, radius: float):
     return _i32(i[order]), _i32(j[order])
 
 
-def _guidance_normals(n, area, ring_r, ring_s, pp_patch, pp_k, pp_l, ie_patch, ie_a, ie_b):
+def _guidance_normals(n, area, ring, patch, inner, dual):
     """Zhang et al.'s guidance: mean normal of the most consistent patch containing i.
 
     A patch `P_j` is the faces sharing a vertex with face j (j included). Its
@@ -296,36 +315,46 @@ def _guidance_normals(n, area, ring_r, ring_s, pp_patch, pp_k, pp_l, ie_patch, i
     of its faces, `R = max φ / (Σ φ + ε)` over its inner edges with `φ = ‖n_a − n_b‖`
     (small for patches without a feature). Each face takes the area-weighted mean
     normal of the patch with the smallest H among those that contain it.
+
+    Args:
+      n: `[n_face, 3]` unit normals.
+      area: `[n_face]` face areas.
+      ring: `(receivers, senders)` of the vertex-ring neighbourhood, self included.
+      patch: `_patch_pairs` output.
+      inner: `_patch_inner_edges` output.
+      dual: `(a, b)` faces of every dual edge.
+
+    Returns:
+      `[n_face, 3]` guidance normals.
     """
+    ring_r, ring_s = ring
+    pp_patch, pp_pair, pair_k, pair_l = patch
+    ie_patch, ie_edge = inner
     n_face = n.shape[0]
-    mean = safe_normalize(
-        jax.ops.segment_sum(
-            area[ring_s, None] * n[ring_s], ring_r, num_segments=n_face, indices_are_sorted=True
-        )
-    )
-    diff = jax.ops.segment_max(
-        safe_norm(n[pp_k] - n[pp_l]), pp_patch, num_segments=n_face, indices_are_sorted=True
-    )
-    phi = safe_norm(n[ie_a] - n[ie_b])
-    max_tv = jax.ops.segment_max(phi, ie_patch, num_segments=n_face, indices_are_sorted=True)
-    sum_tv = jax.ops.segment_sum(phi, ie_patch, num_segments=n_face, indices_are_sorted=True)
+
+    def seg(op, values, ids):
+        return op(values, ids, num_segments=n_face, indices_are_sorted=True)
+
+    mean = safe_normalize(seg(jax.ops.segment_sum, area[ring_s, None] * n[ring_s], ring_r))
+    pair_diff = safe_norm(n[pair_k] - n[pair_l])
+    diff = seg(jax.ops.segment_max, pair_diff[pp_pair], pp_patch)
+    phi = safe_norm(n[dual[0]] - n[dual[1]])[ie_edge]
+    max_tv = seg(jax.ops.segment_max, phi, ie_patch)
+    sum_tv = seg(jax.ops.segment_sum, phi, ie_patch)
     # Empty segments (a one-face patch; a patch without inner edge) reduce to -inf.
     diff = jnp.maximum(diff, 0.0)
     max_tv = jnp.maximum(max_tv, 0.0)
     h = diff * max_tv / (sum_tv + 1e-9)
     hc = h[ring_s]
-    h_min = jax.ops.segment_min(hc, ring_r, num_segments=n_face, indices_are_sorted=True)
+    h_min = seg(jax.ops.segment_min, hc, ring_r)
     best = jnp.where(hc <= h_min[ring_r], ring_s, n_face)
-    chosen = jax.ops.segment_min(best, ring_r, num_segments=n_face, indices_are_sorted=True)
+    chosen = seg(jax.ops.segment_min, best, ring_r)
     return mean[chosen]
 
 
 @jax.jit
 def _gnf_core(x, faces, ring, patch, inner, omega, dual, cv, cf, free, params, iters):
     count_trace("gnf")
-    ring_r, ring_s = ring
-    pp_patch, pp_k, pp_l = patch
-    ie_patch, ie_a, ie_b = inner
     om_r, om_s = omega
     sigma_s_factor, sigma_r = params
     n_normal, n_vert = iters
@@ -334,9 +363,10 @@ def _gnf_core(x, faces, ring, patch, inner, omega, dual, cv, cf, free, params, i
     def outer(_, y):
         n = face_normals(y, faces)
         area = face_areas(y, faces)
+        area = area / jnp.maximum(jnp.mean(area), jnp.finfo(y.dtype).tiny)
         c = face_centroids(y, faces)
         sigma_s = sigma_s_factor * mean_adjacent_centroid_distance(y, faces, *dual)
-        g = _guidance_normals(n, area, ring_r, ring_s, pp_patch, pp_k, pp_l, ie_patch, ie_a, ie_b)
+        g = _guidance_normals(n, area, ring, patch, inner, dual)
         w = (
             area[om_s]
             * gaussian(_sq(c[om_r] - c[om_s]), sigma_s)

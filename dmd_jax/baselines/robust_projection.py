@@ -29,7 +29,7 @@ from dmd_jax.baselines._common import (
     run_in_canonical_frame,
 )
 from dmd_jax.geometry import face_areas, face_normals
-from dmd_jax.mesh import mean_edge_length
+from dmd_jax.mesh import bucket_size, mean_edge_length
 
 
 def _weighted_mean(weights, values, receivers, n, fallback):
@@ -42,18 +42,22 @@ def _weighted_mean(weights, values, receivers, n, fallback):
 
 
 @jax.jit
-def _nifp_core(x, faces, pair_v, pair_f, sigma_f, sigma_g, sigma_m):
+def _nifp_core(x, faces, pair_v, pair_f, valid, sigma_f, sigma_g, sigma_m):
+    """Mollification and robust projection over `(vertex, face)` pairs.
+
+    Pairs are sorted by vertex; padding pairs carry `valid = 0`.
+    """
     count_trace("nifp")
     n_vertex = x.shape[0]
     c = face_centroids(x, faces)
-    area = face_areas(x, faces)
+    area = face_areas(x, faces)[pair_f] * valid
     p = x[pair_v]
     cq = c[pair_f]
     d2 = jnp.sum((cq - p) ** 2, axis=-1)
-    mollified = _weighted_mean(area[pair_f] * gaussian(d2, sigma_m), cq, pair_v, n_vertex, x)
+    mollified = _weighted_mean(area * gaussian(d2, sigma_m), cq, pair_v, n_vertex, x)
     nq = face_normals(mollified, faces)[pair_f]
     proj = p - jnp.sum((p - cq) * nq, axis=-1, keepdims=True) * nq
-    w = area[pair_f] * gaussian(d2, sigma_f) * gaussian(jnp.sum((proj - p) ** 2, -1), sigma_g)
+    w = area * gaussian(d2, sigma_f) * gaussian(jnp.sum((proj - p) ** 2, -1), sigma_g)
     return _weighted_mean(w, proj, pair_v, n_vertex, x)
 
 
@@ -94,11 +98,18 @@ def nifp(
         edge = mean_edge_length(v, f)
         sf, sg = sigma_f * edge, sigma_g * edge
         pv, pf = _vertex_face_pairs(v, v[f].mean(axis=1), 2.0 * sf)
+        # Pad the pair list to a bucket size (padding on the last vertex keeps the
+        # receivers sorted) so meshes of similar size share one compiled program.
+        pad = bucket_size(pv.size) - pv.size
+        valid = np.concatenate([np.ones(pv.size), np.zeros(pad)])
+        pv = np.concatenate([pv, np.full(pad, v.shape[0] - 1, np.int32)])
+        pf = np.concatenate([pf, np.zeros(pad, np.int32)])
         return _nifp_core(
             jnp.asarray(v, dt),
             jnp.asarray(f),
             pv,
             pf,
+            jnp.asarray(valid, dt),
             jnp.asarray(sf, dt),
             jnp.asarray(sg, dt),
             jnp.asarray(mollify * sf, dt),
