@@ -146,9 +146,10 @@ def _from_json(value: Any, hint: Any, where: str) -> Any:
     if origin in (typing.Union, types.UnionType):
         if value is None and type(None) in args:
             return None
-        for arg in args:
-            if arg is type(None):
-                continue
+        options = [arg for arg in args if arg is not type(None)]
+        if len(options) == 1:
+            return _from_json(value, options[0], where)
+        for arg in options:
             try:
                 return _from_json(value, arg, where)
             except ValueError:
@@ -211,8 +212,12 @@ class ModelConfig(_ConfigMixin):
       pdf_residual: add the primal stream's output to the fused PDF output (our choice;
         see `dmd_jax.model.TwoStream`).
       normalize_fe_normals: the feature extractor's normal part is unit length.
-      head_init_scale: variance scale of the denoiser head's initial kernel (small, so an
-        untrained offset model starts close to the identity).
+      head_init_scale: variance scale of the denoiser head's initial kernel; 0 (default)
+        initialises it to zeros, so an untrained offset model is exactly the identity map
+        (the residual stacks grow activations at init, measured rms ≈ 0.8 after the
+        first two-stream network and ≈ 60 after the denoiser's last, for both the small
+        and paper presets; a random head would start with offsets larger than the
+        shape).
       dtype: parameter and computation dtype, `"float32"` or `"float64"`.
     """
 
@@ -231,7 +236,7 @@ class ModelConfig(_ConfigMixin):
     predict_offset: bool = _static(True)
     pdf_residual: bool = _static(True)
     normalize_fe_normals: bool = _static(True)
-    head_init_scale: float = _static(1e-2)
+    head_init_scale: float = _static(0.0)
     dtype: str = _static("float32")
 
     def __post_init__(self):
@@ -250,8 +255,8 @@ class ModelConfig(_ConfigMixin):
         )
         _check_positive_int("stn_width", self.stn_width)
         _check(
-            isinstance(self.head_init_scale, int | float) and self.head_init_scale > 0,
-            f"head_init_scale must be > 0, got {self.head_init_scale!r}",
+            isinstance(self.head_init_scale, int | float) and self.head_init_scale >= 0,
+            f"head_init_scale must be >= 0, got {self.head_init_scale!r}",
         )
         _check_choice("dtype", self.dtype, DTYPES)
 

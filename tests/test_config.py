@@ -1,0 +1,231 @@
+"""Configs: JSON round trips, strict parsing, validation, pytree behaviour, presets and
+the ablation tables (checked against the paper's appendix D)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import jax
+import jax.numpy as jnp
+import pytest
+
+from dmd_jax.config import (
+    ABLATIONS,
+    VARIANT_NAMES,
+    VARIANTS,
+    DataConfig,
+    ExperimentConfig,
+    LossConfig,
+    ModelConfig,
+    NoiseConfig,
+    TrainConfig,
+    ablation_config,
+    preset,
+    variant_config,
+)
+
+
+def all_configs():
+    out = [preset(name) for name in ("paper", "small", "test")]
+    for study, rows in ABLATIONS.items():
+        for row in rows:
+            out.append(ablation_config(preset("test"), study, row))
+    out.append(
+        ExperimentConfig(
+            noise=NoiseConfig(
+                kinds=("gaussian", "impulse"),
+                canonical_levels=(("gaussian", (0.01, 0.02)), ("impulse", (0.1,))),
+                edge_levels=(0.2, 0.4),
+            ),
+            data=DataConfig(source="folder", root="/data/meshes", categories=("a", "b")),
+            model=ModelConfig(transformer_width=16),
+        )
+    )
+    return out
+
+
+@pytest.mark.parametrize("cfg", all_configs(), ids=lambda c: c.name)
+def test_json_round_trip(cfg):
+    text = cfg.to_json()
+    back = ExperimentConfig.from_json(text)
+    assert back == cfg
+    assert hash(back) == hash(cfg)
+    # Plain JSON types only (lists, not tuples), so json.dumps(to_dict()) is the format.
+    assert json.loads(json.dumps(cfg.to_dict())) == cfg.to_dict()
+
+
+def test_from_dict_fills_defaults_and_nested_sections():
+    cfg = ExperimentConfig.from_dict({"model": {"width": 16}, "train": {"lr": 1}})
+    assert cfg.model == ModelConfig(width=16)
+    assert cfg.train.lr == 1.0 and isinstance(cfg.train.lr, float)
+    assert cfg.loss == LossConfig()
+
+
+@pytest.mark.parametrize(
+    "data,match",
+    [
+        ({"modle": {}}, r"unknown key\(s\) \['modle'\]"),
+        ({"model": {"widht": 8}}, r"ModelConfig: unknown key\(s\) \['widht'\]"),
+        ({"model": {"width": "8"}}, "ModelConfig.width: expected an integer"),
+        ({"model": {"width": 8.0}}, "ModelConfig.width: expected an integer"),
+        ({"model": {"width": True}}, "ModelConfig.width: expected an integer"),
+        ({"model": {"attention": 1}}, "ModelConfig.attention: expected true/false"),
+        ({"model": {"variant": "fgt9"}}, "variant must be one of"),
+        ({"model": {"dropout": 1.0}}, r"dropout must lie in \[0, 1\)"),
+        ({"model": {"depth": 0}}, "depth must be an integer >= 1"),
+        ({"model": {"transformer_width": "x"}}, "transformer_width: expected an integer"),
+        ({"model": 3}, "ModelConfig: expected a dict"),
+        ({"loss": {"normal": -1.0}}, "loss weight normal"),
+        ({"train": {"scheme": "joined"}}, "scheme must be one of"),
+        ({"train": {"schedule": "warmup_cosine"}}, "schedule must be one of"),
+        ({"noise": {"kinds": ["gaussian", "pink"]}}, "noise kind must be one of"),
+        ({"noise": {"kinds": "gaussian"}}, "expected a list"),
+        ({"noise": {"canonical_levels": [["gaussian"]]}}, "expected 2 items"),
+        ({"data": {"source": "folder"}}, "needs a root directory"),
+        ({"name": 3}, "ExperimentConfig.name: expected a string"),
+    ],
+)
+def test_from_dict_is_strict(data, match):
+    with pytest.raises(ValueError, match=match):
+        ExperimentConfig.from_dict(data)
+
+
+def test_from_json_rejects_invalid_json():
+    with pytest.raises(ValueError, match="invalid JSON"):
+        ExperimentConfig.from_json("{model: }")
+
+
+def test_configs_are_frozen_static_pytrees():
+    cfg = preset("small")
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfg.model.width = 3
+    assert jax.tree.leaves(cfg) == []
+    # Hashable, so a config can be a static argument of jit; equal configs share a trace.
+    traces = []
+
+    def f(x, model):
+        traces.append(model.width)
+        return x * model.width
+
+    g = jax.jit(f, static_argnums=1)
+    assert float(g(jnp.ones(()), ModelConfig(width=5))) == 5.0
+    g(jnp.ones(()), ModelConfig(width=5))
+    assert float(g(jnp.ones(()), ModelConfig(width=6))) == 6.0
+    assert traces == [5, 6]
+
+
+def test_with_edits_is_nested_and_strict():
+    cfg = preset("test").with_edits({"model": {"depth": 4}, "train": {"steps": 7}})
+    assert cfg.model.depth == 4 and cfg.train.steps == 7
+    assert cfg.model.width == preset("test").model.width
+    with pytest.raises(ValueError, match="unknown field"):
+        cfg.with_edits({"model": {"dept": 4}})
+    with pytest.raises(ValueError, match="depth must be"):
+        cfg.with_edits({"model": {"depth": 0}})
+
+
+def test_presets():
+    assert preset("paper").model.width == 512
+    assert preset("paper").model.variant == "fgt8"
+    assert preset("paper").model.depth == 2
+    assert preset("paper").model.fe_two_streams == 2
+    paper_train = preset("paper").train
+    assert (paper_train.lr, paper_train.b1, paper_train.b2) == (1e-4, 0.9, 0.999)
+    assert preset("test").model.width == 8
+    assert 48 <= preset("small").model.width <= 64
+    with pytest.raises(ValueError, match="unknown preset"):
+        preset("huge")
+
+
+def test_loss_config_matches_the_paper_and_losses_module():
+    losses = pytest.importorskip("dmd_jax.losses")
+    assert LossConfig().weights() == losses.LossWeights()
+    assert LossConfig.all_ones().weights() == losses.LossWeights.all_ones()
+    # Paper section 3.3: λ_V = 1, λ_N = 0.2, λ_κ = 0.01, λ_C = 0.05, λ_FE = 1.
+    assert LossConfig().weights() == losses.LossWeights(1.0, 0.2, 0.01, 0.05, 1.0)
+    assert (LossConfig().gamma_h, LossConfig().gamma_g) == (1e-6, 1.0)
+
+
+def test_train_config_derived_values():
+    t = TrainConfig(steps=10, two_phase_split=0.3)
+    assert t.two_phase_fe_steps == 3
+    assert t.learning_rate == t.lr
+    assert TrainConfig(steps=2, two_phase_split=0.01).two_phase_fe_steps == 1
+
+
+def test_noise_settings_leave_unset_fields_to_the_sampler():
+    assert NoiseConfig().settings() == {"kinds": NoiseConfig().kinds, "p_edge": 0.5}
+    cfg = NoiseConfig(canonical_levels=(("gamma", (0.01,)),), edge_levels=(0.3,))
+    assert cfg.settings()["canonical_levels"] == {"gamma": (0.01,)}
+    assert cfg.settings()["edge_levels"] == (0.3,)
+    pipeline = pytest.importorskip("dmd_jax.pipeline")
+    settings = pipeline.NoiseSettings(**cfg.settings())
+    assert settings.p_edge == 0.5
+
+
+def test_variant_table_covers_the_paper_structure_ablation():
+    # Appendix D, "Structure Ablation": seven variants.
+    assert list(VARIANTS) == ["FGT-8", "FGT-3", "W/O T", "MT", "DO-2S", "DO-1S", "FGT-1S"]
+    assert sorted(v["variant"] for v in VARIANTS.values()) == sorted(VARIANT_NAMES)
+    base = ModelConfig()
+    expect = {
+        # name: (feature extractor, transformer, FE two-stream, denoiser two-stream, rows)
+        "FGT-8": (True, True, True, True, 8),
+        "FGT-3": (True, True, True, True, 3),
+        "W/O T": (True, False, True, True, 8),
+        "MT": (True, True, True, True, 8),
+        "DO-2S": (False, False, True, True, 8),
+        "DO-1S": (False, False, True, False, 8),
+        "FGT-1S": (True, True, False, False, 8),
+    }
+    for name, (fe, tr, fe2, den2, rows) in expect.items():
+        cfg = variant_config(base, name)
+        assert cfg.uses_feature_extractor == fe
+        assert cfg.uses_transformer == tr
+        assert cfg.denoiser_two_stream == den2
+        if fe:
+            assert cfg.fe_two_stream == fe2
+            assert cfg.transform_in_dim == rows
+        assert cfg.n_transforms == (base.mt_transforms if name == "MT" else 1)
+    assert variant_config(base, "fgt3") == variant_config(base, "FGT-3")
+    with pytest.raises(ValueError, match="unknown variant"):
+        variant_config(base, "FGT-9")
+
+
+def test_ablation_tables_follow_the_paper():
+    assert set(ABLATIONS) == {"structure", "depth", "dropout", "attention", "stn", "scheme", "loss"}
+    base = preset("test")
+    depths = [ablation_config(base, "depth", r).model.depth for r in ABLATIONS["depth"]]
+    assert depths == [1, 2, 3, 4]
+    rates = [ablation_config(base, "dropout", r).model.dropout for r in ABLATIONS["dropout"]]
+    assert rates == [0.0, 0.2, 0.35, 0.5]
+    schemes = [ablation_config(base, "scheme", r).train.scheme for r in ABLATIONS["scheme"]]
+    assert schemes == ["joint", "alter", "two_phase", "u_fe"]
+    # Appendix D: every study but loss and scheme uses all-ones weights.
+    for study in ("structure", "depth", "dropout", "attention", "stn"):
+        for row in ABLATIONS[study]:
+            assert ablation_config(base, study, row).loss == LossConfig.all_ones(
+                chamfer_block=base.loss.chamfer_block
+            )
+    # Loss table: λ_V, λ_N, λ_κ, λ_C per row, λ_FE = 1.
+    table = {
+        "With All": (1, 1, 1, 1),
+        "Without Vertex": (0, 1, 1, 1),
+        "Without Normal": (1, 0, 1, 1),
+        "Without Curvature": (1, 1, 0, 1),
+        "Without Chamfer": (1, 1, 1, 0),
+        "Without Vertex and Chamfer": (0, 1, 1, 0),
+    }
+    assert list(ABLATIONS["loss"]) == list(table)
+    for row, weights in table.items():
+        loss = ablation_config(base, "loss", row).loss
+        assert (loss.vertex, loss.normal, loss.curvature, loss.chamfer) == weights
+        assert loss.feature == 1.0
+    names = {ablation_config(base, s, r).name for s in ABLATIONS for r in ABLATIONS[s]}
+    assert len(names) == sum(len(rows) for rows in ABLATIONS.values())
+    assert all("/" not in n and " " not in n for n in names)
+    with pytest.raises(ValueError, match="unknown ablation study"):
+        ablation_config(base, "width", "x")
+    with pytest.raises(ValueError, match="unknown row"):
+        ablation_config(base, "depth", "DMD-Net 5")
