@@ -172,10 +172,10 @@ _STAND_IN_TRIANGLE = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]
 def _without_coincident_faces(vertices, faces):
     """Routes faces with two coincident corners to a stand-in triangle.
 
-    Such a face (the padding face `(p, p, p)` is one) adds exactly nothing to the angle
+    Such a face (the padding face `(p, p, p)` is one) adds only exact zeros to the angle
     sums, mixed areas and cotangent Laplacian of `dmd_jax.geometry`, but the gradient
     of `atan2(0, 0)` in its interior angles is NaN. Moving it onto three extra vertices
-    keeps every curvature of the real vertices bit-identical and the gradient finite.
+    leaves every curvature of the real vertices unchanged and the gradient finite.
 
     Returns:
       `([n_vertex + 3, 3] vertices, [n_face, 3] faces)`.
