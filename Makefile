@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
 PYTEST_WORKERS ?= 2
 
-.PHONY: install test test-slow lint format
+.PHONY: install test test-slow lint format bench
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -28,3 +28,11 @@ lint: $(STAMP)
 format: $(STAMP)
 	$(BIN)/ruff format dmd_jax tests experiments benchmarks
 	$(BIN)/ruff check --fix dmd_jax tests experiments benchmarks
+
+# Benchmarks are scripts, not tests; results go to benchmarks/results/ (see its README).
+# glibc.malloc.hugetlb=1 backs JAX's large buffers with transparent huge pages, as NumPy
+# already does for its own arrays; the second run measures the default allocator.
+bench: $(STAMP)
+	GLIBC_TUNABLES=glibc.malloc.hugetlb=1 $(BIN)/python benchmarks/bench_aggregation.py
+	$(BIN)/python benchmarks/bench_aggregation.py --name aggregation_default_malloc \
+		--sizes 100000 300000 1000000 --widths 64 --methods ell --meshes

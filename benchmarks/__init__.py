@@ -1,0 +1,1 @@
+"""Speed and memory benchmarks (scripts, not timed tests); see README.md."""

@@ -1,0 +1,338 @@
+"""Timing, environment and report helpers shared by the benchmark scripts.
+
+The machine these run on is shared and noisy, so the helpers favour robust statistics:
+every case is warmed up (compiled) first, cases are timed round-robin (A, B, C, A, B,
+C, ...) so that a burst of load hits all of them alike, and results are medians with the
+interquartile range. Ratios between cases are only meaningful within one process.
+
+Typical use::
+
+    cases = {"mine": lambda: f(x), "reference": lambda: g(x)}
+    timings = time_interleaved(cases, repeat=5)
+    timings["mine"].median  # seconds
+"""
+
+from __future__ import annotations
+
+import csv
+import datetime as _dt
+import os
+import platform
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from importlib import metadata
+from pathlib import Path
+
+import numpy as np
+
+RESULTS_DIR = Path(__file__).resolve().parent / "results"
+REPO = Path(__file__).resolve().parents[1]
+
+
+def block(value):
+    """Waits for every JAX array in `value` (any pytree) and returns it; other leaves
+    (NumPy arrays, floats) pass through."""
+    import jax
+
+    return jax.block_until_ready(value)
+
+
+@dataclass(frozen=True)
+class Timing:
+    """The wall-clock times of the timed (not warm-up) calls of one case, in seconds."""
+
+    times: tuple[float, ...]
+
+    @property
+    def n(self) -> int:
+        return len(self.times)
+
+    @property
+    def median(self) -> float:
+        return float(np.median(self.times))
+
+    @property
+    def q1(self) -> float:
+        return float(np.percentile(self.times, 25))
+
+    @property
+    def q3(self) -> float:
+        return float(np.percentile(self.times, 75))
+
+    @property
+    def iqr(self) -> float:
+        return self.q3 - self.q1
+
+    @property
+    def min(self) -> float:
+        return float(np.min(self.times))
+
+
+def time_interleaved(
+    cases: Mapping[str, Callable[[], object]],
+    *,
+    repeat: int = 5,
+    warmup: int = 1,
+    min_total_s: float = 0.0,
+    max_repeat: int | None = None,
+) -> dict[str, Timing]:
+    """Times zero-argument callables round-robin and returns a `Timing` per case.
+
+    Each call's result goes through `block` (so asynchronous JAX work is included);
+    NumPy and SciPy calls are timed as they are.
+
+    Args:
+      cases: name -> callable; the order is the order inside a round.
+      repeat: timed rounds (at least).
+      warmup: untimed calls of each case first (compilation, caches, page faults).
+      min_total_s: keep adding rounds while the timed rounds took less than this in
+        total, so fast cases get more samples...
+      max_repeat: ...up to this many rounds (default `repeat`, i.e. no extra rounds).
+
+    Returns:
+      name -> `Timing`, in the order of `cases`.
+    """
+    if repeat < 1 or warmup < 0:
+        raise ValueError(f"need repeat >= 1 and warmup >= 0, got {repeat}, {warmup}")
+    max_repeat = repeat if max_repeat is None else max(max_repeat, repeat)
+    for fn in cases.values():
+        for _ in range(warmup):
+            block(fn())
+    times: dict[str, list[float]] = {name: [] for name in cases}
+    spent = 0.0
+    rounds = 0
+    while rounds < repeat or (spent < min_total_s and rounds < max_repeat):
+        for name, fn in cases.items():
+            start = time.perf_counter()
+            block(fn())
+            elapsed = time.perf_counter() - start
+            times[name].append(elapsed)
+            spent += elapsed
+        rounds += 1
+    return {name: Timing(tuple(t)) for name, t in times.items()}
+
+
+def time_call(fn: Callable[[], object], *, repeat: int = 5, warmup: int = 1) -> Timing:
+    """`time_interleaved` for a single case."""
+    return time_interleaved({"case": fn}, repeat=repeat, warmup=warmup)["case"]
+
+
+def _cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def _memory_gib() -> str:
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemTotal"):
+                return f"{int(line.split()[1]) / 2**20:.1f} GiB"
+    except OSError:
+        pass
+    return "unknown"
+
+
+def _version(package: str) -> str:
+    try:
+        return metadata.version(package)
+    except metadata.PackageNotFoundError:
+        return "not installed"
+
+
+def _git_commit() -> str:
+    try:
+        commit = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"],
+            cwd=REPO,
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+    return commit
+
+
+def environment(packages: Sequence[str] = ("jax", "jaxlib", "numpy", "scipy")) -> dict[str, str]:
+    """What a reader needs to compare two result files: hardware, load, versions, flags."""
+    import jax
+
+    env = {
+        "date (UTC)": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M"),
+        "git commit": _git_commit(),
+        "nproc": str(
+            len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+        ),
+        "CPU": _cpu_model(),
+        "memory": _memory_gib(),
+        "load average (1 min) at start": f"{os.getloadavg()[0]:.2f}",
+        "python": platform.python_version(),
+    }
+    env.update({package: _version(package) for package in packages})
+    env["JAX backend"] = f"{jax.default_backend()} ({', '.join(str(d) for d in jax.devices())})"
+    env["XLA_FLAGS"] = os.environ.get("XLA_FLAGS", "") or "(unset)"
+    env["GLIBC_TUNABLES"] = os.environ.get("GLIBC_TUNABLES", "") or "(unset)"
+    return env
+
+
+def command_line() -> str:
+    """The command that produced this run, for the report header."""
+    script = Path(sys.argv[0])
+    try:
+        script = script.resolve().relative_to(REPO)
+    except ValueError:
+        pass
+    return " ".join(["python", str(script), *sys.argv[1:]])
+
+
+def format_ms(seconds: float | None) -> str:
+    """Milliseconds with three significant digits; `—` for a missing value."""
+    if seconds is None or not np.isfinite(seconds):
+        return "—"
+    ms = seconds * 1e3
+    return f"{ms:.3g}" if ms < 1000 else f"{ms:.0f}"
+
+
+def markdown_table(headers: Sequence[str], rows: Sequence[Sequence[object]]) -> str:
+    """A GitHub-flavoured markdown table; numeric-looking columns are right-aligned."""
+
+    def numeric(col: int) -> bool:
+        values = [str(r[col]) for r in rows if str(r[col]) not in ("", "—")]
+        try:
+            [float(v.rstrip("×")) for v in values]
+        except ValueError:
+            return False
+        return bool(values)
+
+    align = ["---:" if numeric(i) else "---" for i in range(len(headers))]
+    lines = ["| " + " | ".join(headers) + " |", "| " + " | ".join(align) + " |"]
+    lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def write_text(path: Path, text: str) -> Path:
+    """Writes `text` to `path` atomically (a finished file or none)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+    return path
+
+
+def write_report(
+    path: Path,
+    *,
+    title: str,
+    env: Mapping[str, str],
+    sections: Sequence[tuple[str, str]],
+    intro: str = "",
+    command: str | None = None,
+) -> Path:
+    """Writes a markdown report: title, intro, command, environment, then sections.
+
+    Args:
+      path: the `.md` file.
+      title: top-level heading.
+      env: from `environment()` (plus anything benchmark-specific).
+      sections: `(heading, markdown body)` pairs, in order.
+      intro: a paragraph under the title.
+      command: the command line (default: this process's).
+    """
+    parts = [f"# {title}", ""]
+    if intro:
+        parts += [intro.strip(), ""]
+    parts += ["```bash", command or command_line(), "```", ""]
+    parts += [markdown_table(["", ""], [(k, v) for k, v in env.items()]), ""]
+    for heading, body in sections:
+        parts += [f"## {heading}", "", body.strip(), ""]
+    return write_text(path, "\n".join(parts))
+
+
+def write_csv(path: Path, headers: Sequence[str], rows: Sequence[Sequence[object]]) -> Path:
+    """Writes raw results as CSV next to the report, for re-plotting without re-running."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    with tmp.open("w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(headers)
+        writer.writerows(rows)
+    os.replace(tmp, path)
+    return path
+
+
+def plot_loglog(
+    path: Path,
+    panels: Sequence[tuple[str, Mapping[str, tuple[Sequence[float], Sequence[float]]]]],
+    *,
+    xlabel: str,
+    ylabel: str,
+    suptitle: str = "",
+    reference_slope: float | None = 1.0,
+) -> Path:
+    """Log-log line plots, one panel per `(title, {label: (x, y)})`, written as PNG.
+
+    Args:
+      reference_slope: draw a dashed `y ∝ x^slope` guide through each panel's data (1 =
+        linear scaling); None for no guide.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = len(panels)
+    fig, axes = plt.subplots(1, n, figsize=(4.6 * n, 4.0), squeeze=False)
+    for ax, (title, series) in zip(axes[0], panels, strict=True):
+        all_x, all_y = [], []
+        for label, (x, y) in series.items():
+            keep = [(a, b) for a, b in zip(x, y, strict=True) if b is not None and np.isfinite(b)]
+            if not keep:
+                continue
+            xs, ys = zip(*keep, strict=True)
+            ax.plot(xs, ys, marker="o", label=label)
+            all_x += xs
+            all_y += ys
+        if reference_slope is not None and all_x:
+            x0, x1 = min(all_x), max(all_x)
+            y0 = float(np.exp(np.median(np.log(all_y)))) / (np.sqrt(x0 * x1) ** reference_slope)
+            ax.plot(
+                [x0, x1],
+                [y0 * x0**reference_slope, y0 * x1**reference_slope],
+                "k--",
+                lw=0.8,
+                label=f"∝ n^{reference_slope:g}",
+            )
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_title(title, fontsize=10)
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel(ylabel)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
+    if suptitle:
+        fig.suptitle(suptitle, fontsize=10)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.stem + ".tmp.png")
+    fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    os.replace(tmp, path)
+    return path
+
+
+def peak_rss_gib() -> float:
+    """Peak resident memory of this process so far (Linux `ru_maxrss`), in GiB."""
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
