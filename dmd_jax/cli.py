@@ -176,6 +176,58 @@ def _cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_make_dataset(args: argparse.Namespace) -> int:
+    import time
+
+    from dmd_jax.data import DEFAULT_TEST_INTER, convert_folder, make_dataset
+
+    def names(text):
+        return tuple(x.strip() for x in text.split(",") if x.strip()) if text else None
+
+    start = time.perf_counter()
+    common = dict(
+        seed=args.seed,
+        intra_fraction=args.intra_fraction,
+        workers=args.workers,
+        min_vertices=args.min_vertices,
+        max_vertices=args.max_vertices,
+        progress=not args.no_progress,
+        overwrite=args.overwrite,
+    )
+    if args.from_folder:
+        if args.per_category is not None or args.categories:
+            raise ValueError(
+                "--per-category and --categories apply to procedural data, not --from-folder"
+            )
+        ds = convert_folder(
+            args.from_folder,
+            args.out,
+            test_inter=names(args.test_inter),
+            remesh=args.remesh,
+            **common,
+        )
+    else:
+        if args.per_category is None:
+            raise ValueError("--per-category is required (or give --from-folder)")
+        test_inter = names(args.test_inter)
+        ds = make_dataset(
+            args.out,
+            per_category=args.per_category,
+            categories=names(args.categories),
+            test_inter=DEFAULT_TEST_INTER if test_inter is None else test_inter,
+            **common,
+        )
+    counts = ds.counts()
+    skipped = len(ds.manifest.get("skipped", []))
+    print(
+        f"wrote {len(ds)} meshes to {args.out} in {time.perf_counter() - start:.1f} s: "
+        f"train {counts['train']}, test_intra {counts['test_intra']}, "
+        f"test_inter {counts['test_inter']} ({', '.join(ds.test_inter_categories) or 'none'})"
+        + (f"; {skipped} skipped (see manifest.json)" if skipped else "")
+    )
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="dmd-jax", description="DMD-Net mesh denoising in JAX (see README.md)."
@@ -239,6 +291,31 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--titles", default=None, help="comma-separated panel titles")
     p.add_argument("--overwrite", action="store_true")
     p.set_defaults(func=_cmd_render)
+
+    p = sub.add_parser(
+        "make-dataset", help="generate procedural training meshes, or convert a mesh folder"
+    )
+    p.add_argument("--out", required=True, help="output directory (must be empty)")
+    p.add_argument("--per-category", type=int, default=None, help="shapes per category")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
+    p.add_argument("--min-vertices", type=int, default=1000)
+    p.add_argument("--max-vertices", type=int, default=6000)
+    p.add_argument(
+        "--test-inter",
+        default=None,
+        help="comma-separated categories held out whole (default: fastener,bottle,metaballs "
+        "for procedural data, none for folders)",
+    )
+    p.add_argument("--categories", default=None, help="comma-separated subset of categories")
+    p.add_argument("--intra-fraction", type=float, default=0.2, help="test-intra share")
+    p.add_argument(
+        "--from-folder", default=None, help="convert a category/*.obj|off|ply folder instead"
+    )
+    p.add_argument("--remesh", action="store_true", help="remesh folder meshes into the range")
+    p.add_argument("--overwrite", action="store_true", help="allow a non-empty --out")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_make_dataset)
 
     # Further subcommands are registered below, one block each.
     return parser
