@@ -71,7 +71,7 @@ def _bmd_step(x, faces, pair_r, pair_s, valid, sigma_c, sigma_s_factor):
     ws = jnp.where(ss > 0, jnp.exp(-0.5 * h * h / jnp.where(ss > 0, ss * ss, 1.0)), 1.0)
     w = valid * wc * ws
     # v itself is always a neighbour with weight 1, so the normaliser is >= 1.
-    offset = segsum(w * h) / jnp.maximum(segsum(w), 1e-300)
+    offset = segsum(w * h) / jnp.maximum(segsum(w), jnp.finfo(x.dtype).tiny)
     return x + normal * offset[:, None]
 
 
