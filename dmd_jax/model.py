@@ -123,7 +123,9 @@ class Aggregator(nn.Module):
 
     @nn.compact
     def __call__(self, x, senders, receivers, edge_weight, *, deterministic: bool = True):
-        """Args:
+        """Aggregates, transforms and activates node features.
+
+        Args:
           x: `[n_node, d_in]` node features.
           senders, receivers: `[n_edge]` int32 edges of `A + I` (receivers sorted).
           edge_weight: `[n_edge]` GCN weights; 0 marks padding edges.
@@ -200,7 +202,9 @@ class TwoStream(nn.Module):
 
     @nn.compact
     def __call__(self, x, graph: MeshGraph, *, deterministic: bool = True):
-        """Args:
+        """Runs both streams and fuses them.
+
+        Args:
           x: `[n_vertex, d_in]` primal features.
           graph: the mesh graph.
 
@@ -320,7 +324,9 @@ class Transformer(nn.Module):
 
     @nn.compact
     def __call__(self, features, x_in, graph: MeshGraph, *, deterministic: bool = True):
-        """Args:
+        """Computes the per-mesh transformation(s) and applies them to `x_in`.
+
+        Args:
           features: `[n_vertex, 5]` guidance (feature extractor output).
           x_in: `[n_vertex, in_dim]` what the transformation acts on.
           graph: the mesh graph.
