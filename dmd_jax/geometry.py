@@ -79,24 +79,38 @@ def _corner_vectors(vertices, faces):
 def interior_angles(vertices, faces):
     """Interior angle of each face at each corner, `[n_face, 3]` in radians.
 
-    Computed as `atan2(|a × b|, a · b)`, accurate for angles near 0 and π; a degenerate
-    face gets angles that still lie in `[0, π]`.
+    Computed as `atan2(|a × b|, a · b)`, accurate for angles near 0 and π. A collinear
+    face gets `(0, 0, π)`. A corner that coincides with a neighbour has no angle: such
+    corners share what the others leave of π (the limit of a shrinking edge, `π/2` each
+    for two coincident corners, `π/3` for three), so every face sums to π and
+    Gauss–Bonnet survives collapsed edges; the gradient there is finite.
     """
     a, b = _corner_vectors(vertices, faces)
-    return jnp.arctan2(safe_norm(jnp.cross(a, b)), jnp.sum(a * b, axis=-1))
+    ok = (safe_norm(a) > 0) & (safe_norm(b) > 0)
+    # atan2(0, 0) has a NaN gradient: feed the undefined corners atan2(0, 1) instead.
+    angle = jnp.where(
+        ok,
+        jnp.arctan2(safe_norm(jnp.cross(a, b)), jnp.where(ok, jnp.sum(a * b, axis=-1), 1.0)),
+        0.0,
+    )
+    n_undefined = jnp.sum(~ok, axis=1, keepdims=True)
+    rest = (jnp.pi - jnp.sum(angle, axis=1, keepdims=True)) / jnp.maximum(n_undefined, 1)
+    return jnp.where(ok, angle, rest)
 
 
 def cotangents(vertices, faces):
     """Cotangent of the interior angle at each corner, `[n_face, 3]`.
 
     The cotangent at corner i weights the opposite edge (corners i+1, i+2). On a
-    degenerate face the sine is clamped, so values are large but finite.
+    degenerate face the sine is clamped at 1e-12, so values are large (up to 1e12) but
+    finite; a corner that coincides with a neighbour gets 0.
     """
-    a, b = _corner_vectors(vertices, faces)
+    # Unit edge vectors: an absolute floor on the sine then bounds the gradient, where a
+    # floor scaled by |a||b| vanishes (and overflows float32) as an edge collapses.
+    a, b = (safe_normalize(e) for e in _corner_vectors(vertices, faces))
     cos = jnp.sum(a * b, axis=-1)
     sin = safe_norm(jnp.cross(a, b))
-    floor = 1e-12 * safe_norm(a) * safe_norm(b) + 1e-30
-    return cos / jnp.maximum(sin, floor)
+    return cos / jnp.maximum(sin, 1e-12)
 
 
 def cotangent_laplacian(vertices, faces, values=None):
