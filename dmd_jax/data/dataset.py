@@ -398,11 +398,16 @@ def make_dataset(
       categories: which categories (default: all of `CATEGORIES`, in that order).
       test_inter: categories held out whole as test-inter.
       intra_fraction: share of each remaining category's instances in test-intra.
-      workers: processes (default `os.cpu_count()`; 1 runs in this process).
+      workers: processes (default `os.cpu_count()`; 1 runs in this process). Workers
+        are spawned, so a script calling this with `workers > 1` needs the usual
+        `if __name__ == "__main__":` guard.
       min_vertices, max_vertices: vertex range of every mesh.
       progress: show a tqdm progress bar.
       overwrite: allow a non-empty `out_dir` (the files of a previous dataset there,
         as listed by its manifest, are removed first; nothing else is touched).
+
+    A shape that cannot be generated (see `generate_shape`) is left out with a warning
+    and listed under `"skipped"` in the manifest.
 
     Returns:
       The written dataset, as `load_dataset(out_dir)` would read it.

@@ -1005,7 +1005,7 @@ def _build_relief(rng: np.random.Generator):
     f_bot = (f_top + n * n)[:, ::-1]
     # Boundary loop counter-clockwise seen from +z; walls (b_k, b_k+1, t_k+1), (b_k, t_k+1, t_k).
     i = np.arange(n - 1)
-    loop = np.concatenate([i * n, (n - 1) * n + i, (n - 1 - i) * n + (n - 1), (n - 1 - i) + 0 * n])
+    loop = np.concatenate([i * n, (n - 1) * n + i, (n - 1 - i) * n + (n - 1), n - 1 - i])
     nxt = np.roll(loop, -1)
     bl, bn = loop + n * n, nxt + n * n
     walls = np.concatenate([np.stack([bl, bn, nxt], 1), np.stack([bl, nxt, loop], 1)])
