@@ -228,6 +228,73 @@ def _cmd_make_dataset(args: argparse.Namespace) -> int:
     return 0
 
 
+def _parse_edits(items: list[str]) -> dict:
+    """`["train.steps=10", "loss.vertex=50"]` -> nested dict (values parsed as JSON)."""
+    import json
+
+    edits: dict = {}
+    for item in items:
+        key, sep, raw = item.partition("=")
+        if not sep or not key:
+            raise ValueError(f"--set takes SECTION.FIELD=VALUE, got {item!r}")
+        try:
+            value = json.loads(raw)
+        except json.JSONDecodeError:
+            value = raw
+        if isinstance(value, list):
+            value = tuple(value)
+        node = edits
+        *parents, leaf = key.split(".")
+        for part in parents:
+            node = node.setdefault(part, {})
+        node[leaf] = value
+    return edits
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
+    import json
+    import time
+
+    from dmd_jax.config import preset
+    from dmd_jax.data.dataset import load_dataset
+    from dmd_jax.pipeline import make_examples
+    from dmd_jax.train import train
+
+    cfg = preset(args.preset).with_edits(_parse_edits(args.set or []))
+    data = load_dataset(args.data)
+    train_ex = make_examples(data.arrays("train"))
+    evals = {}
+    for split in ("test_intra", "test_inter"):
+        records = data.split(split)[: args.eval_meshes]
+        evals[split] = make_examples([r.load() for r in records])
+    print(
+        f"training {cfg.name} on {len(train_ex)} meshes from {args.data}; evaluating on "
+        + ", ".join(f"{k}: {len(v)}" for k, v in evals.items())
+    )
+    t0 = time.time()
+    result = train(cfg, train_ex, args.workdir, eval_sets=evals, progress=not args.no_progress)
+    result.pop("state", None)
+    result["wall_time_s"] = time.time() - t0
+    print(json.dumps(result, indent=2))
+    return 0
+
+
+def _cmd_export_weights(args: argparse.Namespace) -> int:
+    import json
+    import platform
+
+    from dmd_jax.inference import save_weights
+    from dmd_jax.train import load_params
+
+    params, cfg = load_params(args.checkpoint)
+    meta = {"source": str(args.checkpoint), "platform": platform.platform()}
+    if args.meta:
+        meta.update(json.loads(args.meta))
+    path = save_weights(args.output, params, cfg, meta, overwrite=args.overwrite)
+    print(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB)")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="dmd-jax", description="DMD-Net mesh denoising in JAX (see README.md)."
@@ -316,6 +383,32 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true", help="allow a non-empty --out")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_make_dataset)
+
+    p = sub.add_parser("train", help="train DMD-Net on a dataset made by make-dataset")
+    p.add_argument("--data", required=True, help="dataset directory (make-dataset output)")
+    p.add_argument("--workdir", required=True, help="checkpoints, log.jsonl, loss_curve.png")
+    p.add_argument("--preset", default="small", help="paper, small or test")
+    p.add_argument(
+        "--set",
+        nargs="*",
+        metavar="SECTION.FIELD=VALUE",
+        help="config edits, e.g. train.steps=3000 loss.vertex=50",
+    )
+    p.add_argument(
+        "--eval-meshes",
+        type=int,
+        default=16,
+        help="meshes of each test split used for periodic evaluation",
+    )
+    p.add_argument("--no-progress", action="store_true")
+    p.set_defaults(func=_cmd_train)
+
+    p = sub.add_parser("export-weights", help="checkpoint directory -> one weights file")
+    p.add_argument("checkpoint", help="an Orbax checkpoint directory (e.g. RUN/checkpoints/best)")
+    p.add_argument("-o", "--output", required=True)
+    p.add_argument("--meta", default=None, help="JSON object of provenance to store")
+    p.add_argument("--overwrite", action="store_true")
+    p.set_defaults(func=_cmd_export_weights)
 
     # Further subcommands are registered below, one block each.
     return parser

@@ -20,7 +20,6 @@ function of ``(seed, step)``, the resumed run is bit-identical to an uninterrupt
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 import time
@@ -81,7 +80,7 @@ def make_optimizer(cfg: ExperimentConfig) -> optax.GradientTransformation:
             t.learning_rate,
             max(t.warmup_steps, 1),
             max(t.steps, t.warmup_steps + 1),
-            end_value=t.learning_rate * 0.05,
+            end_value=t.learning_rate * t.min_lr_ratio,
         )
     else:
         raise ValueError(f"unknown schedule {t.schedule!r}; use 'constant' or 'cosine'")
@@ -136,7 +135,11 @@ def compute_loss(
         deterministic=deterministic,
         rngs=None if deterministic else {"dropout": rng},
     )
-    target_feats = geometry.vertex_features(clean, graph.faces) if feats is not None else None
+    target_feats = None
+    if feats is not None:
+        target_feats = geometry.vertex_features(clean, graph.faces)
+        if cfg.loss.feature_curvature == "asinh":
+            target_feats = target_feats.at[:, 3:].set(jnp.arcsinh(target_feats[:, 3:]))
     total, parts = losses.total_loss(
         out,
         clean,
@@ -489,18 +492,3 @@ def train(
     bar.close()
     _plot_curves(log_path, workdir / "loss_curve.png")
     return {"step": int(state.step), "compiles": trainer.compiles, **last_eval, "state": state}
-
-
-def config_replace(cfg, **changes):
-    """`dataclasses.replace` that also reaches into nested sections: `train__steps=10`."""
-    nested: dict[str, dict] = {}
-    flat = {}
-    for k, v in changes.items():
-        if "__" in k:
-            sec, field = k.split("__", 1)
-            nested.setdefault(sec, {})[field] = v
-        else:
-            flat[k] = v
-    for sec, fields in nested.items():
-        flat[sec] = dataclasses.replace(getattr(cfg, sec), **fields)
-    return dataclasses.replace(cfg, **flat)
