@@ -280,7 +280,7 @@ def test_readme_lists_every_shared_mesh(shared_meshes):
     assert files == set(SHARED_COUNTS)
 
 
-@pytest.mark.parametrize("name", sorted(SHARED_COUNTS) or ["fandisk.off"])
+@pytest.mark.parametrize("name", sorted(SHARED_COUNTS))
 def test_shared_mesh_loads_and_builds(name):
     path = shared_mesh_path(name)
     n_vertex, n_face, quads = SHARED_COUNTS[name]
