@@ -488,7 +488,8 @@ def main(argv=None) -> int:
     out = Path(args.out)
     write_report(
         out / f"{args.name}.md",
-        title="GCN aggregation: JAX formulations vs SciPy CSR",
+        title="GCN aggregation: JAX formulations vs SciPy CSR"
+        + (" (glibc huge pages)" if "hugetlb=1" in env["GLIBC_TUNABLES"] else " (default glibc)"),
         intro="\n\n".join(__doc__.split("\n\n")[1:3]),
         env=env,
         sections=sections,

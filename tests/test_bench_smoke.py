@@ -7,6 +7,8 @@ import pytest
 from conftest import icosphere
 
 from benchmarks import bench_aggregation as agg
+from benchmarks import bench_aggregation_variants as variants
+from benchmarks import bench_allocation as allocation
 from benchmarks.common import Timing, markdown_table, time_interleaved
 from dmd_jax.mesh import build_mesh_graph
 
@@ -81,3 +83,17 @@ def test_main_writes_report_csv_and_plot(tmp_path):
     lines = (tmp_path / "smoke.csv").read_text().splitlines()
     # 4 methods (bcoo skipped) × 2 modes.
     assert len(lines) == 1 + 4 * 2
+
+
+def test_variants_agree_with_scipy_and_are_timed():
+    # `run` raises if any formulation disagrees with SciPy.
+    n, results = variants.run(100, 4, repeat=1)
+    assert n == 100
+    assert [name for name, _, _ in results] == [*variants.VARIANTS, "scipy_csr"]
+    assert "| 100 | 4 | ell (gcn_aggregate_ell) |" in variants.table(n, 4, results)
+
+
+def test_allocation_measure_times_every_case():
+    times = allocation.measure([1000], repeat=1)
+    assert list(times) == ["1000"]
+    assert sorted(times["1000"]) == sorted(allocation.CASES)
