@@ -352,6 +352,7 @@ def plot(rows: list[Row], path: Path) -> Path:
         xlabel="nodes",
         ylabel="median time (ms)",
         suptitle="GCN aggregation on triangulated grids (float32, CPU)",
+        ncols=2,
     )
 
 

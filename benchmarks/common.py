@@ -278,21 +278,26 @@ def plot_loglog(
     ylabel: str,
     suptitle: str = "",
     reference_slope: float | None = 1.0,
+    ncols: int | None = None,
 ) -> Path:
     """Log-log line plots, one panel per `(title, {label: (x, y)})`, written as PNG.
 
     Args:
       reference_slope: draw a dashed `y ∝ x^slope` guide through each panel's data (1 =
         linear scaling); None for no guide.
+      ncols: panels per row (default: all in one row).
     """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    n = len(panels)
-    fig, axes = plt.subplots(1, n, figsize=(4.6 * n, 4.0), squeeze=False)
-    for ax, (title, series) in zip(axes[0], panels, strict=True):
+    ncols = len(panels) if ncols is None else ncols
+    nrows = -(-len(panels) // ncols)
+    fig, axes = plt.subplots(nrows, ncols, figsize=(5.2 * ncols, 4.2 * nrows), squeeze=False)
+    for ax in axes.ravel()[len(panels) :]:
+        ax.set_visible(False)
+    for ax, (title, series) in zip(axes.ravel(), panels, strict=False):
         all_x, all_y = [], []
         for label, (x, y) in series.items():
             keep = [(a, b) for a, b in zip(x, y, strict=True) if b is not None and np.isfinite(b)]
