@@ -37,3 +37,4 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_aggregation.py --name aggregation_default_malloc \
 		--sizes 100000 300000 1000000 --widths 64 --methods ell --meshes
 	GLIBC_TUNABLES=glibc.malloc.hugetlb=1 $(BIN)/python benchmarks/bench_aggregation_variants.py
+	$(BIN)/python benchmarks/bench_allocation.py
