@@ -94,7 +94,7 @@ def run_child(tunable: str | None, sizes, repeat: int) -> dict:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--sizes", type=int, nargs="+", default=list(SIZES))
-    p.add_argument("--repeat", type=int, default=9)
+    p.add_argument("--repeat", type=int, default=15)
     p.add_argument("--out", type=Path, default=RESULTS_DIR)
     p.add_argument("--name", default="allocation")
     p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
