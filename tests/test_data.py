@@ -223,6 +223,18 @@ def test_remesh_and_clean_errors_and_cleaning():
     cv, cf = clean_mesh(split_v, split_f)
     assert cv.shape == v.shape and cf.shape == f.shape
     assert trimesh.Trimesh(cv, cf, process=False).is_watertight
+    # One face wound the wrong way is turned back; a sphere wound inward is turned outward.
+    bad = f.copy()
+    bad[5] = bad[5, ::-1]
+    for faces in (bad, f[:, ::-1]):
+        assert not trimesh.Trimesh(v, faces, process=False).is_winding_consistent or (
+            trimesh.Trimesh(v, faces, process=False).volume < 0
+        )
+        cv, cf = clean_mesh(v, faces)
+        fixed = trimesh.Trimesh(cv, cf, process=False)
+        assert fixed.is_winding_consistent and fixed.volume > 0
+    kept_v, kept_f = clean_mesh(v, bad, orient=False)
+    np.testing.assert_array_equal(kept_f, bad)
 
 
 # --------------------------------------------------------------------------------------

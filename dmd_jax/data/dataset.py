@@ -357,8 +357,8 @@ def _generate_job(
     rel = f"meshes/{category}/{category}_{instance:05d}.npz"
     try:
         v, f = generate_shape(category, seed, instance, min_vertices=min_v, max_vertices=max_v)
-    except RuntimeError as exc:
-        return {"error": str(exc)}
+    except Exception as exc:  # one odd shape must not end a long run; it is reported
+        return {"error": f"{type(exc).__name__}: {exc}"}
     v32, f32 = v.astype(np.float32), f.astype(np.int32)
     _write_npz(Path(out_dir) / rel, v32, f32)
     return {

@@ -614,13 +614,19 @@ def _build_fastener(rng: np.random.Generator):
 def _build_flange(rng: np.random.Generator):
     """Revolved stepped parts (flanges, shafts, pulleys) with chamfers and bolt circles."""
     n_steps = int(rng.integers(2, 5))
-    radii = rng.uniform(0.3, 1.0, n_steps)
-    radii[rng.integers(n_steps)] = 1.0
+    bore = rng.uniform(0.08, 0.25) if rng.random() < 0.8 else 0.0
+    # Neighbouring steps differ by a clear shoulder: a sliver of a shoulder would be two
+    # creases closer than an edge length.
+    for _ in range(100):
+        radii = rng.uniform(bore + 0.15, 1.0, n_steps)
+        radii[rng.integers(n_steps)] = 1.0
+        if np.all(np.abs(np.diff(radii)) >= 0.1):
+            break
+    else:
+        raise _Reject("no step radii with clear shoulders")
     heights = rng.uniform(0.1, 0.5, n_steps)
     z = np.concatenate([[0.0], np.cumsum(heights)])
-    bore = rng.uniform(0.08, 0.25) if rng.random() < 0.8 else 0.0
-    radii = np.maximum(radii, bore + 0.12)
-    cham = rng.uniform(0.0, 0.04) if rng.random() < 0.6 else 0.0
+    cham = rng.uniform(0.03, 0.07) if rng.random() < 0.6 else 0.0
     pts = [(bore, z[0])]
     for k in range(n_steps):
         r = radii[k]
@@ -1222,20 +1228,37 @@ def _current(ms) -> tuple[np.ndarray, np.ndarray]:
     )
 
 
-def clean_mesh(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
+def clean_mesh(vertices, faces, *, orient: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Removes duplicate vertices and faces, zero-area faces and unreferenced vertices.
 
     Args:
       vertices: `[n, 3]` coordinates.
       faces: `[f, 3]` vertex indices.
+      orient: also make the winding consistent where the surface allows it (edge-manifold
+        and orientable; otherwise the winding is left as it is), and turn a closed
+        surface outward.
 
     Returns:
       `(vertices float64 [n', 3], faces int32 [f', 3])`.
     """
+    import pymeshlab
+
     v, f = validate_mesh(vertices, faces)
     ms = _meshset(v, f)
     _clean_meshset(ms)
+    if orient:
+        try:
+            ms.meshing_re_orient_faces_coherently()
+        except pymeshlab.PyMeshLabException:
+            pass  # non-manifold or non-orientable: no consistent winding exists
     v, f = _current(ms)
+    if orient:
+        d = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+        n = v.shape[0]
+        directed = np.unique(d[:, 0] * n + d[:, 1]).size == d.shape[0]
+        undirected = np.unique(np.sort(d, axis=1), axis=0, return_counts=True)[1]
+        if directed and np.all(undirected == 2):
+            f = _orient_outward(v, f)
     return validate_mesh(v, f)
 
 
@@ -1263,7 +1286,8 @@ def remesh(
     """Isotropic remeshing to a vertex count in `[min_vertices, max_vertices]`.
 
     The target edge length `L` comes from the area `A` and the target count `T`: a
-    closed mesh of equilateral triangles has about `2T` faces, so `A ≈ 2T·(√3/4)L²`. When
+    closed mesh of equilateral triangles has about `2T` faces, so `A ≈ 2T·(√3/4)L²`.
+    Input edges longer than `4L` are first split at their midpoints. When
     the result misses the range, `L` is rescaled by `sqrt(n / T)` and the original surface
     remeshed again, at most `max_rounds` times.
 
@@ -1299,15 +1323,28 @@ def remesh(
     for _ in range(max_rounds):
         ms = _meshset(v0, f0)
         _clean_meshset(ms)
-        ms.meshing_isotropic_explicit_remeshing(
-            iterations=iterations,
-            adaptive=False,
-            targetlen=pymeshlab.PureValue(float(length)),
-            featuredeg=float(feature_angle),
-            # Reprojection already keeps vertices on the input surface; the extra distance
-            # check costs 3x the time and changed the measured deviation by < 0.05 edges.
-            checksurfdist=False,
-        )
+        try:
+            # Long input edges are halved first (exactly, at their midpoints): otherwise
+            # isotropic remeshing can leave long slivers untouched, e.g. the annular caps
+            # that manifold3d's revolve triangulates as fans of needles.
+            ms.meshing_surface_subdivision_midpoint(
+                iterations=10, threshold=pymeshlab.PureValue(float(4.0 * length))
+            )
+        except pymeshlab.PyMeshLabException:
+            pass  # non-manifold input (scanned or CAD-exported files): remesh it as it is
+        try:
+            ms.meshing_isotropic_explicit_remeshing(
+                iterations=iterations,
+                adaptive=False,
+                targetlen=pymeshlab.PureValue(float(length)),
+                featuredeg=float(feature_angle),
+                # Reprojection already keeps vertices on the input surface; the extra
+                # distance check costs 3x the time and changed the measured deviation by
+                # < 0.05 edge lengths.
+                checksurfdist=False,
+            )
+        except pymeshlab.PyMeshLabException as exc:
+            raise ValueError(f"pymeshlab could not remesh the surface: {exc}") from exc
         _clean_meshset(ms)
         n = ms.current_mesh().vertex_number()
         counts.append(n)
