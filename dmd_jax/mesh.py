@@ -146,6 +146,18 @@ class MeshGraph(NamedTuple):
         return self.n_vertex_per_graph.shape[0]
 
 
+def _sorted_unique(keys: np.ndarray) -> np.ndarray:
+    """`np.unique(keys)` for a 1-D integer array, by a sort and a mask of first entries.
+
+    NumPy 2.4's `np.unique` hashes: 3 s for 1M int64 keys here against 0.07 s for
+    `np.sort`, which made `build_mesh_graph` take a minute at 1M vertices.
+    """
+    k = np.sort(keys)
+    if k.size == 0:
+        return k
+    return k[np.concatenate([[True], k[1:] != k[:-1]])]
+
+
 def _symmetric_with_self_loops(
     senders: np.ndarray, receivers: np.ndarray, n_node: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -153,7 +165,7 @@ def _symmetric_with_self_loops(
     loops = np.arange(n_node, dtype=np.int64)
     s = np.concatenate([senders, receivers, loops])
     r = np.concatenate([receivers, senders, loops])
-    key = np.unique(r * n_node + s)
+    key = _sorted_unique(r * n_node + s)
     r, s = np.divmod(key, n_node)
     degree = np.bincount(r, minlength=n_node).astype(np.float64)
     weight = 1.0 / np.sqrt(degree[s] * degree[r])
@@ -165,7 +177,7 @@ def vertex_edges(faces: np.ndarray, n_vertex: int) -> tuple[np.ndarray, np.ndarr
     f = np.asarray(faces, dtype=np.int64)
     e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
     e = np.sort(e, axis=1)
-    key = np.unique(e[:, 0] * n_vertex + e[:, 1])
+    key = _sorted_unique(e[:, 0] * n_vertex + e[:, 1])
     a, b = np.divmod(key, n_vertex)
     return a, b
 
@@ -182,7 +194,9 @@ def face_adjacency(faces: np.ndarray, n_vertex: int) -> tuple[np.ndarray, np.nda
     face_of = np.tile(np.arange(n_face, dtype=np.int64), 3)
     order = np.argsort(key, kind="stable")
     key, face_of = key[order], face_of[order]
-    _, start, size = np.unique(key, return_index=True, return_counts=True)
+    # Groups of equal keys in the sorted array: where each starts and how long it is.
+    start = np.flatnonzero(np.concatenate([[True], key[1:] != key[:-1]])) if key.size else key
+    size = np.diff(np.append(start, key.size))
     # Each face-edge entry pairs with every entry of its edge group (vectorised).
     group = np.repeat(np.arange(start.size), size)
     reps = size[group]
@@ -191,7 +205,7 @@ def face_adjacency(faces: np.ndarray, n_vertex: int) -> tuple[np.ndarray, np.nda
     second = start[group[first]] + offset
     a, b = face_of[first], face_of[second]
     keep = a < b
-    pair = np.unique(a[keep] * n_face + b[keep])
+    pair = _sorted_unique(a[keep] * n_face + b[keep])
     return np.divmod(pair, n_face)
 
 
