@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
 PYTEST_WORKERS ?= 2
 
-.PHONY: install test test-slow lint format bench
+.PHONY: install test test-slow lint format bench demo sota-lite
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -38,3 +38,11 @@ bench: $(STAMP)
 		--sizes 100000 300000 1000000 --widths 64 --methods ell --meshes
 	GLIBC_TUNABLES=glibc.malloc.hugetlb=1 $(BIN)/python benchmarks/bench_aggregation_variants.py
 	$(BIN)/python benchmarks/bench_allocation.py
+
+# WEIGHTS=path/to/file.msgpack runs either target with other weights than the bundled ones.
+demo: $(STAMP)
+	$(BIN)/dmd-jax demo --out out/demo --overwrite $(if $(WEIGHTS),--weights $(WEIGHTS))
+
+# Every mesh of ../shared/meshes at 3 noise levels; writes benchmarks/results/sota_lite.{md,csv}.
+sota-lite: $(STAMP)
+	$(BIN)/python benchmarks/sota_lite.py $(if $(WEIGHTS),--weights $(WEIGHTS))

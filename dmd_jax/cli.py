@@ -295,6 +295,13 @@ def _cmd_export_weights(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from dmd_jax.demo import run_demo
+
+    run_demo(args.out, weights=args.weights, overwrite=args.overwrite, render=not args.no_render)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="dmd-jax", description="DMD-Net mesh denoising in JAX (see README.md)."
@@ -411,6 +418,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_export_weights)
 
     # Further subcommands are registered below, one block each.
+    p = sub.add_parser(
+        "demo", help="denoise a generated noisy CAD part; print metrics, write meshes and a PNG"
+    )
+    p.add_argument("--out", required=True, help="output directory (created if missing)")
+    p.add_argument(
+        "--weights",
+        default=None,
+        help="weights file or checkpoint directory (default: bundled model)",
+    )
+    p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    p.add_argument("--no-render", action="store_true", help="skip before_after.png")
+    p.set_defaults(func=_cmd_demo)
+
     return parser
 
 
