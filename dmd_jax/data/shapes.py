@@ -841,11 +841,10 @@ def _build_metaballs(rng: np.random.Generator):
 
 def _build_torus(rng: np.random.Generator):
     """Tori with elliptic, wavy or varying cross-sections, and torus knots."""
-    n_along = 256
-    u = 2 * np.pi * np.arange(n_along) / n_along
     if rng.random() < 0.3:
         p, q = [(2, 3), (3, 2), (2, 5)][rng.integers(3)]
         rho = rng.uniform(0.35, 0.5)
+        u = 2 * np.pi * np.arange(512) / 512  # knots wind several times: twice the samples
         curve = np.stack(
             [
                 (1 + rho * np.cos(q * u)) * np.cos(p * u),
@@ -854,20 +853,10 @@ def _build_torus(rng: np.random.Generator):
             ],
             1,
         )
-        radius = np.full(n_along, rng.uniform(0.1, 0.17))
-        n_along_fine = 512
-        u = 2 * np.pi * np.arange(n_along_fine) / n_along_fine
-        curve = np.stack(
-            [
-                (1 + rho * np.cos(q * u)) * np.cos(p * u),
-                (1 + rho * np.cos(q * u)) * np.sin(p * u),
-                rho * np.sin(q * u),
-            ],
-            1,
-        )
-        radius = np.full(n_along_fine, radius[0])
+        radius = np.full(u.size, rng.uniform(0.1, 0.17))
         aspect = 1.0
     else:
+        u = 2 * np.pi * np.arange(256) / 256
         a, b = 1.0, rng.uniform(0.6, 1.0)
         wave = rng.uniform(0.0, 0.25) if rng.random() < 0.5 else 0.0
         kz = int(rng.integers(2, 5))
