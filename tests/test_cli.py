@@ -1,0 +1,433 @@
+"""The `dmd-jax` command line end to end, the demo and the sota-lite script.
+
+Commands run in-process through `dmd_jax.cli.main` (one JAX start-up for the module);
+one test runs the real entry point in a subprocess to check exit codes and stderr as a
+shell sees them. All meshes are the same icosphere size, so the tiny model compiles once.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import icosphere, shared_mesh_path
+from test_inference import tiny_params
+
+from dmd_jax import baselines, inference
+from dmd_jax.cli import main
+from dmd_jax.config import preset
+from dmd_jax.mesh import load_mesh, mean_edge_length, save_mesh
+from dmd_jax.metrics import mesh_metrics
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.fixture(scope="module")
+def weights(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("weights") / "tiny.msgpack"
+    return inference.save_weights(path, tiny_params(), preset("test"), {"note": "tiny"})
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory, weights):
+    """clean.obj -> noisy.obj (add-noise) -> dmd.obj (denoise), through the CLI."""
+    d = tmp_path_factory.mktemp("cli")
+    v, f = icosphere(2)
+    save_mesh(d / "clean.obj", v, f)
+    assert (
+        main(
+            [
+                "add-noise",
+                str(d / "clean.obj"),
+                "-o",
+                str(d / "noisy.obj"),
+                "--level",
+                "0.2",
+                "--units",
+                "edge",
+                "--seed",
+                "3",
+            ]
+        )
+        == 0
+    )
+    assert (
+        main(["denoise", str(d / "noisy.obj"), "-o", str(d / "dmd.obj"), "--weights", str(weights)])
+        == 0
+    )
+    return d
+
+
+def run(capsys, *argv) -> tuple[int, str, str]:
+    code = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def assert_png(path: Path) -> None:
+    from PIL import Image
+
+    assert path.read_bytes()[:8] == PNG_SIGNATURE
+    with Image.open(path) as image:
+        image.verify()
+    with Image.open(path) as image:
+        assert image.format == "PNG" and image.width > 0 and image.height > 0
+
+
+def assert_one_line_error(code: int, err: str, *fragments: str) -> None:
+    assert code != 0
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert lines[0].startswith("dmd-jax ") and "error:" in lines[0]
+    for fragment in fragments:
+        assert fragment in lines[0], lines[0]
+
+
+def test_add_noise_level_and_seed(files, capsys, tmp_path):
+    clean_v, f = load_mesh(files / "clean.obj")
+    noisy_v, f2 = load_mesh(files / "noisy.obj")
+    np.testing.assert_array_equal(f, f2)
+    # σ = 0.2 mean edge lengths; 486 samples give the std to about 3.2 % (1 sd).
+    sigma = np.std(noisy_v - clean_v)
+    assert sigma == pytest.approx(0.2 * mean_edge_length(clean_v, f), rel=0.15)
+    common = ["add-noise", files / "clean.obj", "--level", "0.2", "--units", "edge"]
+    assert run(capsys, *common, "-o", tmp_path / "same.obj", "--seed", "3")[0] == 0
+    assert run(capsys, *common, "-o", tmp_path / "other.obj", "--seed", "4")[0] == 0
+    np.testing.assert_array_equal(load_mesh(tmp_path / "same.obj")[0], noisy_v)
+    assert np.abs(load_mesh(tmp_path / "other.obj")[0] - noisy_v).max() > 0.01 * sigma
+
+
+def test_denoise_matches_the_python_api(files, weights):
+    noisy_v, f = load_mesh(files / "noisy.obj")
+    out_v, f2 = load_mesh(files / "dmd.obj")
+    np.testing.assert_array_equal(f, f2)
+    # OBJ keeps float64 to 17 significant digits (1e-17 absolute below 0.1).
+    np.testing.assert_allclose(
+        out_v, inference.denoise(noisy_v, f, weights), rtol=1e-15, atol=1e-16
+    )
+
+
+def test_evaluate_json_matches_mesh_metrics(files, capsys):
+    code, out, _ = run(
+        capsys,
+        "evaluate",
+        "--gt",
+        files / "clean.obj",
+        "--mesh",
+        files / "noisy.obj",
+        files / "dmd.obj",
+        "--json",
+    )
+    assert code == 0
+    rows = json.loads(out)
+    gt_v, f = load_mesh(files / "clean.obj")
+    assert [Path(r["mesh"]).name for r in rows] == ["noisy.obj", "dmd.obj"]
+    for row in rows:
+        expected = mesh_metrics(load_mesh(row["mesh"])[0], gt_v, f)
+        for name in ("vertex", "normal_deg", "chamfer"):
+            assert row[name] == pytest.approx(expected[name], rel=1e-12)
+    assert rows[0]["normal_deg"] > 1.0  # the noise is visible in the normals
+
+
+def test_evaluate_table(files, capsys):
+    code, out, _ = run(
+        capsys, "evaluate", "--gt", files / "clean.obj", "--mesh", files / "noisy.obj"
+    )
+    assert code == 0
+    header, row = out.strip().splitlines()
+    assert "normal(deg)" in header and row.split()[0].endswith("noisy.obj")
+
+
+def test_render_png(files, capsys, tmp_path):
+    png = tmp_path / "cmp.png"
+    code, out, _ = run(
+        capsys,
+        "render",
+        files / "noisy.obj",
+        files / "dmd.obj",
+        "-o",
+        png,
+        "--gt",
+        files / "clean.obj",
+        "--titles",
+        "noisy,dmd",
+    )
+    assert code == 0 and str(png) in out
+    assert_png(png)
+
+
+def test_method_taubin(files, capsys, tmp_path):
+    out_path = tmp_path / "taubin.off"
+    code, out, _ = run(capsys, "denoise", files / "noisy.obj", "-o", out_path, "--method", "taubin")
+    assert code == 0 and "taubin" in out
+    noisy_v, f = load_mesh(files / "noisy.obj")
+    got, _ = load_mesh(out_path)
+    np.testing.assert_allclose(got, baselines.denoise_with("taubin", noisy_v, f), atol=1e-12)
+    clean_v, _ = load_mesh(files / "clean.obj")
+    assert (
+        mesh_metrics(got, clean_v, f)["normal_deg"]
+        < mesh_metrics(noisy_v, clean_v, f)["normal_deg"]
+    )
+
+
+def test_unknown_method(files, capsys, tmp_path):
+    code, _, err = run(
+        capsys, "denoise", files / "noisy.obj", "-o", tmp_path / "x.obj", "--method", "magic"
+    )
+    assert_one_line_error(code, err, "magic")
+    assert not (tmp_path / "x.obj").exists()
+
+
+def test_iterations_flag(files, capsys, tmp_path, weights):
+    out_path = tmp_path / "dmd2.obj"
+    code, _, _ = run(
+        capsys,
+        "denoise",
+        files / "noisy.obj",
+        "-o",
+        out_path,
+        "--weights",
+        weights,
+        "--iterations",
+        "2",
+    )
+    assert code == 0
+    noisy_v, f = load_mesh(files / "noisy.obj")
+    expected = inference.denoise(noisy_v, f, weights, iterations=2)
+    np.testing.assert_allclose(load_mesh(out_path)[0], expected, rtol=1e-15, atol=1e-16)
+    code, _, err = run(
+        capsys,
+        "denoise",
+        files / "noisy.obj",
+        "-o",
+        tmp_path / "dmd0.obj",
+        "--weights",
+        weights,
+        "--iterations",
+        "0",
+    )
+    assert_one_line_error(code, err, "iterations")
+    assert not (tmp_path / "dmd0.obj").exists()
+
+
+def test_refuses_to_overwrite_the_input(files, capsys, weights):
+    before = (files / "noisy.obj").read_bytes()
+    code, _, err = run(
+        capsys,
+        "denoise",
+        files / "noisy.obj",
+        "-o",
+        files / "noisy.obj",
+        "--weights",
+        weights,
+        "--overwrite",
+    )
+    assert_one_line_error(code, err, "input")
+    code, _, err = run(
+        capsys,
+        "add-noise",
+        files / "noisy.obj",
+        "-o",
+        files / "noisy.obj",
+        "--level",
+        "0.1",
+        "--overwrite",
+    )
+    assert_one_line_error(code, err, "input")
+    assert (files / "noisy.obj").read_bytes() == before
+
+
+def test_refuses_to_overwrite_an_existing_output(files, capsys, weights, tmp_path):
+    target = tmp_path / "existing.obj"
+    target.write_text("keep me\n")
+    for argv in (
+        ["denoise", files / "noisy.obj", "-o", target, "--weights", weights],
+        ["denoise", files / "noisy.obj", "-o", target, "--method", "taubin"],
+        ["add-noise", files / "clean.obj", "-o", target, "--level", "0.1"],
+    ):
+        code, _, err = run(capsys, *argv)
+        assert_one_line_error(code, err, "already exists", "--overwrite")
+        assert target.read_text() == "keep me\n"
+    png = tmp_path / "existing.png"
+    png.write_bytes(b"keep")
+    code, _, err = run(capsys, "render", files / "noisy.obj", "-o", png)
+    assert_one_line_error(code, err, "already exists")
+    assert png.read_bytes() == b"keep"
+    # With --overwrite the same command replaces the file.
+    code, _, _ = run(
+        capsys, "denoise", files / "noisy.obj", "-o", target, "--method", "taubin", "--overwrite"
+    )
+    assert code == 0 and load_mesh(target)[0].shape == (162, 3)
+
+
+def test_missing_input_and_bad_weights(files, capsys, tmp_path):
+    code, _, err = run(capsys, "denoise", tmp_path / "absent.obj", "-o", tmp_path / "o.obj")
+    assert_one_line_error(code, err, "absent.obj")
+    bad = tmp_path / "bad.msgpack"
+    bad.write_bytes(b"\x00garbage")
+    code, _, err = run(
+        capsys, "denoise", files / "noisy.obj", "-o", tmp_path / "o.obj", "--weights", bad
+    )
+    assert_one_line_error(code, err, "bad.msgpack")
+    code, _, err = run(
+        capsys,
+        "denoise",
+        files / "noisy.obj",
+        "-o",
+        tmp_path / "o.obj",
+        "--weights",
+        tmp_path / "none.msgpack",
+    )
+    assert_one_line_error(code, err, "none.msgpack")
+    assert not (tmp_path / "o.obj").exists()
+
+
+def test_info(capsys):
+    from dmd_jax.model import param_count
+
+    code, out, _ = run(capsys, "info")
+    assert code == 0 and out.startswith("dmd_jax ") and "jax " in out
+    code, out, _ = run(capsys, "info", "--preset", "test")
+    assert code == 0
+    total = [line for line in out.splitlines() if line.strip().startswith("total")]
+    assert int(total[0].split()[1].replace(",", "")) == param_count(preset("test").model)
+
+
+def test_entry_point_subprocess(files, tmp_path):
+    # The real process: exit status and a one-line stderr as a shell sees them.
+    cmd = [sys.executable, "-m", "dmd_jax.cli"]
+    info = subprocess.run([*cmd, "info"], capture_output=True, text=True, timeout=120)
+    assert info.returncode == 0 and info.stdout.startswith("dmd_jax ")
+    target = tmp_path / "exists.obj"
+    target.write_text("keep\n")
+    proc = subprocess.run(
+        [*cmd, "add-noise", str(files / "clean.obj"), "-o", str(target), "--level", "0.1"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert_one_line_error(proc.returncode, proc.stderr, "already exists")
+    assert proc.returncode == 2 and target.read_text() == "keep\n"
+
+
+@pytest.fixture(scope="module")
+def demo_dir(tmp_path_factory, weights):
+    out = tmp_path_factory.mktemp("demo") / "out"
+    assert main(["demo", "--out", str(out), "--weights", str(weights)]) == 0
+    return out
+
+
+def test_demo_writes_meshes_metrics_and_png(demo_dir):
+    from dmd_jax import demo
+
+    assert {p.name for p in demo_dir.iterdir()} == set(demo.MESH_FILES.values()) | {
+        demo.METRICS_FILE,
+        demo.RENDER_FILE,
+    }
+    assert_png(demo_dir / demo.RENDER_FILE)
+    report = json.loads((demo_dir / demo.METRICS_FILE).read_text())
+    clean, f = load_mesh(demo_dir / "clean.obj")
+    assert report["mesh"]["n_vertex"] == len(clean) and report["mesh"]["n_face"] == len(f)
+    assert report["mesh"]["category"] == demo.DEMO_CATEGORY
+    # The stored metrics are those of the written meshes.
+    for name, filename in demo.MESH_FILES.items():
+        if name == "clean":
+            continue
+        v, f2 = load_mesh(demo_dir / filename)
+        np.testing.assert_array_equal(f, f2)
+        expected = mesh_metrics(v, clean, f)
+        for key in ("vertex", "normal_deg", "chamfer"):
+            assert report["metrics"][name][key] == pytest.approx(expected[key], rel=1e-9)
+    # The two classic filters clean up a 0.2-edge-length Gaussian noise on this part.
+    m = report["metrics"]
+    assert m["taubin"]["normal_deg"] < m["noisy"]["normal_deg"]
+    assert m[demo.FEATURE_BASELINE]["normal_deg"] < m["noisy"]["normal_deg"]
+
+
+def test_demo_noise_is_what_it_says(demo_dir):
+    from dmd_jax import demo
+
+    clean, f = load_mesh(demo_dir / "clean.obj")
+    noisy, _ = load_mesh(demo_dir / "noisy.obj")
+    # About 15,000 samples: the sample std is within 2 % of σ with overwhelming odds.
+    expected = demo.NOISE_LEVEL * mean_edge_length(clean, f)
+    assert np.std(noisy - clean) == pytest.approx(expected, rel=0.02)
+    assert abs(np.mean(noisy - clean)) < 0.05 * expected
+    # The clean mesh is the procedural shape, in its canonical frame.
+    extent = clean.max(0) - clean.min(0)
+    assert extent.max() == pytest.approx(1.0)
+    np.testing.assert_allclose(clean.max(0) + clean.min(0), 0.0, atol=1e-12)
+
+
+def test_demo_refuses_existing_outputs(demo_dir, capsys, weights):
+    before = (demo_dir / "clean.obj").stat().st_mtime_ns
+    code, _, err = run(capsys, "demo", "--out", demo_dir, "--weights", weights)
+    assert_one_line_error(code, err, "already exist", "--overwrite")
+    assert (demo_dir / "clean.obj").stat().st_mtime_ns == before
+
+
+def test_demo_uses_the_bundled_weights_by_default(monkeypatch, tmp_path, capsys, weights):
+    from dmd_jax import demo
+
+    monkeypatch.setattr(inference, "pretrained_path", lambda: tmp_path / "absent.msgpack")
+    code, _, err = run(capsys, "demo", "--out", tmp_path / "demo")
+    assert_one_line_error(code, err, "bundled weights are missing", "--weights")
+    assert not (tmp_path / "demo").exists()
+    monkeypatch.setattr(inference, "pretrained_path", lambda: weights)
+    assert demo.load_bundle(None).meta == {"note": "tiny"}
+
+
+def test_sota_lite_on_one_mesh(tmp_path, weights):
+    from benchmarks import sota_lite
+
+    mesh = shared_mesh_path("decimated-knight.off")
+    folder = tmp_path / "meshes"
+    folder.mkdir()
+    (folder / mesh.name).symlink_to(mesh)
+    code = sota_lite.main(
+        [
+            "--meshes",
+            str(folder),
+            "--weights",
+            str(weights),
+            "--levels",
+            "0.2",
+            "--name",
+            "t",
+            "--out-dir",
+            str(tmp_path),
+        ]
+    )
+    assert code == 0
+    import csv
+
+    with open(tmp_path / "t.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["method"] for r in rows] == ["noisy", "taubin", "two_step", "dmd", "dmd_x2"]
+    clean, f = load_mesh(mesh)
+    seed = sota_lite.noise_seed(mesh.name, 0.2)
+    from dmd_jax.demo import gaussian_edge_noise
+
+    noisy = gaussian_edge_noise(clean, f, 0.2, seed)
+    expected = mesh_metrics(noisy, clean, f)["normal_deg"]
+    assert float(rows[0]["normal_deg"]) == pytest.approx(expected, rel=1e-12)
+    dmd = inference.denoise(noisy, f, weights)
+    assert float(rows[3]["normal_deg"]) == pytest.approx(
+        mesh_metrics(dmd, clean, f)["normal_deg"], rel=1e-9
+    )
+    report = (tmp_path / "t.md").read_text()
+    assert "## Means over meshes" in report and "decimated-knight.off" in report
+    assert str(weights) in report and "jax" in report
+
+
+def test_sota_lite_errors(tmp_path, capsys):
+    from benchmarks import sota_lite
+
+    assert sota_lite.main(["--meshes", str(tmp_path / "none")]) == 2
+    assert "no mesh folder" in capsys.readouterr().err
+    assert sota_lite.main(["--meshes", str(tmp_path), "--skip", "x.obj"]) == 2
+    assert "x.obj" in capsys.readouterr().err
