@@ -46,3 +46,9 @@ demo: $(STAMP)
 # Every mesh of ../shared/meshes at 3 noise levels; writes benchmarks/results/sota_lite.{md,csv}.
 sota-lite: $(STAMP)
 	$(BIN)/python benchmarks/sota_lite.py $(if $(WEIGHTS),--weights $(WEIGHTS))
+
+# Executes notebooks/*.ipynb; executed copies go to notebooks/executed/ (git-ignored).
+# 05 and 06 need the bundled weights, or WEIGHTS=path/to/file.msgpack.
+.PHONY: notebooks
+notebooks: $(STAMP)
+	$(if $(WEIGHTS),DMD_JAX_WEIGHTS=$(WEIGHTS)) $(BIN)/python notebooks/_run.py

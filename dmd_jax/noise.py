@@ -32,6 +32,12 @@ per-vertex reading of δ (a random unit direction with probability p) would give
 
 Determinism: every draw comes from `jax.random` with the given key, so the same key,
 mesh, kind and level give bit-identical noise on the same backend.
+
+Compilation: outside `jit`, each new array shape compiles a new program, and sampling
+programs take about a second to compile. So the unit noise of a concrete shape is drawn
+for a row count rounded up to a bucket (`dmd_jax.mesh.bucket_size`) and sliced on the
+host, and `add_noise` combines on the host: a training epoch over meshes of hundreds of
+sizes compiles a few programs per noise kind instead of one per mesh.
 """
 
 from __future__ import annotations
@@ -45,7 +51,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dmd_jax.mesh import vertex_edges
+from dmd_jax.mesh import bucket_size, mean_edge_length, vertex_edges
 
 NOISE_KINDS = ("gaussian", "uniform", "gamma", "impulse")
 NOISE_UNITS = ("canonical", "edge")
@@ -144,6 +150,23 @@ def unit_noise(
     """
     _check_kind(kind)
     shape = tuple(shape)
+    if shape and isinstance(shape[0], int | np.integer):
+        # Eager call: sample a bucketed row count (one compile per bucket), slice on host.
+        rows = int(shape[0])
+        padded = _unit_noise_jit(
+            key,
+            (bucket_size(rows, minimum=256),) + shape[1:],
+            kind,
+            jnp.dtype(dtype),
+            float(impulse_p),
+            float(impulse_q),
+            impulse_mode,
+        )
+        return jnp.asarray(np.asarray(padded)[:rows])
+    return _unit_noise(key, shape, kind, dtype, impulse_p, impulse_q, impulse_mode)
+
+
+def _unit_noise(key, shape, kind, dtype, impulse_p, impulse_q, impulse_mode):
     if kind == "gaussian":
         return jax.random.normal(key, shape, dtype)
     if kind == "uniform":
@@ -171,6 +194,9 @@ def unit_noise(
     raise ValueError(f"unknown impulse_mode {impulse_mode!r}; expected one of {IMPULSE_MODES}")
 
 
+_unit_noise_jit = jax.jit(_unit_noise, static_argnums=(1, 2, 3, 4, 5, 6))
+
+
 def noise_unit_length(vertices, faces, units):
     """The length one noise level unit stands for, in the coordinates of `vertices`.
 
@@ -187,6 +213,8 @@ def noise_unit_length(vertices, faces, units):
     f = np.asarray(faces)
     if f.ndim != 2 or f.shape[1] != 3 or f.shape[0] == 0:
         raise ValueError(f"faces must have shape [n_face, 3], got {f.shape}")
+    if not isinstance(v, jax.core.Tracer):
+        return jnp.asarray(mean_edge_length(np.asarray(v), f), v.dtype)
     a, b = vertex_edges(f, v.shape[0])
     return jnp.mean(jnp.linalg.norm(v[a] - v[b], axis=-1))
 
@@ -241,7 +269,12 @@ def add_noise(
         impulse_q=impulse_q,
         impulse_mode=impulse_mode,
     )
-    return v + (level * noise_unit_length(v, faces, units)).astype(v.dtype) * x
+    if isinstance(v, jax.core.Tracer) or isinstance(x, jax.core.Tracer):
+        return v + (level * noise_unit_length(v, faces, units)).astype(v.dtype) * x
+    # Eager: combine on the host so no per-shape elementwise program is compiled.
+    v_np = np.asarray(v)
+    unit = np.asarray(noise_unit_length(v_np, faces, units), v_np.dtype)
+    return jnp.asarray(v_np + (level * unit).astype(v_np.dtype) * np.asarray(x))
 
 
 # --------------------------------------------------------------------------------------
