@@ -1,7 +1,8 @@
 """The `dmd-jax` command line.
 
-Each subcommand lives in its own `_cmd_*` function; `main` turns any `ValueError`,
-`FileNotFoundError` or `FileExistsError` into a one-line error and exit code 2.
+Each subcommand lives in its own `_cmd_*` function; `main` turns any `ValueError` or
+`OSError` (missing file, existing output, a directory or unwritable path) into a
+one-line error and exit code 2.
 """
 
 from __future__ import annotations
@@ -439,8 +440,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except (ValueError, FileNotFoundError, FileExistsError) as exc:
-        print(f"dmd-jax {args.command}: error: {exc}", file=sys.stderr)
+    except (ValueError, OSError) as exc:
+        # One line whatever the message holds (some library errors span several lines).
+        message = " ".join(str(exc).split()) or type(exc).__name__
+        print(f"dmd-jax {args.command}: error: {message}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"dmd-jax {args.command}: interrupted", file=sys.stderr)

@@ -82,10 +82,19 @@ def load_weights(path) -> ModelBundle:
             f"{path}: weights format version {payload.get('version')} is not supported "
             f"(this dmd_jax reads version {WEIGHTS_VERSION})"
         )
-    config = ExperimentConfig.from_dict(json.loads(payload["config"]))
+    missing = [k for k in ("config", "meta", "params") if k not in payload]
+    if missing:
+        raise ValueError(f"{path}: incomplete weights file (no {', '.join(missing)})")
+    try:
+        config = ExperimentConfig.from_dict(json.loads(payload["config"]))
+        meta = json.loads(payload["meta"])
+    except (TypeError, ValueError) as exc:  # JSONDecodeError is a ValueError
+        raise ValueError(f"{path}: unreadable config or meta in the weights file ({exc})") from exc
     params = payload["params"]
+    if not isinstance(params, dict):
+        raise ValueError(f"{path}: params must be a nested dict of arrays")
     _check_params(params, config, str(path))
-    return ModelBundle(params=params, config=config, meta=json.loads(payload["meta"]))
+    return ModelBundle(params=params, config=config, meta=meta)
 
 
 def _abstract_params(config: ExperimentConfig):
@@ -117,6 +126,19 @@ def _check_params(params, config: ExperimentConfig, name: str) -> None:
         jax.tree_util.keystr(p): np.shape(x)
         for p, x in jax.tree_util.tree_flatten_with_path(params)[0]
     }
+    exp_dtypes = {
+        jax.tree_util.keystr(p): np.dtype(x.dtype)
+        for p, x in jax.tree_util.tree_flatten_with_path(expected)[0]
+    }
+    for p, x in jax.tree_util.tree_flatten_with_path(params)[0]:
+        key = jax.tree_util.keystr(p)
+        dtype = getattr(x, "dtype", None)
+        if key in exp_dtypes and dtype != exp_dtypes[key]:
+            raise ValueError(
+                f"{name}: param {key} has dtype {dtype}, its config builds {exp_dtypes[key]}"
+            )
+        if key in exp_dtypes and not np.all(np.isfinite(x)):
+            raise ValueError(f"{name}: param {key} holds NaN or infinite values")
     if exp_paths != got_paths:
         missing = sorted(set(exp_paths) - set(got_paths))[:3]
         extra = sorted(set(got_paths) - set(exp_paths))[:3]

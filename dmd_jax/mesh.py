@@ -36,8 +36,13 @@ def validate_mesh(vertices, faces, *, name: str = "mesh") -> tuple[np.ndarray, n
         infinite coordinates, polygons, negative or out-of-range indices, and faces that
         repeat a vertex.
     """
-    v = np.asarray(vertices)
-    f = np.asarray(faces)
+    try:
+        v = np.asarray(vertices)
+        f = np.asarray(faces)
+    except ValueError:  # NumPy refuses ragged nested lists
+        raise ValueError(
+            f"{name}: vertices and faces must be numeric arrays, not ragged lists"
+        ) from None
     if v.dtype == object or f.dtype == object:
         raise ValueError(f"{name}: vertices and faces must be numeric arrays, not ragged lists")
     if v.ndim != 2 or v.shape[-1] != 3:
@@ -393,8 +398,16 @@ def canonical_frame(vertices) -> CanonicalFrame:
     """The canonical frame of a vertex set: bounding-box centre, longest side as scale."""
     v = np.asarray(vertices, dtype=np.float64)
     lo, hi = v.min(axis=0), v.max(axis=0)
-    scale = float((hi - lo).max())
-    if not np.isfinite(scale) or scale <= 0.0:
+    with np.errstate(over="ignore"):
+        scale = float((hi - lo).max())
+    if not np.all(np.isfinite(v)):
+        raise ValueError("the mesh has NaN or infinite coordinates: no canonical frame exists")
+    if not np.isfinite(scale):
+        raise ValueError(
+            f"the mesh's extent overflows float64 (coordinates up to {np.abs(v).max():.3g}); "
+            "rescale it first"
+        )
+    if scale <= 0.0:
         raise ValueError(
             "the mesh has zero extent (all vertices coincide): no canonical frame exists"
         )
@@ -413,34 +426,258 @@ def mean_edge_length(vertices, faces) -> float:
 # --------------------------------------------------------------------------------------
 
 
-def _count_polygons(path: Path) -> int:
-    """Number of faces with more than three corners in an OBJ or ASCII OFF file."""
-    suffix = path.suffix.lower()
-    count = 0
+class _MeshText(NamedTuple):
+    """What a reader found: vertices, triangulated faces and how many were polygons."""
+
+    vertices: np.ndarray  # [n_vertex, 3] float64
+    faces: np.ndarray  # [n_face, 3] int64
+    n_polygons: int
+
+
+def _fan(corners: list[int], out: list[int]) -> None:
+    """Appends the fan triangulation `(c0, c_i, c_i+1)` of one face to a flat list."""
+    c0 = corners[0]
+    for i in range(1, len(corners) - 1):
+        out += (c0, corners[i], corners[i + 1])
+
+
+def _text_of(data: bytes) -> str:
+    # Numbers are ASCII; anything else can only sit in comments and names, so bytes that
+    # are not UTF-8 (a Latin-1 comment, say) must not stop the file from loading.
+    return data.decode("utf-8", errors="replace")
+
+
+def _read_obj(data: bytes, name: str) -> _MeshText:
+    """Reads the `v` and `f` statements of a Wavefront OBJ file; everything else is ignored.
+
+    Keeps every vertex in file order (unused ones too, which trimesh drops when faces
+    carry texture or normal indices), resolves negative (relative) indices, and names
+    the line of any malformed statement.
+    """
+    text = _text_of(data)
+    if "\\" in text:
+        text = text.replace("\\\r\n", " ").replace("\\\n", " ")  # continuation lines
+    coords: list[tuple[float, float, float]] = []
+    flat: list[int] = []
+    n_poly = 0
+    max_index, max_line = 0, 0
+    for lineno, line in enumerate(text.splitlines(), 1):
+        s = line.lstrip()
+        if not s.startswith(("v ", "v\t", "f ", "f\t")):
+            continue
+        parts = s.split("#", 1)[0].split()
+        if parts[0] == "v":
+            if len(parts) < 4:
+                raise ValueError(
+                    f"{name}: line {lineno}: a vertex needs 3 coordinates, got {len(parts) - 1}"
+                )
+            try:
+                coords.append((float(parts[1]), float(parts[2]), float(parts[3])))
+            except ValueError:
+                raise ValueError(
+                    f"{name}: line {lineno}: vertex coordinates are not numbers: "
+                    f"{' '.join(parts[1:4])[:60]!r}"
+                ) from None
+            continue
+        tokens = parts[1:]
+        if len(tokens) < 3:
+            raise ValueError(
+                f"{name}: line {lineno}: a face needs at least 3 vertices, got {len(tokens)}"
+            )
+        corners = []
+        for token in tokens:
+            try:
+                i = int(token.split("/", 1)[0])
+            except ValueError:
+                raise ValueError(
+                    f"{name}: line {lineno}: face index {token[:30]!r} is not an integer"
+                ) from None
+            if i > 0:
+                if i > max_index:
+                    max_index, max_line = i, lineno
+                corners.append(i - 1)
+            elif i < 0:
+                if -i > len(coords):
+                    raise ValueError(
+                        f"{name}: line {lineno}: relative face index {i} points before the "
+                        f"first vertex ({len(coords)} vertices so far)"
+                    )
+                corners.append(len(coords) + i)
+            else:
+                raise ValueError(
+                    f"{name}: line {lineno}: face index 0 is invalid (OBJ indices start at 1)"
+                )
+        n_poly += len(corners) > 3
+        _fan(corners, flat)
+    if max_index > len(coords):
+        raise ValueError(
+            f"{name}: line {max_line}: face index {max_index} is out of range for the "
+            f"file's {len(coords)} vertices (OBJ indices start at 1)"
+        )
+    return _MeshText(
+        np.array(coords, np.float64).reshape(-1, 3),
+        np.array(flat, np.int64).reshape(-1, 3),
+        n_poly,
+    )
+
+
+def _read_off(data: bytes, name: str) -> _MeshText:
+    """Reads an ASCII OFF file (also COFF, NOFF, STOFF: extra columns are ignored).
+
+    The counts in the header are checked against the file: a truncated file, or a face
+    with fewer than 3 corners, is an error rather than a smaller mesh.
+    """
+    rows = (
+        (lineno, tokens)
+        for lineno, line in enumerate(_text_of(data).splitlines(), 1)
+        if (tokens := line.split("#", 1)[0].split())
+    )
+    first = next(rows, None)
+    if first is None:
+        raise ValueError(f"{name}: the file holds no data (only comments or blank lines)")
+    lineno, head = first
+    keyword = head[0]
+    if not keyword.upper().endswith("OFF"):
+        raise ValueError(f"{name}: not an OFF file (line {lineno} starts with {keyword[:20]!r})")
+    if "BINARY" in (t.upper() for t in head[1:]):
+        raise ValueError(f"{name}: binary OFF is not supported; save it as ASCII OFF")
+    prefix = keyword[:-3]
+    if "4" in prefix or prefix.endswith("n"):
+        raise ValueError(f"{name}: OFF variant {keyword!r} (not 3-D points) is not supported")
+    counts = head[1:]
+    if not counts:
+        nxt = next(rows, None)
+        if nxt is None:
+            raise ValueError(f"{name}: truncated after the OFF header (no counts line)")
+        lineno, counts = nxt
     try:
-        with open(path, encoding="utf-8", errors="replace") as fh:
-            if suffix == ".obj":
-                for line in fh:
-                    if line.startswith("f ") and len(line.split()) > 4:
-                        count += 1
-            elif suffix == ".off":
-                lines = [ln.split("#")[0].split() for ln in fh.read().splitlines()]
-                lines = [ln for ln in lines if ln]
-                if not lines:
-                    return 0
-                head = lines[0]
-                start = 1
-                if head[0].upper().endswith("OFF") and len(head) == 1:
-                    head, start = lines[1], 2
-                elif head[0].upper().endswith("OFF"):
-                    head = head[1:]
-                n_v = int(head[0])
-                for ln in lines[start + n_v :]:
-                    if len(ln) >= 1 and ln[0].isdigit() and int(ln[0]) > 3:
-                        count += 1
-    except (OSError, ValueError, IndexError):
-        return 0
-    return count
+        n_vertex, n_face = int(counts[0]), int(counts[1])
+    except (ValueError, IndexError):
+        raise ValueError(
+            f"{name}: line {lineno}: expected the counts 'n_vertex n_face n_edge', got "
+            f"{' '.join(counts)[:60]!r}"
+        ) from None
+    if n_vertex < 0 or n_face < 0:
+        raise ValueError(f"{name}: line {lineno}: negative counts {n_vertex} {n_face}")
+    coords: list[tuple[float, float, float]] = []
+    for _ in range(n_vertex):
+        row = next(rows, None)
+        if row is None:
+            raise ValueError(
+                f"{name}: truncated: the header promises {n_vertex} vertices, the file "
+                f"ends after {len(coords)}"
+            )
+        lineno, tokens = row
+        try:
+            coords.append((float(tokens[0]), float(tokens[1]), float(tokens[2])))
+        except (ValueError, IndexError):
+            raise ValueError(
+                f"{name}: line {lineno}: a vertex needs 3 numbers, got {' '.join(tokens)[:60]!r}"
+            ) from None
+    flat: list[int] = []
+    n_poly = 0
+    for done in range(n_face):
+        row = next(rows, None)
+        if row is None:
+            raise ValueError(
+                f"{name}: truncated: the header promises {n_face} faces, the file ends after {done}"
+            )
+        lineno, tokens = row
+        try:
+            k = int(tokens[0])
+            corners = [int(t) for t in tokens[1 : 1 + k]]
+        except ValueError:
+            raise ValueError(
+                f"{name}: line {lineno}: a face is 'k i_1 ... i_k' with integers, got "
+                f"{' '.join(tokens)[:60]!r}"
+            ) from None
+        if k < 3 or len(corners) < k:
+            raise ValueError(
+                f"{name}: line {lineno}: a face needs k >= 3 corners and k indices, got "
+                f"{' '.join(tokens)[:60]!r}"
+            )
+        n_poly += k > 3
+        _fan(corners, flat)
+    return _MeshText(
+        np.array(coords, np.float64).reshape(-1, 3),
+        np.array(flat, np.int64).reshape(-1, 3),
+        n_poly,
+    )
+
+
+def _ply_header_counts(data: bytes) -> dict[str, int]:
+    """`{element name: count}` from a PLY header (`{}` when there is no readable header)."""
+    end = data.find(b"end_header", 0, 1 << 16)
+    if end < 0:
+        return {}
+    counts = {}
+    for line in data[:end].decode("ascii", errors="replace").splitlines():
+        parts = line.split()
+        if len(parts) == 3 and parts[0] == "element" and parts[2].isdigit():
+            counts[parts[1]] = int(parts[2])
+    return counts
+
+
+def _check_stl_size(data: bytes, name: str) -> None:
+    """A binary STL's size is fixed by its triangle count; ASCII STL ends with `endsolid`."""
+    if len(data) >= 84:
+        n = int(np.frombuffer(data[80:84], "<u4")[0])
+        if len(data) == 84 + 50 * n:
+            return
+    if data.lstrip()[:5].lower() == b"solid":
+        if b"endsolid" not in data[-1024:].lower():
+            raise ValueError(f"{name}: truncated ASCII STL (no closing 'endsolid')")
+        return
+    promised = (
+        f"its header promises {n} triangles ({84 + 50 * n} bytes), the file has {len(data)}"
+        if len(data) >= 84
+        else f"the file has only {len(data)} bytes"
+    )
+    raise ValueError(f"{name}: truncated or corrupt binary STL: {promised}")
+
+
+def _read_with_trimesh(data: bytes, suffix: str, name: str) -> _MeshText:
+    """PLY (ASCII or binary) and STL through trimesh, with the checks trimesh skips."""
+    import io
+
+    import trimesh
+
+    if suffix == ".stl":
+        _check_stl_size(data, name)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            mesh = trimesh.load(
+                io.BytesIO(data),
+                file_type=suffix[1:],
+                process=False,
+                maintain_order=True,
+                force="mesh",
+                skip_materials=True,
+            )
+    except ImportError:
+        # trimesh guesses the encoding of undecodable text with an optional package.
+        raise ValueError(f"{name}: corrupt file (neither valid binary nor UTF-8 text)") from None
+    except Exception as exc:  # trimesh raises many types for corrupt files
+        raise ValueError(f"{name}: could not read the mesh ({type(exc).__name__}: {exc})") from exc
+    vertices = np.asarray(getattr(mesh, "vertices", np.zeros((0, 3))), np.float64)
+    faces = np.asarray(getattr(mesh, "faces", np.zeros((0, 3), np.int64)), np.int64)
+    n_poly = 0
+    if suffix == ".ply":
+        declared = _ply_header_counts(data)
+        n_v, n_f = declared.get("vertex"), declared.get("face")
+        if n_v is not None and len(vertices) != n_v:
+            raise ValueError(
+                f"{name}: the header declares {n_v} vertices, the file holds {len(vertices)}"
+            )
+        if n_f is not None and len(faces) < n_f:
+            raise ValueError(
+                f"{name}: the header declares {n_f} faces, only {len(faces)} triangles "
+                "could be read (truncated, or faces with fewer than 3 corners)"
+            )
+        # trimesh fan-triangulates PLY polygons: every extra corner is an extra triangle.
+        n_poly = 0 if n_f is None else len(faces) - n_f
+    return _MeshText(vertices, faces, n_poly)
 
 
 def _merge_identical_vertices(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
@@ -468,10 +705,17 @@ def load_mesh(path, *, polygons: str = "triangulate") -> tuple[np.ndarray, np.nd
     count of the mesh that was saved come back only if it had no unused vertices and its
     vertices were already numbered in order of first appearance.
 
+    OBJ and ASCII OFF are read here (trimesh drops the unused vertices of an OBJ whose
+    faces carry texture indices, and silently skips truncated OFF faces); PLY and STL go
+    through trimesh, then their header counts and sizes are checked. Any malformed
+    file, truncated one included, raises `ValueError` naming the file (and the line for
+    OBJ/OFF), never a smaller mesh.
+
     Args:
       path: an `.obj`, `.off`, `.ply` or `.stl` file.
       polygons: `"triangulate"` (fan-triangulate quads and n-gons, with a warning saying
-        how many) or `"reject"` (raise `ValueError`).
+        how many; for PLY the count is the number of extra triangles) or `"reject"`
+        (raise `ValueError`).
 
     Returns:
       `(vertices float64 [n, 3], faces int32 [f, 3])`, validated by `validate_mesh`.
@@ -481,46 +725,41 @@ def load_mesh(path, *, polygons: str = "triangulate") -> tuple[np.ndarray, np.nd
         `polygons="reject"`, or any problem `validate_mesh` names.
       FileNotFoundError: the file does not exist.
     """
-    import trimesh
-
     path = Path(path)
     if polygons not in ("triangulate", "reject"):
         raise ValueError(f"polygons must be 'triangulate' or 'reject', got {polygons!r}")
-    if path.suffix.lower() not in SUPPORTED_EXTENSIONS:
+    suffix = path.suffix.lower()
+    if suffix not in SUPPORTED_EXTENSIONS:
         raise ValueError(
             f"{path}: unknown mesh format {path.suffix!r}; use one of "
             + ", ".join(SUPPORTED_EXTENSIONS)
         )
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such file")
-    if path.stat().st_size == 0:
+    data = path.read_bytes()
+    if not data.strip():
         raise ValueError(f"{path}: the file is empty")
-    n_poly = _count_polygons(path)
+    name = str(path)
+    if suffix == ".obj":
+        read = _read_obj(data, name)
+    elif suffix == ".off":
+        read = _read_off(data, name)
+    else:
+        read = _read_with_trimesh(data, suffix, name)
+    vertices, faces, n_poly = read
+    if len(faces) == 0:
+        raise ValueError(f"{path}: the file holds no faces (a point cloud is not a mesh)")
+    if len(vertices) == 0:
+        raise ValueError(f"{path}: the file holds no vertices (empty or corrupt)")
     if n_poly and polygons == "reject":
         raise ValueError(f"{path}: {n_poly} faces are polygons (more than 3 corners)")
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            mesh = trimesh.load(
-                str(path), process=False, maintain_order=True, force="mesh", skip_materials=True
-            )
-    except Exception as exc:  # trimesh raises many types for corrupt files
-        raise ValueError(f"{path}: could not read the mesh ({type(exc).__name__}: {exc})") from exc
-    vertices = np.asarray(getattr(mesh, "vertices", np.zeros((0, 3))))
-    faces = np.asarray(getattr(mesh, "faces", np.zeros((0, 3), np.int64)))
-    # Faces first: trimesh drops the vertices of an OBJ without faces, and "no faces"
-    # is then the useful message.
-    if faces.size == 0:
-        raise ValueError(f"{path}: the file holds no faces (a point cloud is not a mesh)")
-    if vertices.size == 0:
-        raise ValueError(f"{path}: the file holds no vertices (empty or corrupt)")
-    if path.suffix.lower() == ".stl":
+    if suffix == ".stl":
         vertices, faces = _merge_identical_vertices(vertices, faces)
     if n_poly:
         warnings.warn(
             f"{path}: triangulated {n_poly} polygon faces (fan triangulation)", stacklevel=2
         )
-    return validate_mesh(vertices, faces, name=str(path))
+    return validate_mesh(vertices, faces, name=name)
 
 
 def atomic_write(path, write_fn, *, overwrite: bool = False, protect=()) -> Path:
