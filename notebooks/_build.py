@@ -475,7 +475,8 @@ NOTEBOOKS["02_node_feature_collision"] = [
     float32 rounding of the sums), and they stay one point: layers 2 and 3 only move that
     point. The residual cascade keeps the input's spread, and more than that: since $g$
     gives all four vertices the same row $c$, $h_i - h_j = (c + x_i) - (c + x_j) = x_i -
-    x_j$, so the pairwise differences survive every layer exactly.
+    x_j$, so the pairwise differences survive every layer, exactly up to float32
+    rounding of the sums.
     """),
     code(r"""
     for k, out in enumerate(residual_outs):
