@@ -303,6 +303,15 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_train_cnr(args: argparse.Namespace) -> int:
+    import shlex
+
+    from dmd_jax.baselines.cascaded_regression import train_main
+
+    train_main(args, "dmd-jax " + " ".join(shlex.quote(a) for a in sys.argv[1:]))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="dmd-jax", description="DMD-Net mesh denoising in JAX (see README.md)."
@@ -431,6 +440,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     p.add_argument("--no-render", action="store_true", help="skip before_after.png")
     p.set_defaults(func=_cmd_demo)
+
+    p = sub.add_parser(
+        "train-cnr", help="train the CNR baseline (dmd_jax.baselines.cascaded_regression)"
+    )
+    p.add_argument("--data", required=True, help="dataset directory (make-dataset output)")
+    p.add_argument("--out", required=True, help="weights file to write (.msgpack)")
+    p.add_argument("--overwrite", action="store_true")
+    p.add_argument("--max-meshes", type=int, default=None, help="first N train meshes only")
+    p.add_argument("--draws", type=int, default=1, help="noisy copies per mesh")
+    p.add_argument("--faces-per-mesh", type=int, default=512, help="faces sampled per copy")
+    p.add_argument("--steps", type=int, default=2000, help="Adam steps per stage")
+    p.add_argument("--batch-size", type=int, default=1024)
+    p.add_argument("--lr", type=float, default=2e-3)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--stages", type=int, default=2, help="cascade length")
+    p.add_argument("--hidden", type=int, nargs="+", default=[128, 128, 64])
+    p.add_argument("--vertex-iterations", type=int, default=20)
+    p.add_argument("--eval-meshes", type=int, default=8, help="test-intra meshes checked")
+    p.set_defaults(func=_cmd_train_cnr)
 
     return parser
 

@@ -20,6 +20,10 @@ bnf        Zheng, Fu, Au, Tai & Wang 2011, bilateral normal filtering
 gnf        Zhang, Deng, Zhang, Bouaziz & Liu 2015, guided normal filtering
 l0         He & Schaefer 2013, L0 minimization (area-based edge operator)
 =========  =================================================================
+
+Learned baselines live in `LEARNED` (same signature; `denoise_with` and `DEFAULTS`
+cover them too): `cnr`, Wang, Liu & Tong 2016, cascaded normal regression, with the
+bundled weights `dmd_jax/weights/cnr_small.msgpack` (see `dmd_jax.baselines.cascaded_regression`).
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ import numpy as np
 
 from dmd_jax.baselines._common import default_params
 from dmd_jax.baselines.bilateral_mesh import bmd
+from dmd_jax.baselines.cascaded_regression import cnr
 from dmd_jax.baselines.l0_minimization import l0
 from dmd_jax.baselines.normal_filtering import bnf, fefp, gnf
 from dmd_jax.baselines.robust_projection import nifp
@@ -46,14 +51,20 @@ REGISTRY: dict[str, Callable[..., np.ndarray]] = {
     "l0": l0,
 }
 
-DEFAULTS: dict[str, dict] = {name: default_params(fn) for name, fn in REGISTRY.items()}
+# Kept apart from the classic filters: a learned method needs weights, and its
+# data-dependent local frames make it rotation equivariant only up to rounding.
+LEARNED: dict[str, Callable[..., np.ndarray]] = {"cnr": cnr}
+
+_ALL = {**REGISTRY, **LEARNED}
+
+DEFAULTS: dict[str, dict] = {name: default_params(fn) for name, fn in _ALL.items()}
 
 
 def denoise_with(name: str, vertices, faces, **params) -> np.ndarray:
-    """Runs the classic denoiser `name` with its defaults overridden by `params`.
+    """Runs the denoiser `name` with its defaults overridden by `params`.
 
     Args:
-      name: a key of `REGISTRY`.
+      name: a key of `REGISTRY` or `LEARNED`.
       vertices: `[n_vertex, 3]` noisy positions (any frame).
       faces: `[n_face, 3]` vertex indices.
       **params: parameters of that method (see `DEFAULTS[name]`).
@@ -64,24 +75,24 @@ def denoise_with(name: str, vertices, faces, **params) -> np.ndarray:
     Raises:
       ValueError: unknown method or parameter name, or an invalid value.
     """
-    if name not in REGISTRY:
-        raise ValueError(
-            f"unknown denoiser {name!r}; choose one of: " + ", ".join(sorted(REGISTRY))
-        )
+    if name not in _ALL:
+        raise ValueError(f"unknown denoiser {name!r}; choose one of: " + ", ".join(sorted(_ALL)))
     unknown = sorted(set(params) - set(DEFAULTS[name]))
     if unknown:
         raise ValueError(
             f"{name}: unknown parameter(s) {', '.join(unknown)}; "
             f"valid: {', '.join(sorted(DEFAULTS[name]))}"
         )
-    return REGISTRY[name](vertices, faces, **params)
+    return _ALL[name](vertices, faces, **params)
 
 
 __all__ = [
     "DEFAULTS",
+    "LEARNED",
     "REGISTRY",
     "bmd",
     "bnf",
+    "cnr",
     "denoise_with",
     "fefp",
     "gnf",
