@@ -272,8 +272,22 @@ def _cmd_train(args: argparse.Namespace) -> int:
         f"training {cfg.name} on {len(train_ex)} meshes from {args.data}; evaluating on "
         + ", ".join(f"{k}: {len(v)}" for k, v in evals.items())
     )
+    init = None
+    if args.init_from:
+        from dmd_jax.train import load_params
+
+        init, init_cfg = load_params(args.init_from)
+        if init_cfg.model != cfg.model:
+            raise ValueError(f"{args.init_from}: its model config differs from this run's")
     t0 = time.time()
-    result = train(cfg, train_ex, args.workdir, eval_sets=evals, progress=not args.no_progress)
+    result = train(
+        cfg,
+        train_ex,
+        args.workdir,
+        eval_sets=evals,
+        progress=not args.no_progress,
+        init_params=init,
+    )
     result.pop("state", None)
     result["wall_time_s"] = time.time() - t0
     print(json.dumps(result, indent=2))
@@ -416,6 +430,11 @@ def build_parser() -> argparse.ArgumentParser:
         type=int,
         default=16,
         help="meshes of each test split used for periodic evaluation",
+    )
+    p.add_argument(
+        "--init-from",
+        default=None,
+        help="checkpoint directory to fine-tune from (same model config)",
     )
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=_cmd_train)

@@ -34,7 +34,7 @@ import optax
 
 from dmd_jax import geometry, losses, metrics
 from dmd_jax.config import ExperimentConfig
-from dmd_jax.mesh import MeshGraph
+from dmd_jax.mesh import MeshGraph, atomic_write
 from dmd_jax.model import DMDNet
 from dmd_jax.pipeline import (
     Batch,
@@ -355,15 +355,20 @@ def _plot_curves(log_path: Path, png_path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    steps, loss, ev_steps, ev = [], [], [], []
+    # A killed run can leave a cut-off last line, and its resumed run logs the steps after
+    # the last checkpoint again: skip unreadable lines, keep the latest row of each step.
+    train_rows, eval_rows = {}, {}
     for line in log_path.read_text().splitlines():
-        row = json.loads(line)
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError:
+            continue
         if row.get("kind") == "train":
-            steps.append(row["step"])
-            loss.append(row["loss"])
+            train_rows[row["step"]] = row["loss"]
         elif row.get("kind") == "eval" and "test_intra/normal_deg" in row:
-            ev_steps.append(row["step"])
-            ev.append(row["test_intra/normal_deg"])
+            eval_rows[row["step"]] = row["test_intra/normal_deg"]
+    steps, loss = sorted(train_rows), [train_rows[s] for s in sorted(train_rows)]
+    ev_steps, ev = sorted(eval_rows), [eval_rows[s] for s in sorted(eval_rows)]
     if not steps:
         return
     fig, ax = plt.subplots(1, 2, figsize=(10, 3.5))
@@ -393,6 +398,7 @@ def train(
     progress: bool = True,
     stop_after: int | None = None,
     inject_nan_at: int | None = None,
+    init_params: dict | None = None,
 ) -> dict:
     """Trains (or resumes) a run in `workdir`; returns the final evaluation.
 
@@ -404,6 +410,8 @@ def train(
       progress: show a tqdm bar.
       stop_after: stop (as if killed) after this many steps of this call (for tests).
       inject_nan_at: replace the batch of this step with NaNs (fault-injection tests).
+      init_params: start from these params (fine-tuning) instead of a fresh init; the
+        optimizer starts fresh. Ignored when the workdir already holds a checkpoint.
 
     Raises:
       NonFiniteLossError: the loss became NaN/inf; the last good checkpoint is kept.
@@ -420,7 +428,8 @@ def train(
                 f"{workdir} holds a run with a different config; use another --workdir"
             )
     else:
-        cfg_path.write_text(json.dumps(cfg.to_dict(), indent=2))
+        text = json.dumps(cfg.to_dict(), indent=2)
+        atomic_write(cfg_path, lambda tmp: Path(tmp).write_text(text))
     t = cfg.train
     noise = (
         NoiseSettings(**cfg.noise.settings()) if hasattr(cfg.noise, "settings") else NoiseSettings()
@@ -430,6 +439,11 @@ def train(
         train_examples, 0, batch_size=t.batch_size, seed=t.seed, noise=noise, rotate=t.rotate
     )
     state = trainer.init(first)
+    if init_params is not None:
+        fresh = jax.tree_util.tree_structure(merge_params(state.params))
+        if jax.tree_util.tree_structure(init_params) != fresh:
+            raise ValueError("init_params do not match the model of this config")
+        state = state._replace(params=split_params(jax.tree.map(jnp.asarray, init_params)))
     latest, best = _checkpointers(workdir, t.ckpt_keep)
     if latest.latest_step() is not None:
         state = restore_checkpoint(latest, state)
@@ -445,6 +459,11 @@ def train(
     last_eval: dict = {}
     t0 = time.time()
     with open(log_path, "a") as log:
+        if log.tell():
+            with open(log_path, "rb") as fh:
+                fh.seek(-1, 2)
+                if fh.read(1) != b"\n":
+                    log.write("\n")  # a killed run's cut-off row must not swallow the next
         for step in range(start, end):
             batch = training_batch(
                 train_examples,
