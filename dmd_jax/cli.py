@@ -63,6 +63,8 @@ def _cmd_denoise(args: argparse.Namespace) -> int:
     from dmd_jax import inference
     from dmd_jax.mesh import load_mesh, save_mesh
 
+    if args.iterations < 1:
+        raise ValueError(f"--iterations must be at least 1, got {args.iterations}")
     vertices, faces = load_mesh(args.input)
     _check_output(args.output, args.input, args.overwrite)
     t0 = time.perf_counter()
