@@ -94,6 +94,8 @@ def _check_output(output, inputs, overwrite: bool) -> None:
     for src in [inputs] if isinstance(inputs, (str, Path)) else inputs:
         if Path(src).resolve() == out.resolve():
             raise ValueError(f"{output}: the output path is the input file; choose another")
+    if out.is_dir():
+        raise ValueError(f"{output}: is a directory; give a file name")
     if out.exists() and not overwrite:
         raise FileExistsError(f"{output}: already exists (pass --overwrite to replace it)")
     if not out.parent.resolve().is_dir():

@@ -98,9 +98,16 @@ def load_weights(path) -> ModelBundle:
 
 
 def _abstract_params(config: ExperimentConfig):
+    return _abstract_params_of(json.dumps(config.to_dict(), sort_keys=True))
+
+
+@lru_cache(maxsize=8)
+def _abstract_params_of(config_json: str):
+    """Param shapes and dtypes of a config (traced once per config and process)."""
     from dmd_jax.mesh import build_mesh_graph as _build
     from dmd_jax.model import DMDNet
 
+    config = ExperimentConfig.from_dict(json.loads(config_json))
     v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32)
     f = np.array([[0, 1, 2], [0, 3, 1], [0, 2, 3], [1, 3, 2]], np.int32)
     batch = collate([v], [v], [_build(f, 4)])
@@ -216,8 +223,8 @@ def denoise(
     """
     if int(iterations) < 1:
         raise ValueError(f"iterations must be at least 1, got {iterations}")
-    in_dtype = np.asarray(vertices).dtype
     v, f = validate_mesh(vertices, faces)
+    in_dtype = np.asarray(vertices).dtype
     bundle = as_bundle(params, config)
     frame = canonical_frame(v)
     x = frame.apply(v)

@@ -441,7 +441,10 @@ def _fan(corners: list[int], out: list[int]) -> None:
         out += (c0, corners[i], corners[i + 1])
 
 
-def _text_of(data: bytes) -> str:
+def _text_of(data: bytes, name: str) -> str:
+    """The text of an OBJ or OFF file; NUL bytes mean it is not text at all."""
+    if b"\0" in data:
+        raise ValueError(f"{name}: binary data in a text mesh format (corrupt file?)")
     # Numbers are ASCII; anything else can only sit in comments and names, so bytes that
     # are not UTF-8 (a Latin-1 comment, say) must not stop the file from loading.
     return data.decode("utf-8", errors="replace")
@@ -454,7 +457,7 @@ def _read_obj(data: bytes, name: str) -> _MeshText:
     carry texture or normal indices), resolves negative (relative) indices, and names
     the line of any malformed statement.
     """
-    text = _text_of(data)
+    text = _text_of(data, name)
     if "\\" in text:
         text = text.replace("\\\r\n", " ").replace("\\\n", " ")  # continuation lines
     coords: list[tuple[float, float, float]] = []
@@ -529,7 +532,7 @@ def _read_off(data: bytes, name: str) -> _MeshText:
     """
     rows = (
         (lineno, tokens)
-        for lineno, line in enumerate(_text_of(data).splitlines(), 1)
+        for lineno, line in enumerate(_text_of(data, name).splitlines(), 1)
         if (tokens := line.split("#", 1)[0].split())
     )
     first = next(rows, None)
@@ -734,6 +737,8 @@ def load_mesh(path, *, polygons: str = "triangulate") -> tuple[np.ndarray, np.nd
             f"{path}: unknown mesh format {path.suffix!r}; use one of "
             + ", ".join(SUPPORTED_EXTENSIONS)
         )
+    if path.is_dir():
+        raise ValueError(f"{path}: is a directory, not a mesh file")
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such file")
     data = path.read_bytes()

@@ -339,10 +339,14 @@ def load_params(checkpoint_dir) -> tuple[dict, ExperimentConfig]:
         cfg_dict = manager.restore(step, args=ocp.args.Composite(config=ocp.args.JsonRestore()))
         cfg = ExperimentConfig.from_dict(cfg_dict["config"])
         state = manager.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore()))
-    except (ValueError, FileNotFoundError):
+    except FileNotFoundError:
         raise
     except Exception as exc:  # orbax raises assorted types on corrupt directories
-        raise ValueError(f"{checkpoint_dir}: unreadable checkpoint ({exc})") from exc
+        message = " ".join(str(exc).split())[:300]
+        raise ValueError(
+            f"{checkpoint_dir}: unreadable checkpoint of step {step} "
+            f"({type(exc).__name__}: {message})"
+        ) from exc
     return merge_params(state["state"]["params"]), cfg
 
 
