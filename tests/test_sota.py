@@ -1,0 +1,79 @@
+"""experiments/sota.py end to end on one small mesh with two fast methods."""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+
+import numpy as np
+import pytest
+from conftest import REPO, SHARED_MESHES, shared_mesh_path
+
+from dmd_jax.baselines import taubin
+from dmd_jax.mesh import load_mesh
+from dmd_jax.metrics import mesh_metrics
+
+
+@pytest.fixture(scope="module")
+def sota():
+    spec = importlib.util.spec_from_file_location("sota", REPO / "experiments" / "sota.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_sota_script_on_one_mesh(sota, tmp_path):
+    shared_mesh_path("decimated-knight.off")
+    missing = tmp_path / "no_such_weights.msgpack"
+    rc = sota.main(
+        [
+            "--table", "sota",
+            "--out", str(tmp_path),
+            "--meshes-dir", str(SHARED_MESHES),
+            "--case", "Knight=decimated-knight.off:gaussian:0.01:3",
+            "--methods", "laplacian", "taubin", "dmd",
+            "--dmd-weights", str(missing),
+        ]
+    )  # fmt: skip
+    assert rc == 0
+    rows = list(csv.DictReader(open(tmp_path / "sota.csv")))
+    assert [r["method"] for r in rows] == ["noisy", "laplacian", "taubin", "dmd"]
+    by = {r["method"]: r for r in rows}
+    # Missing DMD-Net weights are reported, not fatal.
+    assert by["dmd"]["status"] == sota.PENDING and by["dmd"]["normal_deg"] == "nan"
+    # The numbers are the metrics of the method's output on the seeded noisy mesh.
+    import jax
+
+    from dmd_jax.noise import add_noise
+
+    v, f = load_mesh(shared_mesh_path("decimated-knight.off"))
+    noisy = np.asarray(add_noise(jax.random.PRNGKey(3), v, f, "gaussian", 0.01), np.float64)
+    met = mesh_metrics(taubin(noisy, f), v, f)
+    assert float(by["taubin"]["normal_deg"]) == pytest.approx(met["normal_deg"], rel=1e-5)
+    assert float(by["taubin"]["vertex_e3"]) == pytest.approx(
+        met["vertex_per_coord"] * 1e3, rel=1e-5
+    )
+    assert float(by["taubin"]["chamfer_e3"]) == pytest.approx(met["chamfer"] * 1e3, rel=1e-5)
+    assert float(by["noisy"]["normal_deg"]) > float(by["taubin"]["normal_deg"])
+    assert float(by["laplacian"]["seconds"]) > 0
+    md = (tmp_path / "sota.md").read_text()
+    assert "python experiments/sota.py" in md and "Hardware:" in md
+    assert "| Knight | N(0, 0.01) | Normal (°) |" in md
+    assert sota.PENDING in md
+    png = tmp_path / "sota.png"
+    assert png.stat().st_size > 1000
+    from PIL import Image
+
+    with Image.open(png) as im:
+        # Clean, noisy and two methods: four panels side by side.
+        assert im.width > 3 * im.height
+
+
+def test_case_parsing_and_bad_method(sota):
+    case = sota.parse_case("Bunny=bunny.off:gamma:0.015:2")
+    assert case == sota.Case("Bunny", "bunny.off", "gamma", 0.015, 2)
+    assert sota.noise_label(case) == "0.015·Γ(2,2)"
+    with pytest.raises(Exception, match="NAME=FILE"):
+        sota.parse_case("bunny.off")
+    with pytest.raises(ValueError, match="unknown method"):
+        sota.build_methods(["nope"])
