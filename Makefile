@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
 PYTEST_WORKERS ?= 2
 
-.PHONY: install test test-slow lint format bench sota demo sota-lite
+.PHONY: install test test-slow lint format bench ablate ablate-smoke sota demo sota-lite
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -58,3 +58,16 @@ notebooks: $(STAMP)
 # that DMD-Net instead of the bundled one.
 sota: $(STAMP)
 	$(BIN)/python experiments/sota.py --table all $(if $(WEIGHTS),--dmd-weights $(WEIGHTS))
+
+# The paper's ablation studies (experiments/): every study at $(ABLATE_PRESET) (cpu: about
+# 27 trainings of 600 steps; paper: for a GPU). Reruns skip finished runs and resume
+# interrupted ones; results and tables go to experiments/results/$(ABLATE_PRESET)/.
+ABLATE_PRESET ?= cpu
+ablate: $(STAMP)
+	$(BIN)/python -m experiments run --preset $(ABLATE_PRESET)
+	$(BIN)/python -m experiments index
+
+# Every study at the test preset (2 steps per run), into out/ (also run by the test suite).
+ablate-smoke: $(STAMP)
+	$(BIN)/python -m experiments run --preset test --out out/ablate-smoke \
+		--data-dir out/ablate-smoke-data

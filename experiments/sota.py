@@ -146,9 +146,15 @@ class Method(NamedTuple):
 def _dmd_method(key: str, label: str, path: Path | None) -> Method:
     from dmd_jax import inference
 
-    if path is None or not Path(path).is_file():
+    if path is None or not Path(path).exists():
         return Method(key, label, None, PENDING if key == "dmd" else f"missing {path}")
-    bundle = inference.load_weights(path)
+    if Path(path).is_dir():
+        from dmd_jax.train import load_params
+
+        params, cfg = load_params(path)
+        bundle = inference.ModelBundle(params=params, config=cfg, meta={})
+    else:
+        bundle = inference.load_weights(path)
     steps = bundle.meta.get("steps")
     trained = f", {steps} training steps" if steps else ""
     return Method(
@@ -638,14 +644,16 @@ def _parse(argv):
         help="replace the six meshes: NAME=FILE:KIND:LEVEL[:SEED] (repeatable)",
     )
     p.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
-    p.add_argument("--dmd-weights", type=Path, default=None, help="DMD-Net weights file")
+    p.add_argument(
+        "--dmd-weights", type=Path, default=None, help="DMD-Net weights instead of the bundled"
+    )
     p.add_argument("--cnr-weights", type=Path, default=None, help="CNR weights file")
     p.add_argument(
         "--weights",
         action="append",
         default=[],
         metavar="LABEL=PATH",
-        help="another DMD-Net checkpoint to add as a column (repeatable)",
+        help="another DMD-Net (weights file or checkpoint directory) as a column (repeatable)",
     )
     p.add_argument("--repeat", type=int, default=1, help="calls per method; time = fastest")
     p.add_argument("--no-figure", action="store_true")

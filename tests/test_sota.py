@@ -77,3 +77,10 @@ def test_case_parsing_and_bad_method(sota):
         sota.parse_case("bunny.off")
     with pytest.raises(ValueError, match="unknown method"):
         sota.build_methods(["nope"])
+
+
+def test_extra_checkpoints_become_columns(sota, tmp_path):
+    methods = sota.build_methods(["taubin"], extra_weights=[("late", tmp_path / "none")])
+    assert [m.key for m in methods] == ["taubin", "dmd:late"]
+    assert methods[1].fn is None and methods[1].status.startswith("missing")
+    assert "iterations=10" in methods[0].status

@@ -1,0 +1,136 @@
+"""`python -m experiments`: run, list and aggregate the ablation sweeps.
+
+Examples::
+
+    python -m experiments run --preset cpu                      # all studies
+    python -m experiments run --preset cpu --studies structure depth
+    python -m experiments run --preset test --out out/ablate-smoke --data-dir out/ablate-data
+    python -m experiments list --preset cpu                     # the runs and their ids
+    python -m experiments aggregate experiments/results/cpu     # tables, plots, README
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _parser() -> argparse.ArgumentParser:
+    from experiments.studies import PRESETS, STUDY_KEYS
+
+    parser = argparse.ArgumentParser(
+        prog="python -m experiments", description=__doc__.split("\n")[0]
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    def common(p):
+        p.add_argument(
+            "--preset",
+            default=os.environ.get("ABLATE_PRESET", "cpu"),
+            choices=sorted(PRESETS),
+            help="sweep size (default: $ABLATE_PRESET or cpu)",
+        )
+        p.add_argument("--studies", nargs="+", choices=STUDY_KEYS, help="default: all")
+        p.add_argument("--seeds", nargs="+", type=int, help="training seeds (default: preset's)")
+        p.add_argument(
+            "--out", type=Path, help="results dir (default experiments/results/<preset>)"
+        )
+        p.add_argument("--data-dir", type=Path, help="dataset cache (default data/ablate-<preset>)")
+
+    p = sub.add_parser("run", help="run or resume a sweep, then aggregate")
+    common(p)
+    p.add_argument("--workers", type=int, help="parallel training processes")
+    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--no-aggregate", action="store_true")
+    p.add_argument(
+        "--clean-checkpoints",
+        action="store_true",
+        help="delete the checkpoints afterwards (noise/rotation runs added later retrain)",
+    )
+
+    p = sub.add_parser("list", help="print every run of a sweep and whether it is finished")
+    common(p)
+
+    p = sub.add_parser("aggregate", help="write tables, CSVs, plots and README of a results dir")
+    p.add_argument("out", type=Path)
+    p.add_argument("--index", type=Path, help="also rewrite this results root's README.md")
+
+    p = sub.add_parser("index", help="rewrite a results root's README.md from its presets")
+    p.add_argument("root", type=Path, nargs="?", default=REPO / "experiments" / "results")
+    return parser
+
+
+def _resolve(args):
+    from experiments.studies import get_preset
+
+    p = get_preset(args.preset)
+    if args.seeds:
+        p = p.with_changes(seeds=tuple(args.seeds))
+    out = args.out or REPO / "experiments" / "results" / p.name
+    data = args.data_dir or REPO / "data" / f"ablate-{p.name}"
+    return p, out, data
+
+
+def main(argv=None) -> int:
+    args = _parser().parse_args(argv)
+    if args.command == "run":
+        # run_sweep puts the preset's XLA flag in the environment before JAX starts its
+        # backend (importing JAX does not start it).
+        from experiments import runner
+
+        p, out, data = _resolve(args)
+        session = runner.run_sweep(
+            p,
+            out,
+            data,
+            studies=args.studies,
+            workers=args.workers,
+            progress=not args.no_progress,
+            aggregate=not args.no_aggregate,
+        )
+        if args.clean_checkpoints:
+            runner.clean_checkpoints(out)
+        return 1 if session["failures"] else 0
+    if args.command == "list":
+        from experiments import runner
+        from experiments import studies as st
+
+        p, out, data = _resolve(args)
+        ds_ready = (data / runner.CALIBRATION_FILE).is_file() or not p.calibrate_curvature
+        gammas = (
+            runner._read_json(data / runner.CALIBRATION_FILE)
+            if p.calibrate_curvature and ds_ready
+            else None
+        )
+        if p.calibrate_curvature and gammas is None:
+            print(f"(no calibration in {data} yet: ids below use the paper's gammas)")
+        runs = st.plan(p, st.base_config(p, gammas), args.studies)
+        homes = st.training_homes(runs)
+        for r in runs:
+            done = (out / r.study / r.run_id / "metrics.json").is_file()
+            home = homes[r.train_hash]
+            shared = "" if home is r else f"  (model of {home.study}/{home.run_id})"
+            print(f"{'done' if done else 'todo'}  {r.study}/{r.run_id}  {r.row}{shared}")
+        print(f"{len(runs)} runs, {len(homes)} distinct trainings")
+        return 0
+    if args.command == "aggregate":
+        from experiments import aggregate
+
+        aggregate.aggregate(args.out)
+        if args.index:
+            aggregate.write_index(args.index)
+        return 0
+    if args.command == "index":
+        from experiments import aggregate
+
+        print(aggregate.write_index(args.root))
+        return 0
+    return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,634 @@
+"""Result tables in the paper's layout, CSVs, bar plots and a README comparing orderings.
+
+Everything here is computed from the `metrics.json` files of a results directory (the
+runs listed in its `plan.json`); the only numbers written by hand are the paper's own
+tables (`PAPER`), transcribed from `paper/dmd-net.tex` (appendix D, E and the noise
+table; `tests/test_experiments.py` checks the transcription against the source).
+
+Units follow the paper: Vertex is the per-coordinate mean squared error
+(`vertex_per_coord`) ×10⁻⁴, Normal the mean face-normal angle in degrees, Chamfer the
+symmetric chamfer distance ×10⁻⁴, all in the canonical frame of the clean mesh.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dmd_jax.config import ABLATIONS
+from experiments import studies as st
+
+SPLITS = ("test_intra", "test_inter")
+METRICS = (("vertex_per_coord", 1e4, "Vertex (×10⁻⁴)"),) + (
+    ("normal_deg", 1.0, "Normal (°)"),
+    ("chamfer", 1e4, "Chamfer (×10⁻⁴)"),
+)
+TRAIN_COLUMNS = tuple(
+    (f"{split}/{key}", scale, f"{split.replace('_', '-')} {label}")
+    for split in SPLITS
+    for key, scale, label in METRICS
+)
+NOISE_COLUMNS = tuple(
+    (f"{which}/{key}", scale, f"{label} {name}")
+    for key, scale, label in METRICS
+    for which, name in (("denoised", "Loss"), ("reference", "Reference"))
+)
+ROTATION_COLUMNS = (
+    ("re/vertex_per_coord", 1e4, "L_V^RE (×10⁻⁴)"),
+    ("re/normal_deg", 1.0, "L_N^RE (°)"),
+    ("re/chamfer", 1e4, "L_C^RE (×10⁻⁴)"),
+    ("denoised/vertex_per_coord", 1e4, "denoised Vertex (×10⁻⁴)"),
+    ("denoised/normal_deg", 1.0, "denoised Normal (°)"),
+)
+
+# The paper's tables, in table units: six columns (test-intra V, N, C, test-inter V, N, C)
+# for the training studies; (vertex loss, vertex reference, normal loss, normal reference)
+# for the noise table; (L_V^RE, L_N^RE, L_C^RE) for the rotation test.
+_FGT8 = (3.917, 25.458, 2.028, 3.717, 25.184, 2.035)
+_FINAL = (3.301, 25.37, 1.786, 3.271, 25.053, 1.815)
+PAPER: dict[str, dict[str, tuple[float, ...]]] = {
+    "scheme": {
+        "Joint": _FGT8,
+        "Alter": (5.112, 26.458, 2.46, 4.882, 26.056, 2.459),
+        "2-Phase": (3.987, 26.216, 2.097, 3.937, 25.722, 2.155),
+        "U-FE": (4.768, 25.767, 2.399, 5.007, 25.387, 2.544),
+    },
+    "dropout": {
+        "Dr=0.0": _FGT8,
+        "Dr=0.2": (101.777, 45.86, 17.912, 98.108, 46.778, 18.743),
+        "Dr=0.35": (94.623, 47.578, 19.767, 95.461, 47.836, 21.056),
+        "Dr=0.5": (220.129, 47.905, 33.388, 242.294, 49.462, 37.828),
+    },
+    "attention": {
+        "With Attention": (27.881, 28.689, 6.845, 31.399, 28.493, 7.974),
+        "Without Attention": _FGT8,
+    },
+    "structure": {
+        "FGT-8": _FGT8,
+        "FGT-3": (4.506, 26.396, 2.224, 4.306, 25.917, 2.14),
+        "W/O T": (6.112, 26.328, 2.849, 5.588, 25.994, 2.696),
+        "MT": (5.586, 26.366, 2.653, 5.521, 26.097, 2.643),
+        "DO-2S": (5.398, 26.224, 2.649, 4.967, 25.878, 2.548),
+        "DO-1S": (6.097, 27.356, 2.827, 6.02, 26.801, 2.888),
+        "FGT-1S": (9.62, 28.368, 3.969, 9.101, 27.963, 3.654),
+    },
+    "loss": {
+        "With All": (4.624, 25.98, 2.337, 4.353, 25.725, 2.264),
+        "Without Vertex": (17.291, 26.214, 5.98, 14.282, 25.961, 5.188),
+        "Without Normal": (1.923, 40.37, 1.037, 1.907, 39.985, 1.054),
+        "Without Curvature": (4.585, 26.493, 2.342, 4.551, 25.966, 2.379),
+        "Without Chamfer": (4.601, 26.086, 2.359, 4.406, 25.844, 2.286),
+        "Without Vertex and Chamfer": (1.039e16, 25.302, 2.938e15, 9.449e15, 24.979, 3.113e15),
+    },
+    "depth": {
+        "DMD-Net 1": (5.498, 26.12, 2.487, 4.968, 25.8, 2.369),
+        "DMD-Net 2": _FINAL,
+        "DMD-Net 3": (4.968, 26.004, 2.393, 4.755, 25.509, 2.362),
+        "DMD-Net 4": (5.161, 25.98, 2.493, 4.812, 25.575, 2.246),
+    },
+    "stn": {
+        "With STN": (5.233, 26.238, 2.471, 4.692, 25.927, 2.189),
+        "Without STN": _FINAL,
+    },
+    "noise": {
+        "0.03·Γ(2,2)": (3.995, 13.345, 33.239, 72.186),
+        "0.04·Γ(2,2)": (4.699, 23.724, 37.331, 75.908),
+        "0.05·Γ(2,2)": (5.587, 37.069, 40.88, 78.39),
+        "N(0,0.025)": (3.285, 6.176, 26.692, 67.482),
+        "N(0,0.05)": (3.952, 24.705, 34.372, 77.088),
+        "N(0,0.1)": (6.478, 98.82, 45.334, 83.268),
+        "0.05·δ(0.15,0.15)": (3.333, 7.408, 27.424, 47.756),
+        "0.1·δ(0.15,0.15)": (4.118, 29.633, 35.377, 52.65),
+        "0.2·δ(0.15,0.15)": (7.074, 118.531, 46.306, 55.351),
+        "0.05·U(−1,1)": (3.366, 8.233, 28.158, 71.154),
+        "0.1·U(−1,1)": (4.254, 32.932, 36.677, 79.704),
+        "0.2·U(−1,1)": (7.698, 131.729, 48.307, 84.799),
+    },
+    "rotation": {
+        "Rotation Augmentation": (0.704, 5.998, 0.501),
+        "Rotation Augmentation + STN": (3.723, 5.711, 1.796),
+    },
+}
+PAPER_COLUMNS = {
+    st.TRAIN: [c[0] for c in TRAIN_COLUMNS],
+    st.NOISE: [
+        "denoised/vertex_per_coord",
+        "reference/vertex_per_coord",
+        "denoised/normal_deg",
+        "reference/normal_deg",
+    ],
+    st.ROTATION: [c[0] for c in ROTATION_COLUMNS[:3]],
+}
+
+
+# --------------------------------------------------------------------------------------
+# Collecting
+# --------------------------------------------------------------------------------------
+
+
+def load_records(out_dir) -> tuple[dict, dict[str, dict[str, list[dict]]]]:
+    """`(plan, {study: {row: [metrics.json records, one per finished seed]}})`."""
+    out_dir = Path(out_dir)
+    plan_path = out_dir / "plan.json"
+    if not plan_path.is_file():
+        raise FileNotFoundError(f"{plan_path}: missing; run the sweep first")
+    plan = json.loads(plan_path.read_text())
+    out: dict[str, dict[str, list[dict]]] = {}
+    for run in plan["runs"]:
+        rows = out.setdefault(run["study"], {})
+        recs = rows.setdefault(run["row"], [])
+        path = out_dir / run["study"] / run["run_id"] / "metrics.json"
+        if path.is_file():
+            recs.append(json.loads(path.read_text()))
+    return plan, out
+
+
+def _stat(records: Sequence[dict], key: str) -> tuple[float | None, float | None]:
+    vals = [r["metrics"].get(key) for r in records]
+    vals = [float(v) for v in vals if v is not None]
+    if not vals:
+        return None, None
+    return float(np.mean(vals)), (float(np.std(vals, ddof=1)) if len(vals) > 1 else None)
+
+
+def study_rows(study: st.Study, rows: dict[str, list[dict]], columns) -> list[dict]:
+    """One dict per row: name, seeds, status and `(mean, std)` per column key."""
+    out = []
+    for name in study.rows:
+        recs = rows.get(name, [])
+        out.append(
+            {
+                "row": name,
+                "n_seeds": len(recs),
+                "status": sorted({r["status"] for r in recs}),
+                "values": {key: _stat(recs, key) for key, _, _ in columns},
+            }
+        )
+    return out
+
+
+def _columns(study: st.Study):
+    return {st.TRAIN: TRAIN_COLUMNS, st.NOISE: NOISE_COLUMNS, st.ROTATION: ROTATION_COLUMNS}[
+        study.kind
+    ]
+
+
+# --------------------------------------------------------------------------------------
+# Formatting
+# --------------------------------------------------------------------------------------
+
+
+def fmt(x: float | None, std: float | None = None) -> str:
+    """3 decimals like the paper; scientific for huge values; `–` when missing."""
+    if x is None:
+        return "–"
+    if not math.isfinite(x):
+        return str(x)
+
+    def one(v):
+        return f"{v:.3e}" if abs(v) >= 1e5 else f"{v:.3f}"
+
+    return one(x) if std is None else f"{one(x)} ± {one(std)}"
+
+
+def _table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    return "\n".join(lines) + "\n"
+
+
+def _best(rows: list[dict], key: str) -> float | None:
+    vals = [r["values"][key][0] for r in rows if r["values"][key][0] is not None]
+    vals = [v for v in vals if math.isfinite(v)]
+    return min(vals) if vals else None
+
+
+def study_markdown(study: st.Study, rows: list[dict], reference: dict | None) -> str:
+    """The study as a markdown table in the paper's layout (best per column in bold)."""
+    cols = _columns(study)
+    header = ["Model" if study.kind != st.NOISE else "Noise"]
+    if study.key == "loss":
+        header += ["λ_V", "λ_N", "λ_κ", "λ_C"]
+    header += [label for _, _, label in cols]
+    body = []
+    bold_keys = {k for k, _, _ in cols if not k.startswith("reference/")}
+    if study.kind == st.ROTATION:
+        bold_keys = {k for k, _, _ in cols if k.startswith("re/")}
+    best = {k: _best(rows, k) for k in bold_keys}
+    for r in rows:
+        cells = [r["row"] + ("" if r["status"] in ([], ["ok"]) else f" ({', '.join(r['status'])})")]
+        if study.key == "loss":
+            w = ABLATIONS["loss"][r["row"]]["loss"]
+            cells += [f"{w[k]:g}" for k in ("vertex", "normal", "curvature", "chamfer")]
+        for key, scale, _ in cols:
+            mean, std = r["values"][key]
+            text = fmt(None if mean is None else mean * scale, None if std is None else std * scale)
+            if mean is not None and key in best and best[key] is not None and mean == best[key]:
+                text = f"**{text}**"
+            cells.append(text)
+        body.append(cells)
+    if reference is not None and study.kind == st.TRAIN:
+        cells = ["*noisy input*"] + (["", "", "", ""] if study.key == "loss" else [])
+        for key, scale, _ in cols:
+            split, metric = key.split("/")
+            v = reference.get(f"{split}/noisy_{metric}")
+            cells.append(fmt(None if v is None else v * scale))
+        body.append(cells)
+    return _table(header, body)
+
+
+def paper_markdown(study: st.Study) -> str:
+    """The paper's table for the study, same layout."""
+    if study.key not in PAPER:
+        return ""
+    header = ["Model" if study.kind != st.NOISE else "Noise"]
+    if study.kind == st.TRAIN:
+        header += [label for _, _, label in TRAIN_COLUMNS]
+    elif study.kind == st.NOISE:
+        header += ["Vertex (×10⁻⁴) Loss", "Vertex Reference", "Normal (°) Loss", "Normal Reference"]
+    else:
+        header += [label for _, _, label in ROTATION_COLUMNS[:3]]
+    body = [[name, *(fmt(v) for v in vals)] for name, vals in PAPER[study.key].items()]
+    return _table(header, body)
+
+
+# --------------------------------------------------------------------------------------
+# Comparison with the paper
+# --------------------------------------------------------------------------------------
+
+
+def _rank(values: Sequence[float]) -> np.ndarray:
+    order = np.argsort(np.asarray(values), kind="stable")
+    ranks = np.empty(len(values))
+    ranks[order] = np.arange(len(values))
+    return ranks
+
+
+def spearman(a: Sequence[float], b: Sequence[float]) -> float | None:
+    """Spearman rank correlation (ties broken by order); `None` for fewer than 2 rows."""
+    if len(a) < 2:
+        return None
+    ra, rb = _rank(a), _rank(b)
+    if np.std(ra) == 0 or np.std(rb) == 0:
+        return None
+    return float(np.corrcoef(ra, rb)[0, 1])
+
+
+def compare_with_paper(study: st.Study, rows: list[dict]) -> dict[str, Any]:
+    """Winners, rank correlations and sign agreements against the paper's table."""
+    if study.key not in PAPER:
+        return {}
+    keys = PAPER_COLUMNS[study.kind]
+    cols = {k: (s, label) for k, s, label in _columns(study)}
+    paper = PAPER[study.key]
+    ours = {r["row"]: r["values"] for r in rows if r["row"] in paper}
+    ours = {n: v for n, v in ours.items() if all(v[k][0] is not None for k in keys)}
+    out: dict[str, Any] = {"columns": {}, "n_rows": len(ours)}
+    if len(ours) < 2:
+        return out
+    names = [n for n in paper if n in ours]
+    for i, key in enumerate(keys):
+        scale = cols[key][0]
+        p_vals = [paper[n][i] for n in names]
+        o_vals = [ours[n][key][0] * scale for n in names]
+        out["columns"][key] = {
+            "label": cols[key][1],
+            "paper_best": names[int(np.argmin(p_vals))],
+            "ours_best": names[int(np.argmin(o_vals))],
+            "spearman": spearman(p_vals, o_vals),
+        }
+    ref = study.reference
+    if ref in ours and study.kind == st.TRAIN:
+        agree, disagree = [], []
+        for n in names:
+            if n == ref:
+                continue
+            for i, key in enumerate(keys):
+                p_sign = np.sign(paper[n][i] - paper[ref][i])
+                o_sign = np.sign(ours[n][key][0] - ours[ref][key][0])
+                (agree if p_sign == o_sign else disagree).append((n, key))
+        out["reference"] = ref
+        out["agree"] = agree
+        out["disagree"] = disagree
+    return out
+
+
+def comparison_text(study: st.Study, rows: list[dict], cmp: dict[str, Any]) -> str:
+    """Plain-language comparison of our ordering with the paper's."""
+    if not cmp or not cmp.get("columns"):
+        return f"*{study.title}*: not enough finished rows to compare with the paper.\n"
+    lines = []
+    if study.kind == st.TRAIN:
+        ref = study.reference
+        p_wins = sum(1 for c in cmp["columns"].values() if c["paper_best"] == ref)
+        o_wins = sum(1 for c in cmp["columns"].values() if c["ours_best"] == ref)
+        rhos = [c["spearman"] for c in cmp["columns"].values() if c["spearman"] is not None]
+        lines.append(
+            f"*{study.title}*: the paper's choice **{ref}** is best in {p_wins}/6 columns of "
+            f"the paper's table and in {o_wins}/6 of ours. "
+            + (
+                f"Rank correlation of the {cmp['n_rows']} rows with the paper's, mean over "
+                f"the six columns: ρ = {np.mean(rhos):+.2f}."
+                if rhos
+                else ""
+            )
+        )
+        intra_n = cmp["columns"].get("test_intra/normal_deg")
+        if intra_n:
+            lines.append(
+                f"Best test-intra normal error: paper {intra_n['paper_best']}, "
+                f"ours {intra_n['ours_best']}."
+            )
+        if "agree" in cmp:
+            n_all = len(cmp["agree"]) + len(cmp["disagree"])
+            by_row: dict[str, list[str]] = {}
+            for n, key in cmp["disagree"]:
+                by_row.setdefault(n, []).append(cmp["columns"][key]["label"])
+            lines.append(
+                f"Against {ref}, the sign of the difference (better/worse) agrees with the "
+                f"paper in {len(cmp['agree'])}/{n_all} (row, column) pairs."
+            )
+            if by_row:
+                lines.append(
+                    "Disagreements: "
+                    + "; ".join(f"{n} ({', '.join(v)})" for n, v in by_row.items())
+                    + "."
+                )
+    elif study.kind == st.NOISE:
+        by = {r["row"]: r["values"] for r in rows}
+        ratios_p, ratios_o = [], []
+        for name, vals in PAPER["noise"].items():
+            v = by.get(name)
+            if v is None or v["denoised/vertex_per_coord"][0] is None:
+                continue
+            ratios_p.append((vals[0] / vals[1], vals[2] / vals[3]))
+            ratios_o.append(
+                (
+                    v["denoised/vertex_per_coord"][0] / v["reference/vertex_per_coord"][0],
+                    v["denoised/normal_deg"][0] / v["reference/normal_deg"][0],
+                )
+            )
+        if ratios_o:
+            p, o = np.asarray(ratios_p), np.asarray(ratios_o)
+            lines.append(
+                f"*{study.title}*: denoised / noisy-input error, over the {len(o)} noise "
+                f"settings: vertex paper {p[:, 0].min():.2f}–{p[:, 0].max():.2f}, ours "
+                f"{o[:, 0].min():.2f}–{o[:, 0].max():.2f}; normal paper "
+                f"{p[:, 1].min():.2f}–{p[:, 1].max():.2f}, ours {o[:, 1].min():.2f}–"
+                f"{o[:, 1].max():.2f} (below 1: the network removes noise)."
+            )
+        c = cmp["columns"]
+        lines.append(
+            "Rank correlation of the twelve settings with the paper's: "
+            + ", ".join(
+                f"{c[k]['label']} ρ = {c[k]['spearman']:+.2f}"
+                for k in ("denoised/vertex_per_coord", "denoised/normal_deg")
+                if c.get(k) and c[k]["spearman"] is not None
+            )
+            + "."
+        )
+    else:
+        c = cmp["columns"]
+        lines.append(
+            f"*{study.title}*: lower is more equivariant. "
+            + "; ".join(
+                f"{v['label']}: paper {v['paper_best']}, ours {v['ours_best']}" for v in c.values()
+            )
+            + "."
+        )
+    return " ".join(lines) + "\n"
+
+
+# --------------------------------------------------------------------------------------
+# Files
+# --------------------------------------------------------------------------------------
+
+
+def write_csv(path: Path, study: st.Study, rows: list[dict]) -> None:
+    cols = _columns(study)
+    paper = PAPER.get(study.key, {})
+    pcols = PAPER_COLUMNS[study.kind]
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        header = ["study", "row", "n_seeds", "status"]
+        for key, _, _ in cols:
+            header += [key, f"{key} std"]
+        header += [f"paper {k} (table units)" for k in pcols]
+        w.writerow(header)
+        for r in rows:
+            line = [study.key, r["row"], r["n_seeds"], "/".join(r["status"])]
+            for key, _, _ in cols:
+                mean, std = r["values"][key]
+                line += ["" if mean is None else repr(mean), "" if std is None else repr(std)]
+            line += [repr(v) for v in paper.get(r["row"], ())] or [""] * len(pcols)
+            w.writerow(line)
+
+
+def write_plot(path: Path, study: st.Study, rows: list[dict], reference: dict | None) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = [r["row"] for r in rows]
+    x = np.arange(len(names))
+    if study.kind == st.TRAIN:
+        panels = [
+            (label, [(f"{s}/{key}", s.replace("_", "-")) for s in SPLITS], scale, key)
+            for key, scale, label in METRICS
+        ]
+    elif study.kind == st.NOISE:
+        panels = [
+            (label, [(f"denoised/{key}", "denoised"), (f"reference/{key}", "noisy input")], s, key)
+            for key, s, label in METRICS
+        ]
+    else:
+        panels = [(label, [(key, "")], scale, key) for key, scale, label in ROTATION_COLUMNS[:3]]
+    fig, axes = plt.subplots(
+        1, len(panels), figsize=(4.2 * len(panels), 3.6 + 0.12 * max(map(len, names)))
+    )
+    for ax, (title, series, scale, metric) in zip(np.atleast_1d(axes), panels, strict=True):
+        width = 0.8 / len(series)
+        top = []
+        for i, (key, label) in enumerate(series):
+            vals = [r["values"][key][0] for r in rows]
+            errs = [r["values"][key][1] for r in rows]
+            y = [np.nan if v is None else v * scale for v in vals]
+            e = [0.0 if v is None else v * scale for v in errs]
+            ax.bar(x + (i - (len(series) - 1) / 2) * width, y, width, yerr=e, label=label or None)
+            top += [v for v in y if np.isfinite(v)]
+        if reference is not None and study.kind == st.TRAIN:
+            v = reference.get(f"test_intra/noisy_{metric}")
+            if v is not None:
+                ax.axhline(v * scale, color="k", ls="--", lw=1, label="noisy input (intra)")
+                top.append(v * scale)
+        positive = [v for v in top if v > 0]
+        if positive and max(positive) / min(positive) > 200:
+            ax.set_yscale("log")
+        ax.set_title(title)
+        ax.set_xticks(x, names, rotation=35, ha="right", fontsize=8)
+        if any(label for _, label in series) or study.kind == st.TRAIN:
+            ax.legend(fontsize=7)
+    fig.suptitle(f"{study.title} ({'mean ± std over seeds' if rows else ''})".replace(" ()", ""))
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def _timing(plan: dict, records: dict) -> dict[str, Any]:
+    trained = {}
+    for rows in records.values():
+        for recs in rows.values():
+            for r in recs:
+                trained[r["trained_in"]] = r
+    wall = sum(r["train"]["wall_s"] for r in trained.values())
+    cpu = sum(r["train"]["cpu_s"] for r in trained.values())
+    hosts = {r["host"]["platform"] + f" ({r['host']['cpu_count']} CPUs)" for r in trained.values()}
+    return {"trainings": len(trained), "train_wall_s": wall, "train_cpu_s": cpu, "hosts": hosts}
+
+
+def aggregate(out_dir) -> dict[str, Any]:
+    """Writes `<study>.md/.csv/.png`, `summary.json` and `README.md` into `out_dir`."""
+    out_dir = Path(out_dir)
+    plan, records = load_records(out_dir)
+    summary: dict[str, Any] = {"preset": plan["preset"]["name"], "studies": {}}
+    sections, comparisons = [], []
+    for study in st.STUDIES:
+        if study.key not in records:
+            continue
+        rows = study_rows(study, records[study.key], _columns(study))
+        finished = [r for r in rows if r["n_seeds"]]
+        if not finished:
+            summary["studies"][study.key] = {"finished_rows": 0, "rows": len(rows)}
+            continue
+        ref_recs = records[study.key].get(study.reference or "", []) or next(
+            (recs for recs in records[study.key].values() if recs), []
+        )
+        reference = ref_recs[0]["metrics"] if ref_recs else None
+        table = study_markdown(study, rows, reference)
+        cmp = compare_with_paper(study, rows)
+        text = comparison_text(study, rows, cmp)
+        (out_dir / f"{study.key}.md").write_text(
+            f"# {study.title} (preset {summary['preset']})\n\n{table}\n"
+            f"The paper's table (`{study.paper_table}`):\n\n{paper_markdown(study)}\n{text}"
+        )
+        write_csv(out_dir / f"{study.key}.csv", study, rows)
+        write_plot(out_dir / f"{study.key}.png", study, rows, reference)
+        summary["studies"][study.key] = {
+            "finished_rows": len(finished),
+            "rows": len(rows),
+            "table": {r["row"]: {k: v[0] for k, v in r["values"].items()} for r in rows},
+            "comparison": cmp,
+        }
+        sections.append(
+            f"### {study.title} ({len(finished)}/{len(rows)} rows)\n\n{table}\n"
+            f"![{study.key}]({study.key}.png)\n\n{text}"
+        )
+        comparisons.append(text)
+    timing = _timing(plan, records)
+    summary["timing"] = {**timing, "hosts": sorted(timing["hosts"])}
+    summary["missing"] = [
+        s.key
+        for s in st.STUDIES
+        if summary["studies"].get(s.key, {}).get("finished_rows", 0) < len(s.rows)
+    ]
+    summary["comparisons"] = comparisons
+    (out_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=str) + "\n")
+    (out_dir / "README.md").write_text(_preset_readme(out_dir, plan, summary, sections))
+    return summary
+
+
+def _sessions(out_dir: Path) -> list[dict]:
+    path = out_dir / "sessions.json"
+    return json.loads(path.read_text()) if path.is_file() else []
+
+
+def _preset_readme(out_dir: Path, plan: dict, summary: dict, sections: list[str]) -> str:
+    p = plan["preset"]
+    base = plan["base_config"]
+    cal = plan.get("calibration")
+    sessions = _sessions(out_dir)
+    t = summary["timing"]
+    lines = [
+        f"# Ablation sweep, preset `{p['name']}`",
+        "",
+        "Generated by `python -m experiments aggregate` from the `metrics.json` files; do "
+        "not edit by hand.",
+        "",
+        f"* Preset: {p['description']}.",
+        f"* Base config: width {base['model']['width']}, denoiser depth "
+        f"{base['model']['depth']}, {base['train']['steps']} steps of batch "
+        f"{base['train']['batch_size']}, lr {base['train']['lr']:g} ({base['train']['schedule']}), "
+        f"seeds {p['seeds']}.",
+        f"* Dataset: procedural, {p['per_category']} shapes per category, "
+        f"{p['min_vertices']}–{p['max_vertices']} vertices, test-inter "
+        f"{', '.join(p['test_inter'])}; {p['eval_meshes'] or 'all'} test meshes per split.",
+    ]
+    if cal:
+        lines.append(
+            f"* Curvature-loss scales calibrated on the training set: γ_H = {cal['gamma_h']:g}, "
+            f"γ_G = {cal['gamma_g']:g} (paper: 10⁻⁶ and 1; median unweighted L_H = "
+            f"{cal['median_l_h']:.3g}, L_G = {cal['median_l_g']:.3g}, normal loss "
+            f"{cal['median_l_n']:.3g} rad over {cal['n_meshes']} noisy training meshes); "
+            f"feature-extractor curvature targets: `{base['loss']['feature_curvature']}`."
+        )
+    lines.append(
+        f"* Compute: {t['trainings']} distinct trainings, {t['train_wall_s'] / 60:.1f} min wall "
+        f"and {t['train_cpu_s'] / 60:.1f} min CPU summed over runs, on "
+        f"{', '.join(sorted(t['hosts'])) or '–'}."
+    )
+    for s in sessions:
+        lines.append(
+            f"  * session {s['start']}: studies {', '.join(s['studies'])}; {s['jobs']} jobs, "
+            f"{s['wall_s'] / 60:.1f} min wall, {s['cpu_s'] / 60:.1f} min CPU, {s['workers']} "
+            f"workers, load average at the end {', '.join(f'{x:.1f}' for x in s['load_average'])}"
+        )
+    if summary["missing"]:
+        lines.append(f"* Not (fully) run at this preset: {', '.join(summary['missing'])}.")
+    lines += ["", "## Comparison with the paper", ""]
+    lines += [c.rstrip() + "\n" for c in summary["comparisons"]]
+    lines += ["## Tables", ""] + sections
+    return "\n".join(lines) + "\n"
+
+
+def write_index(results_root, presets: Sequence[str] | None = None) -> Path:
+    """`results_root/README.md`: every preset directory's headline and comparison."""
+    results_root = Path(results_root)
+    dirs = sorted(d for d in results_root.iterdir() if (d / "summary.json").is_file())
+    if presets is not None:
+        dirs = [d for d in dirs if d.name in presets]
+    lines = [
+        "# Ablation results",
+        "",
+        "Generated by `python -m experiments index` from the per-preset `summary.json` "
+        "files. Each preset directory holds one table, CSV and bar plot per study "
+        "(`<study>.md/.csv/.png`), a README with every table, and the runs "
+        "(`<study>/<run-id>/config.json, metrics.json, run.log`). How to run: "
+        "`make ablate` (preset `cpu`), `make ablate ABLATE_PRESET=paper` on a GPU, "
+        "`make ablate-smoke`.",
+        "",
+    ]
+    for d in dirs:
+        summary = json.loads((d / "summary.json").read_text())
+        done = [k for k, v in summary["studies"].items() if v.get("finished_rows")]
+        lines += [
+            f"## Preset `{summary['preset']}` ([README]({d.name}/README.md))",
+            "",
+            f"Finished studies: {', '.join(done) or 'none'}. "
+            + (
+                f"Not (fully) run: {', '.join(summary['missing'])}."
+                if summary["missing"]
+                else "All studies complete."
+            ),
+            "",
+        ]
+        lines += [c.rstrip() + "\n" for c in summary["comparisons"]]
+    path = results_root / "README.md"
+    path.write_text("\n".join(lines) + "\n")
+    return path

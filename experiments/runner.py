@@ -1,0 +1,718 @@
+"""Runs a sweep: dataset, curvature calibration, training jobs, evaluations, results.
+
+Layout of a results directory (default `experiments/results/<preset>`)::
+
+    plan.json                      every run of every study at this preset
+    ablate.log                     one line per event, with timestamps
+    sessions.json                  wall and CPU time of every invocation
+    <study>/<run-id>/config.json   the run's ExperimentConfig
+    <study>/<run-id>/metrics.json  its results (present = finished; reruns skip it)
+    <study>/<run-id>/run.log       where it was trained, how long it took, on what
+    <study>/<run-id>/log.jsonl     per-step training log (in the run that trained)
+    <study>/<run-id>/checkpoints/  Orbax checkpoints (gitignored; train() resumes here)
+
+Runs with the same training hash (equal configs up to the name) train once, in the
+directory of the first of them in plan order, and the others reuse that model. A job is
+one training hash: train it (or resume, or find it finished), then evaluate every pending
+run that uses it. Jobs run in `workers` spawned processes.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import functools
+import json
+import math
+import multiprocessing
+import os
+import platform
+import resource
+import shutil
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from experiments import studies as st
+
+EVAL_SEED = 12345  # noise and rotations of the noise and rotation studies
+CALIBRATION_FILE = "ablate-calibration.json"
+CALIBRATION_MESHES = 64
+
+
+# --------------------------------------------------------------------------------------
+# Environment
+# --------------------------------------------------------------------------------------
+
+
+def apply_xla_opt_level(level: int | None) -> str:
+    """Adds `--xla_backend_optimization_level=level` to `XLA_FLAGS` (unless set already).
+
+    XLA reads the flag when the backend starts, so this must run before the first JAX
+    computation of the process; spawned workers inherit it.
+    """
+    flags = os.environ.get("XLA_FLAGS", "")
+    if level is not None and "xla_backend_optimization_level" not in flags:
+        flags = f"{flags} --xla_backend_optimization_level={int(level)}".strip()
+        os.environ["XLA_FLAGS"] = flags
+    return flags
+
+
+def enable_compilation_cache(path=None) -> Path:
+    """Turns on JAX's persistent compilation cache in this process and its workers."""
+    import jax
+
+    path = Path(
+        path
+        or os.environ.get("ABLATE_JAX_CACHE")
+        or Path.home() / ".cache" / "dmd_jax" / "xla-ablate"
+    )
+    path.mkdir(parents=True, exist_ok=True)
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = str(path)  # spawned workers read this
+    jax.config.update("jax_compilation_cache_dir", str(path))
+    return path
+
+
+def host_info() -> dict[str, Any]:
+    """What the numbers were measured on."""
+    import jax
+
+    return {
+        "platform": platform.platform(),
+        "processor": platform.processor() or platform.machine(),
+        "cpu_count": os.cpu_count(),
+        "python": platform.python_version(),
+        "jax": jax.__version__,
+        "backend": jax.default_backend(),
+        "devices": [str(d) for d in jax.devices()],
+        "xla_flags": os.environ.get("XLA_FLAGS", ""),
+    }
+
+
+def _write_json(path: Path, data: Any) -> None:
+    """Writes JSON atomically (a reader never sees half a metrics.json)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2, allow_nan=True) + "\n")
+    os.replace(tmp, path)
+
+
+def _read_json(path: Path) -> Any:
+    return json.loads(Path(path).read_text())
+
+
+# --------------------------------------------------------------------------------------
+# Data
+# --------------------------------------------------------------------------------------
+
+
+def _expected_generator(p: st.AblatePreset) -> dict[str, Any]:
+    from dmd_jax.data import CATEGORIES
+
+    return {
+        "categories": list(CATEGORIES if p.categories is None else p.categories),
+        "per_category": p.per_category,
+        "min_vertices": p.min_vertices,
+        "max_vertices": p.max_vertices,
+    }
+
+
+def ensure_dataset(p: st.AblatePreset, data_dir, *, progress: bool = True):
+    """The preset's dataset in `data_dir`, generated once (seeds fixed) and reused.
+
+    Raises:
+      ValueError: `data_dir` holds a dataset made with other settings.
+    """
+    from dmd_jax.data import load_dataset, make_dataset
+
+    data_dir = Path(data_dir)
+    if (data_dir / "manifest.json").is_file():
+        ds = load_dataset(data_dir)
+        m = ds.manifest
+        got = {k: m.get("generator", {}).get(k) for k in _expected_generator(p)}
+        want = _expected_generator(p)
+        same = (
+            got == want
+            and m.get("seed") == p.data_seed
+            and list(m.get("test_inter", [])) == list(p.test_inter)
+            and m.get("intra_fraction") == p.intra_fraction
+        )
+        if not same:
+            raise ValueError(
+                f"{data_dir} holds a dataset made with other settings ({got}, seed "
+                f"{m.get('seed')}); remove it or pass another --data-dir"
+            )
+        return ds
+    return make_dataset(
+        data_dir,
+        per_category=p.per_category,
+        seed=p.data_seed,
+        categories=p.categories,
+        test_inter=p.test_inter,
+        intra_fraction=p.intra_fraction,
+        workers=p.dataset_workers,
+        min_vertices=p.min_vertices,
+        max_vertices=p.max_vertices,
+        progress=progress,
+    )
+
+
+@functools.lru_cache(maxsize=4)
+def load_examples(data_dir: str, eval_meshes: int | None):
+    """`(train examples, {"test_intra": [...], "test_inter": [...]})`, graphs built once.
+
+    The test sets are the first `eval_meshes` meshes of each split in manifest order
+    (all when `None`).
+    """
+    from dmd_jax.data import load_dataset
+    from dmd_jax.pipeline import make_examples
+
+    ds = load_dataset(data_dir)
+    train = make_examples(ds.arrays("train"))
+    if not train:
+        raise ValueError(f"{data_dir}: the training split is empty")
+    evals = {}
+    for split in ("test_intra", "test_inter"):
+        records = ds.split(split)
+        if eval_meshes is not None:
+            records = records[:eval_meshes]
+        evals[split] = make_examples([r.load() for r in records])
+    if not any(evals.values()):
+        raise ValueError(f"{data_dir}: no test meshes")
+    return train, evals
+
+
+@functools.lru_cache(maxsize=1)
+def _calibration_terms():
+    import jax
+
+    from dmd_jax import losses
+
+    def terms(noisy, clean, faces, vertex_mask, face_mask):
+        h, g = losses.curvature_terms(noisy, clean, faces, vertex_mask=vertex_mask)
+        return h, g, losses.normal_loss(noisy, clean, faces, face_mask=face_mask)
+
+    return jax.jit(terms)
+
+
+def calibrate_curvature(examples, *, seed: int = 0, max_meshes: int = CALIBRATION_MESHES):
+    """γ_H, γ_G that put the curvature loss on the normal loss's scale, for this data.
+
+    For the first `max_meshes` training meshes under the training noise (mixed kinds and
+    levels, random rotation; keys from `seed`), the unweighted curvature terms `L_H`,
+    `L_G` and the normal loss `L_N` (radians) of the noisy mesh against the clean one
+    are computed; then `γ_H = ½ median(L_N) / median(L_H)` and likewise `γ_G`, rounded
+    to two significant digits, so each curvature term contributes half the normal loss
+    for the median mesh. The paper chose its γ (1e-6, 1) "based on distribution of
+    objects in our dataset" without saying how; this is our reading of that procedure.
+
+    Returns:
+      `{"gamma_h", "gamma_g", "median_l_h", "median_l_g", "median_l_n", "n_meshes"}`.
+    """
+    import jax
+
+    from dmd_jax.pipeline import NoiseSettings, collate, corrupt
+
+    terms = _calibration_terms()
+    lh, lg, ln = [], [], []
+    base = jax.random.PRNGKey(seed)
+    for i, ex in enumerate(examples[:max_meshes]):
+        noisy, clean, _ = corrupt(
+            jax.random.fold_in(base, i), ex.vertices, ex.faces, rotate=True, noise=NoiseSettings()
+        )
+        # Padded to the training buckets, so the terms compile once per bucket, not per mesh.
+        b = collate([noisy], [clean], [ex.graph])
+        g = b.graph
+        h, gg, n = terms(b.noisy, b.clean, g.faces, g.vertex_mask, g.face_mask)
+        lh.append(float(h))
+        lg.append(float(gg))
+        ln.append(float(n))
+    if not lh:
+        raise ValueError("calibrate_curvature needs at least one mesh")
+    med = {k: float(np.median(v)) for k, v in (("h", lh), ("g", lg), ("n", ln))}
+
+    def two_digits(x):
+        return float(f"{x:.2g}")
+
+    return {
+        "gamma_h": two_digits(0.5 * med["n"] / med["h"]),
+        "gamma_g": two_digits(0.5 * med["n"] / med["g"]),
+        "median_l_h": med["h"],
+        "median_l_g": med["g"],
+        "median_l_n": med["n"],
+        "n_meshes": len(lh),
+        "seed": seed,
+    }
+
+
+def ensure_calibration(data_dir, train_examples) -> dict:
+    """`calibrate_curvature` of the dataset, computed once and cached next to it."""
+    path = Path(data_dir) / CALIBRATION_FILE
+    if path.is_file():
+        return _read_json(path)
+    cal = calibrate_curvature(train_examples)
+    _write_json(path, cal)
+    return cal
+
+
+# --------------------------------------------------------------------------------------
+# Evaluations
+# --------------------------------------------------------------------------------------
+
+
+def _mean_dicts(rows: Sequence[dict]) -> dict:
+    if not rows:
+        return {}
+    return {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
+
+
+def evaluate_checkpoint(cfg, checkpoint_dir, eval_sets) -> dict:
+    """The test metrics `train()` reports at its last step, from a saved checkpoint."""
+    from dmd_jax.pipeline import NoiseSettings, evaluation_batches
+    from dmd_jax.train import Trainer, load_params
+
+    params, _ = load_params(checkpoint_dir)
+    trainer = Trainer(cfg)
+    noise = NoiseSettings(**cfg.noise.settings())
+    out = {}
+    for name, examples in eval_sets.items():
+        if not examples:
+            continue
+        batches = evaluation_batches(
+            examples, seed=cfg.train.seed + 12345, noise=noise, rotate=cfg.train.rotate
+        )
+        for k, v in trainer.evaluate(params, batches).items():
+            out[f"{name}/{k}"] = v
+    return out
+
+
+def noise_evaluation(bundle, examples, kind: str, level: float, *, seed: int = EVAL_SEED):
+    """The noise table's row `(kind, level)`: mean metrics of the denoised meshes and of
+    the noisy input ("reference") against the clean meshes.
+
+    Noise is added in the canonical frame of the clean mesh (level = a length in the unit
+    cube, the paper's convention) with a key that depends only on the row and the mesh,
+    so every model sees the same noisy meshes.
+    """
+    import jax
+
+    from dmd_jax.inference import denoise
+    from dmd_jax.metrics import mesh_metrics
+    from dmd_jax.noise import add_noise
+
+    row = [(k, lv) for k, lv, _ in st.NOISE_ROWS].index((kind, level))
+    key = jax.random.fold_in(jax.random.PRNGKey(seed), row)
+    den, ref = [], []
+    for i, ex in enumerate(examples):
+        clean = np.asarray(ex.vertices, np.float64)
+        noisy = np.asarray(
+            add_noise(jax.random.fold_in(key, i), clean, ex.faces, kind, level), np.float64
+        )
+        out = denoise(noisy, ex.faces, bundle)
+        den.append(mesh_metrics(out, clean, ex.faces))
+        ref.append(mesh_metrics(noisy, clean, ex.faces))
+    d, r = _mean_dicts(den), _mean_dicts(ref)
+    return {
+        **{f"denoised/{k}": v for k, v in d.items()},
+        **{f"reference/{k}": v for k, v in r.items()},
+        "n_meshes": len(examples),
+    }
+
+
+def rotation_evaluation(bundle, examples, *, gamma: int = st.RE_GAMMA, seed: int = EVAL_SEED):
+    """The rotation-equivariance test of the paper's appendix E.
+
+    For each test mesh `G_i` (the clean mesh with mixed training noise, in its canonical
+    frame: centred, longest side 1) and `γ` random rotations `R_ij`, compares
+    `G^RD = R_ij(D(G_i))` with `G^DR = D(R_ij(G_i))` by the vertex, normal and chamfer
+    losses, averaged over `γ |S|` pairs (eqs. RE_test_vertex/normal/chamfer). The losses
+    are taken as they stand in that frame (no re-normalisation), as the paper's formulas
+    read; `vertex_per_coord` is the vertex loss divided by 3, the convention of the
+    paper's tables. Also returns the denoising error of `D(G_i)` against the clean mesh
+    (`denoised/...`), because a network that changes nothing is trivially equivariant.
+    """
+    import jax
+
+    from dmd_jax import losses
+    from dmd_jax.inference import denoise
+    from dmd_jax.metrics import mesh_metrics
+    from dmd_jax.pipeline import NoiseSettings, corrupt, random_rotation
+
+    noise = NoiseSettings(**bundle.config.noise.settings())
+    base = jax.random.PRNGKey(seed)
+    pairs, quality = [], []
+    for i, ex in enumerate(examples):
+        k_noise, k_rot = jax.random.split(jax.random.fold_in(base, i))
+        noisy, clean, _ = corrupt(k_noise, ex.vertices, ex.faces, rotate=False, noise=noise)
+        d = denoise(noisy, ex.faces, bundle)
+        quality.append(mesh_metrics(d, clean, ex.faces))
+        for j in range(gamma):
+            r = random_rotation(jax.random.fold_in(k_rot, j))
+            rd = d @ r.T
+            dr = denoise(noisy @ r.T, ex.faces, bundle)
+            v = float(losses.vertex_loss(rd, dr))
+            pairs.append(
+                {
+                    "vertex": v,
+                    "vertex_per_coord": v / 3.0,
+                    "normal_deg": float(losses.normal_loss(rd, dr, ex.faces, degrees=True)),
+                    "chamfer": float(losses.chamfer_distance(rd, dr)),
+                }
+            )
+    return {
+        **{f"re/{k}": v for k, v in _mean_dicts(pairs).items()},
+        **{f"denoised/{k}": v for k, v in _mean_dicts(quality).items()},
+        "n_meshes": len(examples),
+        "gamma": gamma,
+    }
+
+
+# --------------------------------------------------------------------------------------
+# Jobs
+# --------------------------------------------------------------------------------------
+
+
+def _spec_to_json(r: st.RunSpec) -> dict:
+    return {
+        "study": r.study,
+        "row": r.row,
+        "seed": r.seed,
+        "config": r.config.to_dict(),
+        "evaluation": r.evaluation,
+        "train_hash": r.train_hash,
+        "run_id": r.run_id,
+    }
+
+
+def _train_home(job: dict, cfg, home: Path, train_ex, evals, log) -> dict:
+    """Trains (or resumes) the job's model in `home`; returns its train_metrics."""
+    from dmd_jax.train import NonFiniteLossError, train
+
+    done = home / "train_metrics.json"
+    if done.is_file():
+        return _read_json(done)
+    latest = home / "checkpoints" / "latest"
+    resumed_from = None
+    if latest.is_dir():
+        steps = [int(p.name) for p in latest.iterdir() if p.name.isdigit()]
+        resumed_from = max(steps) if steps else None
+    t0, c0 = time.time(), time.process_time()
+    status, error = "ok", None
+    try:
+        result = train(cfg, train_ex, home, eval_sets=evals, progress=job["progress"])
+        metrics = {k: float(v) for k, v in result.items() if "/" in k}
+        step = int(result["step"])
+        compiles = int(result.get("compiles", 0))
+    except NonFiniteLossError as exc:
+        status, error, metrics, step, compiles = "diverged", str(exc), {}, None, None
+    wall, cpu = time.time() - t0, time.process_time() - c0
+    if not metrics and latest.is_dir() and any(p.name.isdigit() for p in latest.iterdir()):
+        # Finished earlier but not evaluated (killed in between), or diverged after a
+        # checkpoint: evaluate the last saved state.
+        metrics = evaluate_checkpoint(cfg, latest, evals)
+    out = {
+        "status": status,
+        "error": error,
+        "metrics": metrics,
+        "train": {
+            "steps": cfg.train.steps,
+            "final_step": step,
+            "resumed_from": resumed_from,
+            "wall_s": round(wall, 2),
+            "cpu_s": round(cpu, 2),
+            "compiles": compiles,
+        },
+        "host": host_info(),
+    }
+    _write_json(done, out)
+    log(
+        f"trained {job['home']} ({status}): {cfg.train.steps} steps"
+        + (f", resumed from step {resumed_from}" if resumed_from else "")
+        + f", {wall:.1f} s wall, {cpu:.1f} s CPU"
+    )
+    return out
+
+
+def _bundle(cfg, home: Path):
+    from dmd_jax.inference import ModelBundle
+    from dmd_jax.train import load_params
+
+    params, _ = load_params(home / "checkpoints" / "latest")
+    return ModelBundle(params=params, config=cfg, meta={"source": str(home)})
+
+
+def run_job(job: dict) -> dict:
+    """One training hash: train or reuse its model, then evaluate its pending runs.
+
+    `job` is plain JSON (it crosses process boundaries): `out_dir`, `data_dir`,
+    `eval_meshes`, `preset`, `home` (relative run dir of the training), `config`, `runs`
+    (pending runs as `_spec_to_json`), `progress`.
+    """
+    from dmd_jax.config import ExperimentConfig
+
+    messages: list[str] = []
+
+    def log(msg):
+        messages.append(msg)
+
+    out_dir = Path(job["out_dir"])
+    home = out_dir / job["home"]
+    cfg = ExperimentConfig.from_dict(job["config"])
+    train_ex, evals = load_examples(job["data_dir"], job["eval_meshes"])
+    trained = _train_home(job, cfg, home, train_ex, evals, log)
+    test_meshes = list(evals["test_intra"]) + list(evals["test_inter"])
+    bundle = None
+    for spec in job["runs"]:
+        run_dir = out_dir / spec["study"] / spec["run_id"]
+        run_dir.mkdir(parents=True, exist_ok=True)
+        run_cfg = ExperimentConfig.from_dict(spec["config"])
+        _write_json(run_dir / "config.json", run_cfg.to_dict())
+        ev = spec["evaluation"]
+        t0 = time.time()
+        metrics: dict[str, Any] = {}
+        status = trained["status"]
+        has_ckpt = (home / "checkpoints" / "latest").is_dir()
+        if ev["kind"] == "test":
+            metrics = dict(trained["metrics"])
+        elif has_ckpt:
+            bundle = bundle or _bundle(cfg, home)
+            if ev["kind"] == "noise":
+                metrics = noise_evaluation(bundle, test_meshes, ev["noise_kind"], ev["level"])
+            elif ev["kind"] == "rotation":
+                metrics = rotation_evaluation(bundle, test_meshes, gamma=ev["gamma"])
+                metrics.update({f"model/{k}": v for k, v in trained["metrics"].items()})
+            else:
+                raise ValueError(f"unknown evaluation kind {ev['kind']!r}")
+        elif status == "ok":
+            raise FileNotFoundError(
+                f"{home}/checkpoints: the trained model is gone (clean_checkpoints?); delete "
+                f"{home}/train_metrics.json to train it again"
+            )
+        eval_wall = time.time() - t0
+        finite = all(math.isfinite(v) for v in metrics.values() if isinstance(v, float))
+        record = {
+            "preset": job["preset"],
+            "study": spec["study"],
+            "row": spec["row"],
+            "seed": spec["seed"],
+            "run_id": spec["run_id"],
+            "config_hash": spec["train_hash"],
+            "trained_in": job["home"],
+            "status": status if finite else "non-finite",
+            "error": trained.get("error"),
+            "evaluation": ev,
+            "metrics": metrics,
+            "train": trained["train"],
+            "eval_wall_s": round(eval_wall, 2),
+            "host": trained["host"],
+        }
+        rel = f"{spec['study']}/{spec['run_id']}"
+        lines = [
+            f"run {rel}: study {spec['study']}, row {spec['row']!r}, seed {spec['seed']}, "
+            f"preset {job['preset']}",
+            f"config hash {spec['train_hash']}; "
+            + (
+                "trained in this directory"
+                if rel == job["home"]
+                else f"reuses the model trained in {job['home']}"
+            ),
+            f"training: {trained['status']}, {trained['train']['steps']} steps, "
+            f"{trained['train']['wall_s']} s wall, {trained['train']['cpu_s']} s CPU"
+            + (
+                f" (resumed from step {trained['train']['resumed_from']})"
+                if trained["train"].get("resumed_from")
+                else ""
+            ),
+            f"evaluation {ev['kind']}: {eval_wall:.1f} s wall",
+            f"host: {trained['host']['platform']}, {trained['host']['cpu_count']} CPUs, "
+            f"jax {trained['host']['jax']} ({trained['host']['backend']}), "
+            f"XLA_FLAGS={trained['host']['xla_flags']!r}",
+        ]
+        (run_dir / "run.log").write_text("\n".join(lines) + "\n")
+        _write_json(run_dir / "metrics.json", record)
+        log(f"finished {rel} ({record['status']}, evaluation {eval_wall:.1f} s)")
+    return {"home": job["home"], "messages": messages, "train": trained["train"]}
+
+
+# --------------------------------------------------------------------------------------
+# Sweep
+# --------------------------------------------------------------------------------------
+
+
+class _Log:
+    def __init__(self, path: Path, echo: bool):
+        self.path, self.echo = path, echo
+
+    def __call__(self, msg: str) -> None:
+        line = f"{time.strftime('%Y-%m-%d %H:%M:%S')} {msg}"
+        with open(self.path, "a") as fh:
+            fh.write(line + "\n")
+        if self.echo:
+            from tqdm.auto import tqdm
+
+            tqdm.write(line)
+
+
+def make_jobs(
+    runs: Sequence[st.RunSpec], out_dir: Path, *, data_dir, preset_name, eval_meshes, progress
+) -> list[dict]:
+    """One job per training hash that still has a run without metrics.json."""
+    homes = st.training_homes(runs)
+    pending: dict[str, list[st.RunSpec]] = {}
+    for r in runs:
+        if not (out_dir / r.study / r.run_id / "metrics.json").is_file():
+            pending.setdefault(r.train_hash, []).append(r)
+    jobs = []
+    for h, rs in pending.items():
+        home = homes[h]
+        jobs.append(
+            {
+                "out_dir": str(out_dir),
+                "data_dir": str(data_dir),
+                "eval_meshes": eval_meshes,
+                "preset": preset_name,
+                "home": f"{home.study}/{home.run_id}",
+                "config": home.config.to_dict(),
+                "runs": [_spec_to_json(r) for r in rs],
+                "progress": progress,
+            }
+        )
+    return jobs
+
+
+def run_sweep(
+    p: st.AblatePreset | str,
+    out_dir,
+    data_dir,
+    *,
+    studies: Sequence[str] | None = None,
+    workers: int | None = None,
+    progress: bool = True,
+    aggregate: bool = True,
+    echo: bool = True,
+) -> dict:
+    """Runs (or resumes) every run of `studies` at preset `p`; returns a summary.
+
+    Args:
+      p: an `AblatePreset` or a preset name.
+      out_dir: results directory.
+      data_dir: dataset cache (generated on first use).
+      studies: study keys (default: all).
+      workers: parallel training processes (default: the preset's).
+      progress: progress bars.
+      aggregate: write the tables, plots and README afterwards.
+      echo: print log lines (they always go to `out_dir/ablate.log`).
+    """
+    p = st.get_preset(p) if isinstance(p, str) else p
+    apply_xla_opt_level(p.xla_opt_level)
+    if p.jax_cache:
+        enable_compilation_cache()
+    t0 = time.time()
+    out_dir, data_dir = Path(out_dir), Path(data_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    log = _Log(out_dir / "ablate.log", echo)
+    log(f"preset {p.name}: {p.description}; studies {', '.join(studies or st.STUDY_KEYS)}")
+    ds = ensure_dataset(p, data_dir, progress=progress)
+    log(f"dataset {data_dir}: {ds.counts()}")
+    train_ex, _ = load_examples(str(data_dir), p.eval_meshes)
+    gammas = ensure_calibration(data_dir, train_ex) if p.calibrate_curvature else None
+    if gammas:
+        log(f"curvature calibration: gamma_h={gammas['gamma_h']:g}, gamma_g={gammas['gamma_g']:g}")
+    base = st.base_config(p, gammas)
+    all_runs = st.plan(p, base)
+    _write_json(
+        out_dir / "plan.json",
+        {
+            "preset": p.to_dict(),
+            "base_config": base.to_dict(),
+            "calibration": gammas,
+            "runs": [
+                {k: v for k, v in _spec_to_json(r).items() if k != "config"} for r in all_runs
+            ],
+        },
+    )
+    runs = [r for r in all_runs if studies is None or r.study in studies]
+    jobs = make_jobs(
+        runs,
+        out_dir,
+        data_dir=data_dir,
+        preset_name=p.name,
+        eval_meshes=p.eval_meshes,
+        progress=progress and (workers or p.workers) <= 1,
+    )
+    n_done = len(runs) - sum(len(j["runs"]) for j in jobs)
+    log(
+        f"{len(runs)} runs, {n_done} already finished; {len(jobs)} jobs "
+        f"({len(st.training_homes(runs))} distinct trainings in these studies)"
+    )
+    failures = _execute(jobs, workers or p.workers, log, progress)
+    wall = time.time() - t0
+    usage = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = sum(u.ru_utime + u.ru_stime for u in usage)
+    session = {
+        "start": time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(t0)),
+        "wall_s": round(wall, 1),
+        "cpu_s": round(cpu, 1),
+        "studies": list(studies or st.STUDY_KEYS),
+        "jobs": len(jobs),
+        "failures": failures,
+        "workers": workers or p.workers,
+        "load_average": list(os.getloadavg()),
+        "host": host_info(),
+    }
+    sessions_path = out_dir / "sessions.json"
+    sessions = _read_json(sessions_path) if sessions_path.is_file() else []
+    _write_json(sessions_path, [*sessions, session])
+    log(f"done: {len(jobs)} jobs in {wall:.1f} s wall, {cpu:.1f} s CPU; {len(failures)} failed")
+    if aggregate:
+        from experiments import aggregate as agg
+
+        agg.aggregate(out_dir)
+        log(f"tables, plots and README written to {out_dir}")
+    return session
+
+
+def _execute(jobs: list[dict], workers: int, log: Callable, progress: bool) -> list[str]:
+    from tqdm.auto import tqdm
+
+    failures: list[str] = []
+    workers = max(1, min(int(workers), len(jobs) or 1))
+    with tqdm(total=len(jobs), desc="ablate", unit="job", disable=not progress) as bar:
+
+        def finished(job, result=None, exc=None):
+            if exc is not None:
+                failures.append(f"{job['home']}: {type(exc).__name__}: {exc}")
+                log(f"FAILED {job['home']}: {type(exc).__name__}: {exc}")
+            else:
+                for msg in result["messages"]:
+                    log(msg)
+            bar.update(1)
+
+        if workers == 1:
+            for job in jobs:
+                try:
+                    finished(job, run_job(job))
+                except Exception as exc:  # one broken run must not end a sweep of hours
+                    finished(job, exc=exc)
+        else:
+            ctx = multiprocessing.get_context("spawn")
+            with concurrent.futures.ProcessPoolExecutor(workers, mp_context=ctx) as pool:
+                futures = {pool.submit(run_job, job): job for job in jobs}
+                for fut in concurrent.futures.as_completed(futures):
+                    try:
+                        finished(futures[fut], fut.result())
+                    except Exception as exc:
+                        finished(futures[fut], exc=exc)
+    return failures
+
+
+def clean_checkpoints(out_dir) -> int:
+    """Removes every `checkpoints/` folder under `out_dir` (after a finished sweep);
+    returns how many were removed."""
+    n = 0
+    for ckpt in Path(out_dir).glob("*/*/checkpoints"):
+        shutil.rmtree(ckpt)
+        n += 1
+    return n

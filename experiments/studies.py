@@ -1,0 +1,473 @@
+"""The paper's ablation studies as sweeps of frozen configs, and the presets they run at.
+
+A *study* is a list of rows; a *run* is one row at one seed. Every run is an
+`ExperimentConfig` derived from one base config with `with_edits`:
+
+* the seven training studies of the paper's appendix D (training scheme, dropout, graph
+  attention, structure, loss, depth, STN) take their rows from `dmd_jax.config.ABLATIONS`
+  unchanged (`ablation_config`);
+* `noise` evaluates one trained model (the base config, i.e. the final loss weights) on
+  the paper's noise table: four kinds times three levels, against the noisy input as
+  reference;
+* `rotation` is the rotation-equivariance test of appendix E (γ = 5 random rotations
+  per test mesh) for models trained with and without rotation augmentation and STN.
+
+Every run has a deterministic id, `<readable row name>-<hash>`, the hash being the
+SHA-256 of the config JSON (its `name` left out, so a row that appears in several studies
+with the same settings, such as FGT-8 = Joint = `Dr=0.0`, has the same training hash and is
+trained once) plus the evaluation it gets. Seeds are part of the config (`train.seed`).
+
+Presets (`PRESETS`):
+
+* `test`: the smoke sweep. Width 8, two steps per run, one mesh size (one padding bucket),
+  one test mesh per split, XLA backend optimisation level 0.
+* `cpu`: width 32, 600 steps of batch 2 on 80 training meshes of 322-383 vertices (one
+  padding bucket), evaluated on every test mesh (16 test-intra, 18 test-inter).
+* `paper`: the paper's width and epochs (60 epochs of 10⁴ meshes at batch 4 = 150,000
+  steps; 200 epochs = 500,000 for the depth study) on the procedural dataset at 40 shapes
+  per category; for GPUs.
+
+Two settings of every preset depart from the paper's literal values, for reasons measured
+on our data (see `experiments/results/README.md`): the curvature-loss scales γ_H, γ_G are
+re-chosen for the dataset (the paper chose its own "based on distribution of objects in
+our dataset"; here they are computed, see `experiments.runner.calibrate_curvature`), and
+the feature extractor learns `asinh` of the curvatures (`LossConfig.feature_curvature`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import re
+from collections.abc import Mapping, Sequence
+from typing import Any, NamedTuple
+
+from dmd_jax.config import ABLATIONS, ExperimentConfig, ablation_config, preset
+from dmd_jax.data.dataset import DEFAULT_TEST_INTER
+
+# --------------------------------------------------------------------------------------
+# Studies
+# --------------------------------------------------------------------------------------
+
+TRAIN = "train"
+NOISE = "noise"
+ROTATION = "rotation"
+
+
+class Study(NamedTuple):
+    """One study: its directory name, title, kind, the paper's table and its rows.
+
+    Attributes:
+      key: directory and CLI name.
+      title: table title.
+      kind: `train` (one model per row, evaluated on test-intra and test-inter), `noise`
+        (one model, one row per noise setting) or `rotation` (one model per row, the
+        rotation-equivariance test).
+      paper_table: the `\\label` of the paper's table.
+      rows: row names, in the paper's order.
+      reference: the row the paper chose (every other row is compared against it).
+    """
+
+    key: str
+    title: str
+    kind: str
+    paper_table: str
+    rows: tuple[str, ...]
+    reference: str | None
+
+
+# The paper's noise table (section 4): kind, level in the canonical frame, display name.
+NOISE_ROWS: tuple[tuple[str, float, str], ...] = (
+    ("gamma", 0.03, "0.03·Γ(2,2)"),
+    ("gamma", 0.04, "0.04·Γ(2,2)"),
+    ("gamma", 0.05, "0.05·Γ(2,2)"),
+    ("gaussian", 0.025, "N(0,0.025)"),
+    ("gaussian", 0.05, "N(0,0.05)"),
+    ("gaussian", 0.1, "N(0,0.1)"),
+    ("impulse", 0.05, "0.05·δ(0.15,0.15)"),
+    ("impulse", 0.1, "0.1·δ(0.15,0.15)"),
+    ("impulse", 0.2, "0.2·δ(0.15,0.15)"),
+    ("uniform", 0.05, "0.05·U(−1,1)"),
+    ("uniform", 0.1, "0.1·U(−1,1)"),
+    ("uniform", 0.2, "0.2·U(−1,1)"),
+)
+NOISE_MODEL_ROW = "DMD-Net"
+
+# The rotation-equivariance test (appendix E): the paper's two models plus the two
+# without rotation augmentation, which show what the augmentation buys. All use the base
+# config's (final) loss weights, as the paper's final model does.
+ROTATION_ROWS: dict[str, dict[str, Any]] = {
+    "Rotation Augmentation": {"train": {"rotate": True}, "model": {"stn": False}},
+    "Rotation Augmentation + STN": {"train": {"rotate": True}, "model": {"stn": True}},
+    "No Augmentation": {"train": {"rotate": False}, "model": {"stn": False}},
+    "No Augmentation + STN": {"train": {"rotate": False}, "model": {"stn": True}},
+}
+RE_GAMMA = 5  # random rotations per test mesh (paper: γ = 5)
+
+STUDIES: tuple[Study, ...] = (
+    Study(
+        "scheme",
+        "Training scheme",
+        TRAIN,
+        "table:training_strategy",
+        tuple(ABLATIONS["scheme"]),
+        "Joint",
+    ),
+    Study("dropout", "Dropout rate", TRAIN, "table:dropout", tuple(ABLATIONS["dropout"]), "Dr=0.0"),
+    Study(
+        "attention",
+        "Graph attention",
+        TRAIN,
+        "table:attention",
+        tuple(ABLATIONS["attention"]),
+        "Without Attention",
+    ),
+    Study(
+        "structure",
+        "Network structure",
+        TRAIN,
+        "table:structure_ablation",
+        tuple(ABLATIONS["structure"]),
+        "FGT-8",
+    ),
+    Study("loss", "Loss", TRAIN, "table:loss_ablation", tuple(ABLATIONS["loss"]), "With All"),
+    Study("depth", "Depth", TRAIN, "table:depth_ablation", tuple(ABLATIONS["depth"]), "DMD-Net 2"),
+    Study("stn", "Spatial transformer", TRAIN, "table:STN", tuple(ABLATIONS["stn"]), "Without STN"),
+    Study(
+        "noise",
+        "Noise evaluation",
+        NOISE,
+        "table:Noise_Evaluation",
+        tuple(name for _, _, name in NOISE_ROWS),
+        None,
+    ),
+    Study(
+        "rotation",
+        "Rotation-equivariance test",
+        ROTATION,
+        "table:REq",
+        tuple(ROTATION_ROWS),
+        "Rotation Augmentation",
+    ),
+)
+STUDY_KEYS = tuple(s.key for s in STUDIES)
+
+
+def get_study(key: str) -> Study:
+    """The study called `key` (one of `STUDY_KEYS`)."""
+    for study in STUDIES:
+        if study.key == key:
+            return study
+    raise ValueError(f"unknown study {key!r}; choose from {', '.join(STUDY_KEYS)}")
+
+
+# --------------------------------------------------------------------------------------
+# Presets
+# --------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class AblatePreset:
+    """Where and how big a sweep runs.
+
+    Attributes:
+      name: preset name; the dataset cache is `data/ablate-<name>` and the results
+        `experiments/results/<name>` unless told otherwise.
+      base: the `dmd_jax.config` preset the base config starts from.
+      edits: `with_edits` applied to it (width, steps, schedule, ...).
+      study_edits: extra edits per study key, applied after the row's edits.
+      categories: procedural categories of the dataset (`None`: all).
+      test_inter: categories held out whole (the paper's test-inter).
+      per_category: shapes generated per category.
+      min_vertices, max_vertices: vertex range of every mesh.
+      intra_fraction: share of each category in test-intra.
+      data_seed: dataset seed.
+      eval_meshes: test meshes used per split (`None`: all); also the meshes of the
+        noise and rotation studies (test-intra and test-inter together, as the paper).
+      seeds: training seeds; every row runs once per seed.
+      calibrate_curvature: compute γ_H, γ_G from the training set (see module doc).
+      xla_opt_level: `--xla_backend_optimization_level` for the worker processes
+        (`None`: XLA's default). Level 0 compiles about 35 % faster on CPU and runs
+        slower, the right trade for runs of a few steps.
+      jax_cache: keep compiled programs in JAX's persistent compilation cache
+        (`$ABLATE_JAX_CACHE`, default `~/.cache/dmd_jax/xla-ablate`), so a rerun or a
+        resumed run skips most of the compile time.
+      workers: runs trained in parallel (processes).
+      dataset_workers: processes generating the dataset (`None`: every core).
+      description: one line for the results README.
+    """
+
+    name: str
+    base: str
+    edits: Mapping[str, Any]
+    study_edits: Mapping[str, Mapping[str, Any]]
+    categories: tuple[str, ...] | None
+    test_inter: tuple[str, ...]
+    per_category: int
+    min_vertices: int
+    max_vertices: int
+    intra_fraction: float = 0.2
+    data_seed: int = 0
+    eval_meshes: int | None = None
+    seeds: tuple[int, ...] = (0,)
+    calibrate_curvature: bool = True
+    xla_opt_level: int | None = None
+    jax_cache: bool = True
+    workers: int = 1
+    dataset_workers: int | None = 1
+    description: str = ""
+
+    def to_dict(self) -> dict[str, Any]:
+        return json.loads(json.dumps(dataclasses.asdict(self)))
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> AblatePreset:
+        """Inverse of `to_dict` (lists back to tuples)."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(data) - names)
+        if unknown:
+            raise ValueError(f"AblatePreset: unknown key(s) {unknown}")
+        out = dict(data)
+        for key in ("categories", "test_inter", "seeds"):
+            if out.get(key) is not None:
+                out[key] = tuple(out[key])
+        return cls(**out)
+
+    def with_changes(self, **changes) -> AblatePreset:
+        return dataclasses.replace(self, **changes)
+
+    def data_edits(self) -> dict[str, Any]:
+        """The `DataConfig` edits that record this preset's dataset in every config."""
+        return {
+            "data": {
+                "source": "procedural",
+                "categories": self.categories,
+                "test_inter_categories": self.test_inter,
+                "instances_per_category": self.per_category,
+                "target_vertices": (self.min_vertices + self.max_vertices) // 2,
+                "test_fraction": self.intra_fraction,
+                "seed": self.data_seed,
+            }
+        }
+
+
+_SMOKE_TRAIN = {
+    "steps": 2,
+    "batch_size": 1,
+    "eval_every": 0,
+    "ckpt_every": 0,
+    "ckpt_keep": 1,
+    "log_every": 1,
+}
+
+PRESETS: dict[str, AblatePreset] = {
+    "test": AblatePreset(
+        name="test",
+        base="test",
+        edits={
+            "name": "ablate-test",
+            "loss": {"feature_curvature": "asinh"},
+            "train": _SMOKE_TRAIN,
+        },
+        study_edits={},
+        # One mesh size: every batch (batch size 1) and every test mesh pads to the same
+        # 160-vertex bucket, so each config compiles one train step and one predictor.
+        categories=("extrusion", "torus", "blob", "bottle"),
+        test_inter=("bottle",),
+        per_category=2,
+        min_vertices=130,
+        max_vertices=158,
+        eval_meshes=1,
+        xla_opt_level=0,
+        workers=2,
+        dataset_workers=1,
+        description="smoke sweep: width 8, 2 steps per run, 1 test mesh per split",
+    ),
+    "cpu": AblatePreset(
+        name="cpu",
+        base="small",
+        edits={
+            "name": "ablate-cpu",
+            "model": {"width": 32, "stn_width": 16},
+            "loss": {"feature_curvature": "asinh"},
+            "train": {
+                "steps": 600,
+                "batch_size": 2,
+                "lr": 5e-4,
+                "schedule": "cosine",
+                "warmup_steps": 50,
+                "eval_every": 0,
+                "ckpt_every": 100,
+                "ckpt_keep": 1,
+                "log_every": 10,
+            },
+        },
+        study_edits={},
+        categories=None,
+        test_inter=DEFAULT_TEST_INTER,
+        per_category=6,
+        # Two meshes of 322-383 vertices pad to the 768 bucket, one to 384: one compiled
+        # train step and one predictor per config.
+        min_vertices=322,
+        max_vertices=383,
+        eval_meshes=None,
+        workers=2,
+        dataset_workers=2,
+        description=(
+            "CPU sweep: width 32, 600 steps of batch 2 (lr 5e-4, cosine), 80 training "
+            "meshes of 322-383 vertices, all 34 test meshes"
+        ),
+    ),
+    "paper": AblatePreset(
+        name="paper",
+        base="paper",
+        edits={
+            "name": "ablate-paper",
+            "loss": {"feature_curvature": "asinh"},
+            "train": {"steps": 150_000, "eval_every": 5000, "ckpt_every": 5000},
+        },
+        # The paper trains the depth variants for 200 epochs, the others for 60.
+        study_edits={"depth": {"train": {"steps": 500_000}}},
+        categories=None,
+        test_inter=DEFAULT_TEST_INTER,
+        per_category=40,
+        min_vertices=1000,
+        max_vertices=6000,
+        eval_meshes=None,
+        workers=1,
+        dataset_workers=None,
+        description="the paper's width (512) and epochs, procedural data at 40 per category",
+    ),
+}
+
+
+def get_preset(name: str) -> AblatePreset:
+    if name not in PRESETS:
+        raise ValueError(f"unknown ablation preset {name!r}; choose from {', '.join(PRESETS)}")
+    return PRESETS[name]
+
+
+# --------------------------------------------------------------------------------------
+# Runs
+# --------------------------------------------------------------------------------------
+
+
+class RunSpec(NamedTuple):
+    """One run: a study row at a seed, the config it trains and the evaluation it gets."""
+
+    study: str
+    row: str
+    seed: int
+    config: ExperimentConfig
+    evaluation: dict  # {"kind": "test" | "noise" | "rotation", ...}
+    train_hash: str
+    run_id: str
+
+
+def slug(text: str) -> str:
+    """A readable directory-name fragment: `"W/O T"` -> `"w_o_t"`, `"Dr=0.35"` -> `"dr_0.35"`."""
+    text = text.replace("·", "x").replace("−", "-").replace("Γ", "gamma").replace("δ", "delta")
+    text = text.replace("+", "plus")
+    out = re.sub(r"[^a-z0-9.\-]+", "_", text.lower()).strip("_")
+    return out or "run"
+
+
+def _digest(payload: Any, length: int = 10) -> str:
+    text = json.dumps(payload, sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()[:length]
+
+
+def config_hash(cfg: ExperimentConfig) -> str:
+    """Hash of a config's JSON without its `name`: equal settings, equal hash."""
+    data = cfg.to_dict()
+    data.pop("name", None)
+    return _digest(data)
+
+
+def run_hash(cfg: ExperimentConfig, evaluation: Mapping[str, Any]) -> str:
+    data = cfg.to_dict()
+    data.pop("name", None)
+    return _digest({"config": data, "evaluation": dict(evaluation)})
+
+
+def base_config(p: AblatePreset, gammas: Mapping[str, float] | None = None) -> ExperimentConfig:
+    """The preset's base config: the `dmd_jax` preset, the edits, the dataset and γ."""
+    cfg = preset(p.base).with_edits(dict(p.edits)).with_edits(p.data_edits())
+    if gammas is not None:
+        cfg = cfg.with_edits(
+            {"loss": {"gamma_h": float(gammas["gamma_h"]), "gamma_g": float(gammas["gamma_g"])}}
+        )
+    return cfg
+
+
+def _with_name(cfg: ExperimentConfig, base: ExperimentConfig, study: str, row: str):
+    return cfg.with_edits({"name": f"{base.name}-{study}-{slug(row)}"})
+
+
+def study_configs(p: AblatePreset, base: ExperimentConfig, study: str) -> list[tuple[str, Any]]:
+    """`(row, config)` pairs of one study before seeds (the noise study: one config)."""
+    s = get_study(study)
+    extra = dict(p.study_edits.get(study, {}))
+    if s.kind == TRAIN:
+        out = [(row, ablation_config(base, study, row)) for row in s.rows]
+    elif s.kind == NOISE:
+        out = [(NOISE_MODEL_ROW, _with_name(base, base, study, "model"))]
+    else:
+        out = [
+            (row, _with_name(base.with_edits(ROTATION_ROWS[row]), base, study, row))
+            for row in s.rows
+        ]
+    out = [(row, cfg.with_edits(extra) if extra else cfg) for row, cfg in out]
+    # DO-2S and DO-1S have no feature extractor, so the FE loss has nothing to act on:
+    # its weight goes to 0 (ABLATIONS keeps λ_FE = 1 in every row, which the loss refuses
+    # without extractor output).
+    return [
+        (
+            row,
+            cfg if cfg.model.uses_feature_extractor else cfg.with_edits({"loss": {"feature": 0.0}}),
+        )
+        for row, cfg in out
+    ]
+
+
+def _evaluation(p: AblatePreset, kind: str, **extra) -> dict[str, Any]:
+    return {"kind": kind, "eval_meshes": p.eval_meshes, **extra}
+
+
+def plan(
+    p: AblatePreset, base: ExperimentConfig, studies: Sequence[str] | None = None
+) -> list[RunSpec]:
+    """Every run of the chosen studies (default: all), in study, row, seed order."""
+    keys = STUDY_KEYS if studies is None else tuple(studies)
+    for key in keys:
+        get_study(key)
+    runs: list[RunSpec] = []
+    for key in keys:
+        s = get_study(key)
+        for row, cfg in study_configs(p, base, key):
+            for seed in p.seeds:
+                c = cfg.with_edits({"train": {"seed": int(seed)}})
+                if s.kind == NOISE:
+                    evals = [
+                        (name, _evaluation(p, "noise", noise_kind=kind, level=level))
+                        for kind, level, name in NOISE_ROWS
+                    ]
+                elif s.kind == ROTATION:
+                    evals = [(row, _evaluation(p, "rotation", gamma=RE_GAMMA))]
+                else:
+                    evals = [(row, _evaluation(p, "test"))]
+                for name, ev in evals:
+                    h = run_hash(c, ev)
+                    rid = f"{slug(name)}-{h}" if len(p.seeds) == 1 else f"{slug(name)}-s{seed}-{h}"
+                    runs.append(RunSpec(key, name, int(seed), c, ev, config_hash(c), rid))
+    return runs
+
+
+def training_homes(runs: Sequence[RunSpec]) -> dict[str, RunSpec]:
+    """For each training hash, the first run that uses it: its directory holds the
+    checkpoints, and every other run with that hash reuses the trained model."""
+    homes: dict[str, RunSpec] = {}
+    for r in runs:
+        homes.setdefault(r.train_hash, r)
+    return homes
