@@ -54,10 +54,10 @@ notebooks: $(STAMP)
 	$(if $(WEIGHTS),DMD_JAX_WEIGHTS=$(WEIGHTS)) $(BIN)/python notebooks/_run.py
 
 # The paper's Table II protocol and its DMD-Net vs CNR table, written to
-# experiments/results/sota/ (experiments/sota.py). WEIGHTS=path/to/dmd.msgpack scores
-# that DMD-Net instead of the bundled one.
+# experiments/results/sota/ (experiments/sota.py). WEIGHTS=path (weights file or
+# checkpoint directory) adds that DMD-Net as a column next to the bundled one.
 sota: $(STAMP)
-	$(BIN)/python experiments/sota.py --table all $(if $(WEIGHTS),--dmd-weights $(WEIGHTS))
+	$(BIN)/python experiments/sota.py --table all $(if $(WEIGHTS),--weights checkpoint=$(WEIGHTS))
 
 # The paper's ablation studies (experiments/): every study at $(ABLATE_PRESET) (cpu: about
 # 27 trainings of 600 steps; paper: for a GPU). Reruns skip finished runs and resume
