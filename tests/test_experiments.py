@@ -1,0 +1,425 @@
+"""The ablation sweeps of `experiments/`: plans, ids, evaluations, aggregation, smoke run."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+import subprocess
+import sys
+
+import jax
+import numpy as np
+import pytest
+import scipy.stats
+from conftest import REPO, icosphere
+
+from dmd_jax import losses
+from dmd_jax.config import ABLATIONS, ablation_config
+from dmd_jax.metrics import mesh_metrics
+from dmd_jax.pipeline import NoiseSettings, corrupt, make_examples
+from experiments import aggregate as agg
+from experiments import runner
+from experiments import studies as st
+
+PAPER_TEX = REPO.parent / "shared" / "paper" / "dmd-net.tex"
+
+
+@pytest.fixture(scope="module")
+def test_preset():
+    return st.get_preset("test")
+
+
+@pytest.fixture(scope="module")
+def base(test_preset):
+    return st.base_config(test_preset, {"gamma_h": 1e-3, "gamma_g": 1e-6})
+
+
+# --------------------------------------------------------------------------------------
+# Plans and ids
+# --------------------------------------------------------------------------------------
+
+
+def test_training_studies_are_config_ablations(test_preset, base):
+    runs = st.plan(test_preset, base)
+    for study in st.STUDIES:
+        if study.kind != st.TRAIN:
+            continue
+        assert study.rows == tuple(ABLATIONS[study.key])
+        got = {r.row: r.config for r in runs if r.study == study.key}
+        for row in study.rows:
+            want = ablation_config(base, study.key, row)
+            if not want.model.uses_feature_extractor:
+                # No extractor, no extractor loss: the only change the sweep makes.
+                assert got[row].loss.feature == 0.0
+                want = want.with_edits({"loss": {"feature": 0.0}})
+            assert got[row] == want
+
+
+def test_run_ids_are_deterministic_and_equal_settings_train_once(test_preset, base):
+    runs = st.plan(test_preset, base)
+    again = st.plan(test_preset, st.base_config(test_preset, {"gamma_h": 1e-3, "gamma_g": 1e-6}))
+    assert [r.run_id for r in runs] == [r.run_id for r in again]
+    assert len({(r.study, r.run_id) for r in runs}) == len(runs)
+    by_row = {(r.study, r.row): r for r in runs}
+    # The paper's own numbers repeat across these tables: the same all-ones FGT-8 model.
+    same = [
+        ("scheme", "Joint"),
+        ("dropout", "Dr=0.0"),
+        ("attention", "Without Attention"),
+        ("structure", "FGT-8"),
+        ("loss", "With All"),
+        ("depth", "DMD-Net 2"),
+        ("stn", "Without STN"),
+    ]
+    assert len({by_row[k].train_hash for k in same}) == 1
+    noise_hashes = {r.train_hash for r in runs if r.study == "noise"}
+    assert noise_hashes == {by_row[("rotation", "Rotation Augmentation")].train_hash}
+    assert len(runs) == sum(len(s.rows) for s in st.STUDIES)
+    # 4 + 3 + 1 + 6 + 5 + 3 + 1 training rows beyond the shared one, 4 rotation models.
+    assert len(st.training_homes(runs)) == 1 + 3 + 3 + 1 + 6 + 5 + 3 + 1 + 4
+    home = st.training_homes(runs)[by_row[("depth", "DMD-Net 2")].train_hash]
+    assert (home.study, home.row) == ("scheme", "Joint")
+
+
+def test_hash_ignores_the_name_and_sees_every_setting(base):
+    assert st.config_hash(base) == st.config_hash(base.with_edits({"name": "other"}))
+    assert st.config_hash(base) != st.config_hash(base.with_edits({"train": {"seed": 1}}))
+    assert st.config_hash(base) != st.config_hash(base.with_edits({"loss": {"gamma_g": 2e-6}}))
+    ev = {"kind": "test", "eval_meshes": 1}
+    assert st.run_hash(base, ev) != st.run_hash(base, {**ev, "eval_meshes": 2})
+
+
+def test_seeds_multiply_runs_and_ids_name_the_seed(test_preset):
+    p = test_preset.with_changes(seeds=(0, 1))
+    runs = st.plan(p, st.base_config(p, None), ["depth"])
+    assert len(runs) == 8
+    assert {r.seed for r in runs} == {0, 1}
+    assert all(f"-s{r.seed}-" in r.run_id for r in runs)
+    assert all(r.config.train.seed == r.seed for r in runs)
+
+
+def test_preset_round_trips_through_json(test_preset):
+    p = st.AblatePreset.from_dict(json.loads(json.dumps(test_preset.to_dict())))
+    assert p == test_preset
+    with pytest.raises(ValueError, match="unknown"):
+        st.AblatePreset.from_dict({**test_preset.to_dict(), "bogus": 1})
+    with pytest.raises(ValueError, match="unknown study"):
+        st.plan(test_preset, st.base_config(test_preset), ["nonsense"])
+
+
+def test_slugs_are_readable_directory_names():
+    assert st.slug("W/O T") == "w_o_t"
+    assert st.slug("Dr=0.35") == "dr_0.35"
+    assert st.slug("0.05·δ(0.15,0.15)") == "0.05xdelta_0.15_0.15"
+    assert st.slug("Rotation Augmentation + STN") == "rotation_augmentation_plus_stn"
+
+
+# --------------------------------------------------------------------------------------
+# Evaluations
+# --------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def sphere_examples():
+    v, f = icosphere(1)
+    v = v / (v.max(0) - v.min(0)).max()
+    return make_examples([(v, f), (v * np.array([1.0, 0.8, 0.6]), f)])
+
+
+def test_calibration_is_half_the_normal_loss_over_the_median_terms(sphere_examples):
+    cal = runner.calibrate_curvature(sphere_examples, seed=3)
+    h, g, n = [], [], []
+    for i, ex in enumerate(sphere_examples):
+        noisy, clean, _ = corrupt(
+            jax.random.fold_in(jax.random.PRNGKey(3), i),
+            ex.vertices,
+            ex.faces,
+            rotate=True,
+            noise=NoiseSettings(),
+        )
+        lh, lg = losses.curvature_terms(noisy, clean, ex.faces)
+        h.append(float(lh))
+        g.append(float(lg))
+        n.append(float(losses.normal_loss(noisy, clean, ex.faces)))
+    np.testing.assert_allclose(cal["median_l_h"], np.median(h), rtol=1e-4)
+    np.testing.assert_allclose(cal["median_l_g"], np.median(g), rtol=1e-4)
+    np.testing.assert_allclose(cal["median_l_n"], np.median(n), rtol=1e-4)
+    np.testing.assert_allclose(cal["gamma_h"], 0.5 * np.median(n) / np.median(h), rtol=0.05)
+    np.testing.assert_allclose(cal["gamma_g"], 0.5 * np.median(n) / np.median(g), rtol=0.05)
+
+
+@pytest.fixture(scope="module")
+def identity_bundle(base):
+    """An untrained offset model with a zero head: exactly the identity map."""
+    from dmd_jax.inference import ModelBundle
+    from dmd_jax.model import init_params
+
+    assert base.model.predict_offset and base.model.head_init_scale == 0
+    # One compiled init instead of hundreds of op-by-op dispatches.
+    params = jax.jit(lambda key: init_params(base.model, key))(jax.random.PRNGKey(0))
+    return ModelBundle(params=params, config=base, meta={})
+
+
+def test_noise_evaluation_of_the_identity_equals_the_reference(identity_bundle, sphere_examples):
+    out = runner.noise_evaluation(identity_bundle, sphere_examples, "gaussian", 0.025)
+    for key in ("vertex_per_coord", "normal_deg", "chamfer"):
+        np.testing.assert_allclose(out[f"denoised/{key}"], out[f"reference/{key}"], rtol=1e-4)
+    # The paper's reference vertex error of N(0, 0.025) is σ² = 6.25e-4 per coordinate.
+    assert 4e-4 < out["reference/vertex_per_coord"] < 8e-4
+    assert out["n_meshes"] == 2
+    assert runner.noise_evaluation(identity_bundle, sphere_examples, "gaussian", 0.025) == out
+
+
+def test_rotation_test_of_the_identity_is_zero(identity_bundle, sphere_examples):
+    out = runner.rotation_evaluation(identity_bundle, sphere_examples, gamma=2)
+    assert out["gamma"] == 2 and out["n_meshes"] == 2
+    for key in ("re/vertex_per_coord", "re/chamfer"):
+        assert out[key] < 1e-10
+    assert out["re/normal_deg"] < 0.05  # float32 round-off of rotated normals
+    # The denoising error is that of the noisy input, drawn with the documented keys.
+    want = []
+    for i, ex in enumerate(sphere_examples):
+        k_noise, _ = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(runner.EVAL_SEED), i))
+        noisy, clean, _ = corrupt(
+            k_noise,
+            ex.vertices,
+            ex.faces,
+            rotate=False,
+            noise=NoiseSettings(**identity_bundle.config.noise.settings()),
+        )
+        want.append(mesh_metrics(noisy, clean, ex.faces)["normal_deg"])
+    np.testing.assert_allclose(out["denoised/normal_deg"], np.mean(want), rtol=1e-4)
+
+
+def test_rotation_test_of_a_translating_denoiser(monkeypatch, identity_bundle, sphere_examples):
+    """D(G) = G + c for a fixed world offset c is not rotation-equivariant: every vertex
+    of R(D(G)) and D(R(G)) differs by R c − c, so L_vertex = |R c − c|² exactly and the
+    normals agree."""
+    from dmd_jax import inference
+    from dmd_jax.pipeline import random_rotation
+
+    c = np.array([0.02, -0.01, 0.005])
+    monkeypatch.setattr(inference, "denoise", lambda v, f, bundle: np.asarray(v) + c)
+    out = runner.rotation_evaluation(identity_bundle, sphere_examples, gamma=3)
+    want = []
+    for i in range(len(sphere_examples)):
+        _, k_rot = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(runner.EVAL_SEED), i))
+        for j in range(3):
+            r = random_rotation(jax.random.fold_in(k_rot, j))
+            want.append(np.sum((r @ c - c) ** 2))
+    np.testing.assert_allclose(out["re/vertex"], np.mean(want), rtol=1e-4)
+    np.testing.assert_allclose(out["re/vertex_per_coord"], np.mean(want) / 3, rtol=1e-4)
+    assert out["re/normal_deg"] < 0.05
+    assert 0 < out["re/chamfer"] <= 2 * out["re/vertex"] * (1 + 1e-4)
+
+
+# --------------------------------------------------------------------------------------
+# Aggregation
+# --------------------------------------------------------------------------------------
+
+
+def test_spearman_matches_scipy():
+    rng = np.random.default_rng(0)
+    for n in (3, 5, 9):
+        a, b = rng.normal(size=n), rng.normal(size=n)
+        np.testing.assert_allclose(agg.spearman(a, b), scipy.stats.spearmanr(a, b)[0])
+    assert agg.spearman([1.0], [2.0]) is None
+
+
+def test_fmt_follows_the_paper():
+    assert agg.fmt(3.9171) == "3.917"
+    assert agg.fmt(1.039e16) == "1.039e+16"
+    assert agg.fmt(None) == "–"
+    assert agg.fmt(2.0, 0.25) == "2.000 ± 0.250"
+
+
+def _numbers(cell: str) -> float:
+    text = re.sub(r"\\textbf|[${}\s]", "", cell)
+    m = re.fullmatch(r"(\d+(?:\.\d+)?)(?:\\times10\^(\d+))?", text)
+    if m is None:
+        raise ValueError(cell)
+    return float(m.group(1)) * (10 ** int(m.group(2)) if m.group(2) else 1.0)
+
+
+def test_paper_tables_match_the_tex_source():
+    if not PAPER_TEX.is_file():
+        pytest.skip(f"{PAPER_TEX} is absent")
+    tex = PAPER_TEX.read_text()
+    for study in st.STUDIES:
+        block = tex[tex.index(f"\\label{{{study.paper_table}}}") :]
+        block = block[: block.index("\\end{table")]
+        k = len(agg.PAPER_COLUMNS[study.kind])
+        rows = []
+        for segment in block.split("\\\\"):
+            cells = segment.split("&")
+            if len(cells) < k + 1:
+                continue
+            try:
+                rows.append(tuple(_numbers(c) for c in cells[-k:]))
+            except ValueError:
+                continue
+        assert rows == list(agg.PAPER[study.key].values()), study.key
+        assert list(agg.PAPER[study.key]) == [r for r in study.rows if r in agg.PAPER[study.key]]
+
+
+def _fake_results(out_dir, p, base, values_for):
+    """A results dir whose runs report `values_for(study, row) -> metrics`."""
+    runs = st.plan(p, base)
+    runner._write_json(
+        out_dir / "plan.json",
+        {
+            "preset": p.to_dict(),
+            "base_config": base.to_dict(),
+            "calibration": None,
+            "runs": [
+                {k: v for k, v in runner._spec_to_json(r).items() if k != "config"} for r in runs
+            ],
+        },
+    )
+    host = {"platform": "test", "cpu_count": 2}
+    for r in runs:
+        metrics = values_for(r.study, r.row)
+        if metrics is None:
+            continue
+        runner._write_json(
+            out_dir / r.study / r.run_id / "metrics.json",
+            {
+                "study": r.study,
+                "row": r.row,
+                "seed": r.seed,
+                "run_id": r.run_id,
+                "trained_in": f"{r.study}/{r.run_id}",
+                "status": "ok",
+                "metrics": metrics,
+                "train": {"wall_s": 1.0, "cpu_s": 2.0},
+                "host": host,
+            },
+        )
+
+
+def _paper_as_metrics(study_key, row):
+    study = st.get_study(study_key)
+    vals = agg.PAPER.get(study_key, {}).get(row)
+    if vals is None:
+        return None
+    cols = {k: s for k, s, _ in agg._columns(study)}
+    out = {k: v / cols[k] for k, v in zip(agg.PAPER_COLUMNS[study.kind], vals, strict=True)}
+    if study.kind == st.TRAIN:
+        out.update({f"{s}/noisy_{m}": 1.0 for s in agg.SPLITS for m, _, _ in agg.METRICS})
+    if study.kind == st.NOISE:
+        out.update({"denoised/chamfer": 1e-4, "reference/chamfer": 2e-4})
+    if study.kind == st.ROTATION:
+        out.update({"denoised/vertex_per_coord": 1e-4, "denoised/normal_deg": 20.0})
+    return out
+
+
+def test_aggregating_the_papers_own_numbers_agrees_with_the_paper(tmp_path, test_preset, base):
+    _fake_results(tmp_path, test_preset, base, _paper_as_metrics)
+    summary = agg.aggregate(tmp_path)
+    for study in st.STUDIES:
+        assert (tmp_path / f"{study.key}.md").is_file()
+        assert (tmp_path / f"{study.key}.png").stat().st_size > 1000
+        cmp = summary["studies"][study.key]["comparison"]
+        for col in cmp["columns"].values():
+            assert col["ours_best"] == col["paper_best"]
+            if col["spearman"] is not None:
+                assert col["spearman"] == pytest.approx(1.0)
+        if study.kind == st.TRAIN:
+            assert cmp["disagree"] == []
+    structure = (tmp_path / "structure.md").read_text()
+    assert (
+        "| FGT-8 | **3.917** | **25.458** | **2.028** | **3.717** | **25.184** | **2.035** |"
+        in (structure)
+    )
+    assert "| FGT-1S | 9.620 | 28.368 | 3.969 |" in structure
+    with open(tmp_path / "structure.csv") as fh:
+        header = fh.readline().strip().split(",")
+        first = fh.readline().strip().split(",")
+    assert first[header.index("test_intra/vertex_per_coord")] == repr(3.917e-4)
+    assert "Disagreements" not in (tmp_path / "README.md").read_text()
+    # Only the rotation study's extra rows are unmatched by the paper.
+    assert summary["missing"] == ["rotation"]
+    index = agg.write_index(tmp_path.parent)
+    assert "Preset `test`" in index.read_text()
+
+
+def test_reversed_numbers_report_the_disagreements(tmp_path, test_preset, base):
+    def reversed_structure(study, row):
+        m = _paper_as_metrics(study, row)
+        if study == "structure" and m is not None:
+            m = {k: (1.0 / v if "noisy" not in k else v) for k, v in m.items()}
+        return m
+
+    _fake_results(tmp_path, test_preset, base, reversed_structure)
+    _, records = agg.load_records(tmp_path)
+    study = st.get_study("structure")
+    rows = agg.study_rows(study, records["structure"], agg.TRAIN_COLUMNS)
+    cmp = agg.compare_with_paper(study, rows)
+    assert cmp["agree"] == []
+    assert {c["ours_best"] for c in cmp["columns"].values()} == {"FGT-1S"}
+    assert all(c["spearman"] == pytest.approx(-1.0) for c in cmp["columns"].values())
+    text = agg.comparison_text(study, rows, cmp)
+    assert "best in 6/6 columns of the paper's table and in 0/6 of ours" in text
+    assert "Disagreements: FGT-3" in text
+
+
+def test_list_prints_every_run_without_running_anything(tmp_path, capsys):
+    from experiments.__main__ import main
+
+    rc = main(["list", "--preset", "test", "--data-dir", str(tmp_path), "--out", str(tmp_path)])
+    out = capsys.readouterr().out
+    assert rc == 0
+    assert out.count("todo") == sum(len(s.rows) for s in st.STUDIES)
+    runs = st.plan(st.get_preset("test"), st.base_config(st.get_preset("test")))
+    assert f"{len(st.training_homes(runs))} distinct trainings" in out
+
+
+# --------------------------------------------------------------------------------------
+# The smoke sweep (`make ablate-smoke`)
+# --------------------------------------------------------------------------------------
+
+
+def _run_smoke(out, data):
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("JAX_", "XLA_"))}
+    cmd = [sys.executable, "-m", "experiments", "run", "--preset", "test", "--no-progress"]
+    cmd += ["--out", str(out), "--data-dir", str(data)]
+    proc = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=3000)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    return proc
+
+
+def test_smoke_sweep_writes_every_study_with_finite_numbers(tmp_path):
+    out, data = tmp_path / "results", tmp_path / "data"
+    _run_smoke(out, data)
+    summary = json.loads((out / "summary.json").read_text())
+    plan = json.loads((out / "plan.json").read_text())
+    for study in st.STUDIES:
+        for ext in ("md", "csv", "png"):
+            assert (out / f"{study.key}.{ext}").is_file(), (study.key, ext)
+        table = summary["studies"][study.key]["table"]
+        assert set(table) == set(study.rows)
+        for row, values in table.items():
+            assert values and all(math.isfinite(v) for v in values.values()), (study.key, row)
+    for run in plan["runs"]:
+        d = out / run["study"] / run["run_id"]
+        record = json.loads((d / "metrics.json").read_text())
+        assert (
+            record["status"] == "ok" and (d / "config.json").is_file() and (d / "run.log").is_file()
+        )
+    assert not summary["missing"]
+
+    # Rerun: nothing to do. Then lose one finished run's metrics (as if killed after
+    # training): the rerun evaluates its checkpoint and gets the same numbers.
+    victim = out / "depth" / next(r["run_id"] for r in plan["runs"] if r["row"] == "DMD-Net 1")
+    before = json.loads((victim / "metrics.json").read_text())["metrics"]
+    proc = _run_smoke(out, data)
+    assert "0 jobs" in proc.stdout + proc.stderr
+    (victim / "metrics.json").unlink()
+    (victim / "train_metrics.json").unlink()
+    _run_smoke(out, data)
+    after = json.loads((victim / "metrics.json").read_text())
+    assert after["train"]["resumed_from"] == 2
+    for k, v in before.items():
+        np.testing.assert_allclose(after["metrics"][k], v, rtol=1e-5, err_msg=k)
