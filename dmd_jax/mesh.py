@@ -647,6 +647,15 @@ def _read_with_trimesh(data: bytes, suffix: str, name: str) -> _MeshText:
 
     if suffix == ".stl":
         _check_stl_size(data, name)
+    if suffix == ".ply":
+        declared = sum(_ply_header_counts(data).values())
+        # Every element takes at least one byte, in ASCII or binary: a header that
+        # promises more would make trimesh allocate for counts the file cannot hold.
+        if declared > len(data):
+            raise ValueError(
+                f"{name}: the header declares {declared} elements, more than the file's "
+                f"{len(data)} bytes can hold (truncated or corrupt)"
+            )
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
