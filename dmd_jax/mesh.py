@@ -599,6 +599,16 @@ def _read_off(data: bytes, name: str) -> _MeshText:
                 f"{name}: line {lineno}: a face needs k >= 3 corners and k indices, got "
                 f"{' '.join(tokens)[:60]!r}"
             )
+        for c in corners:
+            # Checked here, not in validate_mesh: an index beyond int64 cannot reach it.
+            if c < 0:
+                raise ValueError(
+                    f"{name}: line {lineno}: negative face index {c} (indices start at 0)"
+                )
+            if c >= n_vertex:
+                raise ValueError(
+                    f"{name}: line {lineno}: face index {c} is out of range for {n_vertex} vertices"
+                )
         n_poly += k > 3
         _fan(corners, flat)
     return _MeshText(

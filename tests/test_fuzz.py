@@ -1,8 +1,9 @@
 """Bounded fuzzing of the mesh loaders: any bytes give a valid mesh or a `ValueError`.
 
-Inputs are raw random bytes and mutations of valid OBJ / OFF / PLY (ASCII, binary) /
-STL (ASCII, binary) files: flipped, deleted, inserted and duplicated bytes, cuts, and
-numbers replaced by awkward ones (NaN, huge counts, negative indices...). Anything
+Inputs are raw random bytes, lines of random keywords and numbers, and mutations of
+valid OBJ / OFF / PLY (ASCII, binary) / STL (ASCII, binary) files: flipped, deleted,
+inserted and duplicated bytes, cuts, and numbers replaced by awkward ones (NaN, huge
+counts, negative indices...). Anything
 other than a valid mesh or a `ValueError` fails: another exception type, a hang (a
 20 s alarm per file) or a crash of the worker. The default suite runs a few dozen
 inputs; `make test-slow` runs thousands and every prefix of every seed file.
@@ -114,6 +115,22 @@ def mutated_files(draw):
     return suffix, bytes(data)
 
 
+KEYWORDS = [b"v", b"f", b"vt", b"vn", b"#", b"OFF", b"COFF", b"ply", b"end_header", b"solid"]
+TOKENS = st.one_of(
+    st.sampled_from(KEYWORDS + AWKWARD),
+    st.integers(-8, 8).map(lambda i: str(i).encode()),
+    st.floats(allow_nan=True, allow_infinity=True).map(lambda x: repr(x).encode()),
+    st.sampled_from([b"1/2", b"1//3", b"-1/-1", b"//", b"/", b"1/"]),
+)
+
+
+@st.composite
+def token_soups(draw):
+    """Lines of keywords, numbers and awkward tokens: text the OBJ/OFF readers parse far."""
+    lines = draw(st.lists(st.lists(TOKENS, max_size=8), max_size=30))
+    return draw(st.sampled_from([".obj", ".off"])), b"\n".join(b" ".join(ln) for ln in lines)
+
+
 class _Hang(BaseException):
     """Not an `Exception`: the loader's catch-all must not turn a hang into a ValueError."""
 
@@ -181,6 +198,12 @@ def test_mutated_files(folder, case):
     check_loader(folder, *case)
 
 
+@FEW
+@given(case=token_soups())
+def test_token_soups(folder, case):
+    check_loader(folder, *case)
+
+
 def test_every_seventh_prefix(folder):
     for suffix, files in SEEDS.items():
         for data in files:
@@ -199,6 +222,13 @@ def test_random_bytes_many(folder, suffix, data):
 @MANY
 @given(case=mutated_files())
 def test_mutated_files_many(folder, case):
+    check_loader(folder, *case)
+
+
+@pytest.mark.slow
+@MANY
+@given(case=token_soups())
+def test_token_soups_many(folder, case):
     check_loader(folder, *case)
 
 
