@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
 PYTEST_WORKERS ?= 2
 
-.PHONY: install test test-slow lint format bench ablate ablate-smoke sota demo sota-lite
+.PHONY: install test test-slow lint format bench bench-inference bench-training ablate ablate-smoke sota demo sota-lite
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -16,10 +16,10 @@ $(STAMP): pyproject.toml
 install: $(STAMP)
 
 test: $(STAMP)
-	$(BIN)/python -m pytest -n $(PYTEST_WORKERS) -q --durations=15
+	$(BIN)/python -m pytest -n $(PYTEST_WORKERS) --dist loadfile -q --durations=15
 
 test-slow: $(STAMP)
-	$(BIN)/python -m pytest -n $(PYTEST_WORKERS) -q -m slow --durations=15
+	$(BIN)/python -m pytest -n $(PYTEST_WORKERS) --dist loadfile -q -m slow --durations=15
 
 lint: $(STAMP)
 	$(BIN)/ruff check dmd_jax tests experiments benchmarks
@@ -38,6 +38,28 @@ bench: $(STAMP)
 		--sizes 100000 300000 1000000 --widths 64 --methods ell --meshes
 	GLIBC_TUNABLES=glibc.malloc.hugetlb=1 $(BIN)/python benchmarks/bench_aggregation_variants.py
 	$(BIN)/python benchmarks/bench_allocation.py
+	$(MAKE) bench-inference bench-training
+
+# Inference scaling and training throughput, each command under 10 minutes (--append
+# adds to the same report). The last inference run is the small preset with XLA's
+# sequential CPU scheduler, which needs a third of the memory (results/inference.md).
+HUGE := GLIBC_TUNABLES=glibc.malloc.hugetlb=1
+bench-inference: $(STAMP)
+	$(HUGE) $(BIN)/python benchmarks/bench_inference.py --presets small \
+		--faces 1000 3000 10000 30000 100000 300000
+	$(HUGE) $(BIN)/python benchmarks/bench_inference.py --presets small --faces 1000000 --append
+	$(HUGE) $(BIN)/python benchmarks/bench_inference.py --presets paper \
+		--faces 1000 3000 10000 30000 --append
+	$(HUGE) $(BIN)/python benchmarks/bench_inference.py --presets paper \
+		--faces 100000 300000 1000000 --append
+	XLA_FLAGS=--xla_cpu_enable_concurrency_optimized_scheduler=false $(HUGE) \
+		$(BIN)/python benchmarks/bench_inference.py --presets small \
+		--faces 100000 300000 1000000 --pymeshlab-faces 0 --name inference_sequential_scheduler
+
+bench-training: $(STAMP)
+	$(HUGE) $(BIN)/python benchmarks/bench_training.py --presets test
+	$(HUGE) $(BIN)/python benchmarks/bench_training.py --presets small --append
+	$(HUGE) $(BIN)/python benchmarks/bench_training.py --presets paper --append
 
 # WEIGHTS=path/to/file.msgpack runs either target with other weights than the bundled ones.
 demo: $(STAMP)
