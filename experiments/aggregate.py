@@ -319,7 +319,39 @@ def compare_with_paper(study: st.Study, rows: list[dict]) -> dict[str, Any]:
     return out
 
 
-def comparison_text(study: st.Study, rows: list[dict], cmp: dict[str, Any]) -> str:
+SHORT = {
+    f"{split}/{key}": f"{split[5:]} {name}"
+    for split in SPLITS
+    for key, name in (("vertex_per_coord", "V"), ("normal_deg", "N"), ("chamfer", "C"))
+}
+
+
+def _versus_noisy(rows: list[dict], reference: dict | None) -> str:
+    """How many rows beat the noisy input, per test-intra metric."""
+    if not reference:
+        return ""
+    parts = []
+    for key, name in (
+        ("vertex_per_coord", "vertex"),
+        ("normal_deg", "normal"),
+        ("chamfer", "chamfer"),
+    ):
+        noisy = reference.get(f"test_intra/noisy_{key}")
+        vals = [r["values"][f"test_intra/{key}"][0] for r in rows]
+        vals = [v for v in vals if v is not None]
+        if noisy is None or not vals:
+            continue
+        parts.append(f"{sum(v < noisy for v in vals)}/{len(vals)} on {name}")
+    return (
+        ("Rows better than the noisy input (test-intra): " + ", ".join(parts) + ".")
+        if parts
+        else ""
+    )
+
+
+def comparison_text(
+    study: st.Study, rows: list[dict], cmp: dict[str, Any], reference: dict | None = None
+) -> str:
     """Plain-language comparison of our ordering with the paper's."""
     if not cmp or not cmp.get("columns"):
         return f"*{study.title}*: not enough finished rows to compare with the paper.\n"
@@ -349,17 +381,19 @@ def comparison_text(study: st.Study, rows: list[dict], cmp: dict[str, Any]) -> s
             n_all = len(cmp["agree"]) + len(cmp["disagree"])
             by_row: dict[str, list[str]] = {}
             for n, key in cmp["disagree"]:
-                by_row.setdefault(n, []).append(cmp["columns"][key]["label"])
+                by_row.setdefault(n, []).append(SHORT[key])
             lines.append(
                 f"Against {ref}, the sign of the difference (better/worse) agrees with the "
                 f"paper in {len(cmp['agree'])}/{n_all} (row, column) pairs."
             )
             if by_row:
                 lines.append(
-                    "Disagreements: "
+                    "Rows whose difference from it has the other sign than in the paper "
+                    "(intra/inter V, N, C): "
                     + "; ".join(f"{n} ({', '.join(v)})" for n, v in by_row.items())
                     + "."
                 )
+        lines.append(_versus_noisy(rows, reference))
     elif study.kind == st.NOISE:
         by = {r["row"]: r["values"] for r in rows}
         ratios_p, ratios_o = [], []
@@ -474,8 +508,12 @@ def write_plot(path: Path, study: st.Study, rows: list[dict], reference: dict | 
         ax.set_title(title)
         ax.set_xticks(x, names, rotation=35, ha="right", fontsize=8)
         if any(label for _, label in series) or study.kind == st.TRAIN:
-            ax.legend(fontsize=7)
-    fig.suptitle(f"{study.title} ({'mean ± std over seeds' if rows else ''})".replace(" ()", ""))
+            ax.legend(fontsize=7, loc="best", framealpha=0.6)
+    seeds = max((r["n_seeds"] for r in rows), default=0)
+    fig.suptitle(
+        f"{study.title}: "
+        + ("mean ± std over {seeds} seeds" if seeds > 1 else "one seed per row").format(seeds=seeds)
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
@@ -489,7 +527,11 @@ def _timing(plan: dict, records: dict) -> dict[str, Any]:
                 trained[r["trained_in"]] = r
     wall = sum(r["train"]["wall_s"] for r in trained.values())
     cpu = sum(r["train"]["cpu_s"] for r in trained.values())
-    hosts = {r["host"]["platform"] + f" ({r['host']['cpu_count']} CPUs)" for r in trained.values()}
+    hosts = {
+        f"{r['host'].get('processor', '?')}, {r['host']['cpu_count']} CPUs, "
+        f"{r['host']['platform']}, jax {r['host'].get('jax', '?')}"
+        for r in trained.values()
+    }
     return {"trainings": len(trained), "train_wall_s": wall, "train_cpu_s": cpu, "hosts": hosts}
 
 
@@ -513,7 +555,7 @@ def aggregate(out_dir) -> dict[str, Any]:
         reference = ref_recs[0]["metrics"] if ref_recs else None
         table = study_markdown(study, rows, reference)
         cmp = compare_with_paper(study, rows)
-        text = comparison_text(study, rows, cmp)
+        text = comparison_text(study, rows, cmp, reference)
         (out_dir / f"{study.key}.md").write_text(
             f"# {study.title} (preset {summary['preset']})\n\n{table}\n"
             f"The paper's table (`{study.paper_table}`):\n\n{paper_markdown(study)}\n{text}"
@@ -543,11 +585,16 @@ def aggregate(out_dir) -> dict[str, Any]:
     if timing["trainings"]:
         per = timing["train_cpu_s"] / timing["trainings"]
         remaining = max(0, len(homes) - timing["trainings"])
+        sessions = [x for x in _sessions(out_dir) if x.get("jobs")]
+        jobs = sum(x["jobs"] for x in sessions)
         summary["estimate"] = {
             "distinct_trainings": len(homes),
             "remaining": remaining,
             "cpu_per_training_s": per,
             "remaining_cpu_s": per * remaining,
+            "remaining_session_wall_s": (
+                sum(x["wall_s"] for x in sessions) / jobs * remaining if jobs else None
+            ),
         }
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=str) + "\n")
     (out_dir / "README.md").write_text(_preset_readme(out_dir, plan, summary, sections))
@@ -590,12 +637,15 @@ def _preset_readme(out_dir: Path, plan: dict, summary: dict, sections: list[str]
         )
     lines.append(
         f"* Compute: {t['trainings']} distinct trainings, {t['train_wall_s'] / 60:.1f} min wall "
-        f"and {t['train_cpu_s'] / 60:.1f} min CPU summed over runs, on "
+        f"and {t['train_cpu_s'] / 60:.1f} min CPU summed over runs (several run in parallel; "
+        f"the sessions below give the elapsed time), on "
         f"{', '.join(sorted(t['hosts'])) or '–'}."
     )
     for s in sessions:
         lines.append(
-            f"  * session {s['start']}: studies {', '.join(s['studies'])}; {s['jobs']} jobs, "
+            f"  * session {s['start']}"
+            + (f" (`{s['command']}`)" if s.get("command") else "")
+            + f": studies {', '.join(s['studies'])}; {s['jobs']} jobs, "
             f"{s['wall_s'] / 60:.1f} min wall, {s['cpu_s'] / 60:.1f} min CPU, {s['workers']} "
             f"workers, load average at the end {', '.join(f'{x:.1f}' for x in s['load_average'])}"
         )
@@ -608,7 +658,14 @@ def _preset_readme(out_dir: Path, plan: dict, summary: dict, sections: list[str]
                 f"{est['remaining_cpu_s'] / 3600:.1f} h of CPU at the measured "
                 f"{est['cpu_per_training_s'] / 60:.1f} min per training (about "
                 f"{est['remaining_cpu_s'] / 3600 / max(1, p['workers']):.1f} h wall with "
-                f"{p['workers']} workers on free cores)."
+                f"{p['workers']} workers on free cores"
+                + (
+                    f"; {est['remaining_session_wall_s'] / 3600:.1f} h at the load of the "
+                    "sessions above"
+                    if est.get("remaining_session_wall_s")
+                    else ""
+                )
+                + ")."
             )
     lines += ["", "## Comparison with the paper", ""]
     lines += [c.rstrip() + "\n" for c in summary["comparisons"]]

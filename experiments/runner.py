@@ -28,6 +28,7 @@ import os
 import platform
 import resource
 import shutil
+import sys
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -79,9 +80,17 @@ def host_info() -> dict[str, Any]:
     """What the numbers were measured on."""
     import jax
 
+    cpu_model = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu_model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
     return {
         "platform": platform.platform(),
-        "processor": platform.processor() or platform.machine(),
+        "processor": cpu_model,
         "cpu_count": os.cpu_count(),
         "python": platform.python_version(),
         "jax": jax.__version__,
@@ -651,7 +660,11 @@ def run_sweep(
     wall = time.time() - t0
     usage = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = sum(u.ru_utime + u.ru_stime for u in usage)
+    argv = list(sys.argv)
+    if argv and argv[0].endswith("__main__.py"):
+        argv[0] = "python -m experiments"
     session = {
+        "command": " ".join(argv),
         "start": time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(t0)),
         "wall_s": round(wall, 1),
         "cpu_s": round(cpu, 1),

@@ -338,7 +338,7 @@ def test_aggregating_the_papers_own_numbers_agrees_with_the_paper(tmp_path, test
         header = fh.readline().strip().split(",")
         first = fh.readline().strip().split(",")
     assert first[header.index("test_intra/vertex_per_coord")] == repr(3.917e-4)
-    assert "Disagreements" not in (tmp_path / "README.md").read_text()
+    assert "other sign than in the paper" not in (tmp_path / "README.md").read_text()
     # Only the rotation study's extra rows are unmatched by the paper.
     assert summary["missing"] == ["rotation"]
     index = agg.write_index(tmp_path.parent)
@@ -362,7 +362,10 @@ def test_reversed_numbers_report_the_disagreements(tmp_path, test_preset, base):
     assert all(c["spearman"] == pytest.approx(-1.0) for c in cmp["columns"].values())
     text = agg.comparison_text(study, rows, cmp)
     assert "best in 6/6 columns of the paper's table and in 0/6 of ours" in text
-    assert "Disagreements: FGT-3" in text
+    assert (
+        "(intra/inter V, N, C): FGT-3 (intra V, intra N, intra C, inter V, inter N, inter C)"
+        in text
+    )
 
 
 def test_list_prints_every_run_without_running_anything(tmp_path, capsys):
