@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import icosphere
+from conftest import icosphere, tetrahedron
 
 from benchmarks import bench_aggregation as agg
 from benchmarks import bench_aggregation_variants as variants
 from benchmarks import bench_allocation as allocation
+from benchmarks import bench_inference as inference
+from benchmarks import bench_training as training
 from benchmarks.common import Timing, markdown_table, time_interleaved
+from dmd_jax import pipeline
 from dmd_jax.mesh import build_mesh_graph
 
 
@@ -97,3 +100,55 @@ def test_allocation_measure_times_every_case():
     times = allocation.measure([1000], repeat=1)
     assert list(times) == ["1000"]
     assert sorted(times["1000"]) == sorted(allocation.CASES)
+
+
+# --------------------------------------------------------------------------------------
+# bench_inference and bench_training
+# --------------------------------------------------------------------------------------
+
+
+def test_noisy_grid_has_the_requested_size():
+    v, f = inference.noisy_grid(20_000)
+    assert abs(len(f) / 20_000 - 1) < 0.02 and len(v) == (int(np.sqrt(len(v)))) ** 2
+    assert f.dtype == np.int32 and f.max() == len(v) - 1
+
+
+def test_fit_exponent_is_the_log_log_slope():
+    faces = [1_000, 10_000, 100_000, 1_000_000]
+    rows = [{"faces": n, "times": {"denoise": [2e-6 * n**1.5] * 3}} for n in faces]
+    # Sizes below 10k are left out of the fit; the rest lie on t ∝ n^1.5.
+    assert inference.fit_exponent(rows) == pytest.approx(1.5)
+    assert inference.fit_exponent(rows[:2]) is None
+
+
+def test_inference_measure_and_report(tmp_path):
+    rows = [
+        inference.measure("test", n, repeat=1, budget_s=0.0, pymeshlab=n == 200) for n in (200, 800)
+    ]
+    for r in rows:
+        assert r["faces"] <= r["padded_faces"] and r["vertices"] < r["padded_vertices"]
+        assert r["peak_rss_gib"] >= r["rss_before_gib"] > 0 and r["compile_s"] > 0
+        assert all(len(t) == 1 and t[0] > 0 for t in r["times"].values())
+    assert set(rows[0]["times"]) == set(inference.CASES)
+    text, found = inference.targets(rows, None)
+    assert [t[0] for t in found] == [
+        "`test` faster than pymeshlab two-step at 200 faces (denoise / two_step, same "
+        "process, interleaved)"
+    ]
+    assert found[0][2] in ("met", "missed") and found[0][0] in text
+    assert "| test | 800 |" in inference.table(rows)
+    assert "XLA temp GiB" in inference.memory_table(rows)
+    assert inference.plot(rows, tmp_path / "p.png").stat().st_size > 0
+
+
+@pytest.mark.slow
+def test_training_measure_counts_one_compilation_per_bucket():
+    examples = pipeline.make_examples([icosphere(1), tetrahedron(), icosphere(2)])
+    edits = {"model": {"variant": "do_1s", "depth": 1, "n_agg": 1}, "loss": {"feature": 0.0}}
+    rows = training.measure("test", [1, 2], examples, rounds=2, edits=edits)
+    assert [r["batch_size"] for r in rows] == [1, 2]
+    for r in rows:
+        assert r["epoch_compiles"] == len(r["epoch_buckets"]) >= 1
+        assert r["steps_per_epoch"] == -(-3 // r["batch_size"])
+        assert len(r["step_times"]) == len(r["input_times"]) == 2
+    assert "| test |" in training.table(rows) and "| yes |" in training.compile_table(rows)

@@ -298,3 +298,103 @@ def test_two_devices_equal_one_device(tmp_path, edits):
     # float32 batch makes the targets' curvatures round differently, about 1e-7.
     np.testing.assert_allclose(result["loss"], result["ref_loss"], rtol=1e-9)
     assert result["max_param_diff"] <= 1e-9 * max(result["param_scale"], 1.0)
+
+
+# Two JAX processes on this machine, one CPU device each, joined by
+# `jax.distributed.initialize` and gloo collectives: the multi-host path (each process
+# builds and places only its own group). Process 0 also trains on its own device alone.
+MULTI_PROCESS_SCRIPT = textwrap.dedent(
+    """
+    import json, sys
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    pid, port = int(sys.argv[1]), sys.argv[2]
+    jax.distributed.initialize(
+        coordinator_address=f"localhost:{{port}}", num_processes=2, process_id=pid
+    )
+    import numpy as np
+    sys.path.insert(0, {tests!r})
+    from conftest import icosphere, tetrahedron
+    from test_parallel import box
+    from dmd_jax import config, parallel, pipeline, train
+
+    assert jax.device_count() == 2 and jax.local_device_count() == 1
+    cfg = config.preset("test").with_edits(json.loads({edits!r}))
+    examples = pipeline.make_examples([icosphere(1), tetrahedron(), box()])
+    noise = pipeline.NoiseSettings()
+    t = cfg.train
+    mesh = parallel.batch_mesh()
+    mine = parallel.local_groups(mesh)
+    multi = parallel.ParallelTrainer(cfg, mesh)
+    state, loss = None, []
+    for s in range(3):
+        groups = parallel.device_batches(
+            examples, s, n_group=mesh.size, batch_size=t.batch_size, seed=t.seed,
+            noise=noise, rotate=t.rotate, groups=mine,
+        )
+        state = state or multi.init(groups[mine[0]])
+        state, out = multi.train_step(state, parallel.shard_batch(mesh, groups))
+        loss.append(float(out["loss"]))
+    result = {{"pid": pid, "mine": mine, "loss": loss}}
+    if pid == 0:
+        single = train.Trainer(cfg)
+        ref_state, ref = None, []
+        for s in range(3):
+            b = pipeline.training_batch(
+                examples, s, batch_size=t.batch_size, seed=t.seed, noise=noise,
+                rotate=t.rotate,
+            )
+            ref_state = ref_state or single.init(b)
+            ref_state, out = single.train_step(ref_state, b)
+            ref.append(float(out["loss"]))
+        local = jax.tree.map(lambda a: np.asarray(a.addressable_data(0)), state.params)
+        diff = jax.tree.map(
+            lambda a, b: float(np.max(np.abs(a - np.asarray(b)))), local, ref_state.params
+        )
+        result["ref_loss"] = ref
+        result["max_param_diff"] = max(jax.tree.leaves(diff))
+    print(json.dumps(result))
+    jax.distributed.shutdown()
+    """
+)
+
+
+@pytest.mark.slow
+def test_two_processes_equal_one_device():
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("localhost", 0))
+        port = s.getsockname()[1]
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    env.pop("XLA_FLAGS", None)
+    script = MULTI_PROCESS_SCRIPT.format(
+        tests=str(REPO / "tests"), edits=json.dumps(CONFIGS[0].values[0])
+    )
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-c", script, str(pid), str(port)],
+            cwd=REPO,
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for pid in (0, 1)
+    ]
+    results = []
+    try:
+        for proc in procs:
+            out, err = proc.communicate(timeout=900)
+            assert proc.returncode == 0, err[-4000:]
+            results.append(json.loads(out.strip().splitlines()[-1]))
+    finally:
+        for proc in procs:  # a process left waiting for its peer
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+    assert [r["mine"] for r in results] == [[0], [1]]
+    assert results[0]["loss"] == results[1]["loss"]
+    np.testing.assert_allclose(results[0]["loss"], results[0]["ref_loss"], rtol=1e-9)
+    assert results[0]["max_param_diff"] <= 1e-9
