@@ -617,8 +617,12 @@ def hardware_line() -> str:
 def header(title: str, argv: Sequence[str]) -> str:
     cmd = "python experiments/sota.py " + " ".join(shlex.quote(a) for a in argv)
     when = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     return (
-        f"# {title}\n\n- Command: `{cmd.strip()}`\n- Hardware: {hardware_line()}\n- Date: {when}\n"
+        f"# {title}\n\n- Command: `{cmd.strip()}`\n- Hardware: {hardware_line()}\n"
+        f"- Load average when the table was written: {load:.1f} (a shared machine: run "
+        "times are indicative)\n"
+        f"- Date: {when}\n"
     )
 
 
