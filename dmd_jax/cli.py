@@ -256,9 +256,55 @@ def _parse_edits(items: list[str]) -> dict:
     return edits
 
 
+def _distributed_args(args: argparse.Namespace) -> dict | None:
+    """`jax.distributed.initialize` keywords from the multi-host flags, or None if unset.
+
+    Raises:
+      ValueError: only some of the three flags, bad values, or no --data-parallel.
+    """
+    flags = {
+        "--coordinator": args.coordinator,
+        "--num-processes": args.num_processes,
+        "--process-id": args.process_id,
+    }
+    given = [k for k, v in flags.items() if v is not None]
+    if not given:
+        return None
+    if len(given) != len(flags):
+        missing = ", ".join(k for k in flags if k not in given)
+        raise ValueError(
+            f"multi-host training needs --coordinator, --num-processes and --process-id "
+            f"together; missing {missing}"
+        )
+    host, sep, port = args.coordinator.rpartition(":")
+    if not sep or not host or not port.isdigit():
+        raise ValueError(f"--coordinator takes HOST:PORT, got {args.coordinator!r}")
+    if args.num_processes < 1:
+        raise ValueError(f"--num-processes must be at least 1, got {args.num_processes}")
+    if not 0 <= args.process_id < args.num_processes:
+        raise ValueError(
+            f"--process-id must be in 0..{args.num_processes - 1}, got {args.process_id}"
+        )
+    if not args.data_parallel:
+        raise ValueError("--coordinator, --num-processes and --process-id need --data-parallel")
+    return {
+        "coordinator_address": args.coordinator,
+        "num_processes": args.num_processes,
+        "process_id": args.process_id,
+    }
+
+
 def _cmd_train(args: argparse.Namespace) -> int:
     import json
     import time
+
+    import jax
+
+    # Before anything touches a device: the device list then spans every process.
+    distributed = _distributed_args(args)
+    if distributed is not None:
+        jax.distributed.initialize(**distributed)
+    primary = jax.process_index() == 0
 
     from dmd_jax.config import preset
     from dmd_jax.data.dataset import load_dataset
@@ -272,10 +318,12 @@ def _cmd_train(args: argparse.Namespace) -> int:
     for split in ("test_intra", "test_inter"):
         records = data.split(split)[: args.eval_meshes]
         evals[split] = make_examples([r.load() for r in records])
-    print(
-        f"training {cfg.name} on {len(train_ex)} meshes from {args.data}; evaluating on "
-        + ", ".join(f"{k}: {len(v)}" for k, v in evals.items())
-    )
+    if primary:
+        print(
+            f"training {cfg.name} on {len(train_ex)} meshes from {args.data}; evaluating on "
+            + ", ".join(f"{k}: {len(v)}" for k, v in evals.items())
+            + (f"; data-parallel over {jax.device_count()} devices" if args.data_parallel else "")
+        )
     init = None
     if args.init_from:
         from dmd_jax.train import load_params
@@ -289,12 +337,14 @@ def _cmd_train(args: argparse.Namespace) -> int:
         train_ex,
         args.workdir,
         eval_sets=evals,
-        progress=not args.no_progress,
+        progress=primary and not args.no_progress,
         init_params=init,
+        data_parallel=args.data_parallel,
     )
     result.pop("state", None)
     result["wall_time_s"] = time.time() - t0
-    print(json.dumps(result, indent=2))
+    if primary:
+        print(json.dumps(result, indent=2))
     return 0
 
 
@@ -441,6 +491,21 @@ def build_parser() -> argparse.ArgumentParser:
         help="checkpoint directory to fine-tune from (same model config)",
     )
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument(
+        "--data-parallel",
+        action="store_true",
+        help="split each global batch over every device (train.batch_size >= devices)",
+    )
+    p.add_argument(
+        "--coordinator",
+        default=None,
+        metavar="HOST:PORT",
+        help="multi-host: address of process 0 (with --num-processes, --process-id)",
+    )
+    p.add_argument(
+        "--num-processes", type=int, default=None, help="multi-host: number of processes"
+    )
+    p.add_argument("--process-id", type=int, default=None, help="multi-host: this process, 0..N-1")
     p.set_defaults(func=_cmd_train)
 
     p = sub.add_parser("export-weights", help="checkpoint directory -> one weights file")

@@ -24,6 +24,9 @@ them, and every process builds only the groups of its own devices (`local_groups
 common sizes depend only on which meshes a step draws, not on the noise, so every
 process computes them alike without building the other processes' groups.
 
+`train.train(..., data_parallel=True)` (`dmd-jax train --data-parallel`) runs this step
+inside the full training loop: checkpoints, resume, evaluation, log.
+
 Usage::
 
     mesh = batch_mesh()                       # every device of every process

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -393,6 +394,83 @@ def _plot_curves(log_path: Path, png_path: Path) -> None:
     plt.close(fig)
 
 
+class _Steps(NamedTuple):
+    """How `train` runs a step: on one device, or data-parallel (chosen once per run)."""
+
+    trainer: Any  # `Trainer` or `parallel.ParallelTrainer`: `train_step`, `compiles`
+    base: Trainer  # init and evaluation
+    first: Batch  # a batch for `base.init`
+    run: Callable  # (state, step, nan) -> (state, metrics): builds the batch, steps
+    place: Callable  # state on the host or one device -> state as `run` takes it
+    local: Callable  # params of a placed state -> params for `base.evaluate`
+
+
+def _nan_batch(batch: Batch) -> Batch:
+    return batch._replace(noisy=np.full_like(batch.noisy, np.nan))
+
+
+def _single_device_steps(cfg: ExperimentConfig, examples, noise: NoiseSettings) -> _Steps:
+    t = cfg.train
+    trainer = Trainer(cfg)
+
+    def make_batch(step: int) -> Batch:
+        return training_batch(
+            examples, step, batch_size=t.batch_size, seed=t.seed, noise=noise, rotate=t.rotate
+        )
+
+    def run(state: TrainState, step: int, nan: bool):
+        batch = make_batch(step)
+        return trainer.train_step(state, _nan_batch(batch) if nan else batch)
+
+    def same(x):
+        return x
+
+    return _Steps(trainer, trainer, make_batch(0), run, same, same)
+
+
+def _data_parallel_steps(cfg: ExperimentConfig, examples, noise: NoiseSettings) -> _Steps:
+    """Steps of `parallel.ParallelTrainer` over every device of every process."""
+    from dmd_jax import parallel
+
+    t = cfg.train
+    mesh = parallel.batch_mesh()
+    if t.batch_size < mesh.size:
+        raise ValueError(
+            f"data-parallel training needs at least one mesh per device: train.batch_size "
+            f"is {t.batch_size} but there are {mesh.size} devices; set train.batch_size "
+            f">= {mesh.size} or run on fewer devices"
+        )
+    trainer = parallel.ParallelTrainer(cfg, mesh)
+    mine = parallel.local_groups(mesh)
+
+    def make_groups(step: int) -> dict[int, Batch]:
+        return parallel.device_batches(
+            examples,
+            step,
+            n_group=mesh.size,
+            batch_size=t.batch_size,
+            seed=t.seed,
+            noise=noise,
+            rotate=t.rotate,
+            groups=mine,
+        )
+
+    def run(state: TrainState, step: int, nan: bool):
+        groups = make_groups(step)
+        if nan:
+            groups = {i: _nan_batch(b) for i, b in groups.items()}
+        return trainer.train_step(state, parallel.shard_batch(mesh, groups))
+
+    def place(state: TrainState) -> TrainState:
+        return parallel.replicate(mesh, state)
+
+    def local(params: dict) -> dict:
+        # The copy on this process's first device: evaluation needs no other device.
+        return jax.tree.map(lambda x: x.addressable_data(0), params)
+
+    return _Steps(trainer, trainer.base, make_groups(0)[mine[0]], run, place, local)
+
+
 def train(
     cfg: ExperimentConfig,
     train_examples: Sequence[MeshExample],
@@ -403,6 +481,7 @@ def train(
     stop_after: int | None = None,
     inject_nan_at: int | None = None,
     init_params: dict | None = None,
+    data_parallel: bool = False,
 ) -> dict:
     """Trains (or resumes) a run in `workdir`; returns the final evaluation.
 
@@ -416,12 +495,29 @@ def train(
       inject_nan_at: replace the batch of this step with NaNs (fault-injection tests).
       init_params: start from these params (fine-tuning) instead of a fresh init; the
         optimizer starts fresh. Ignored when the workdir already holds a checkpoint.
+      data_parallel: split each step's global batch over every device of every process
+        (`parallel.ParallelTrainer` on `parallel.batch_mesh()`); the same steps as on one
+        device up to the order of float sums, dropout masks aside. With several
+        processes (`jax.distributed.initialize` first) each builds only its own groups,
+        only process 0 writes `config.json`, `log.jsonl` and the plot, and Orbax writes
+        the checkpoints from process 0: `workdir` must be one shared directory.
 
     Raises:
       NonFiniteLossError: the loss became NaN/inf; the last good checkpoint is kept.
+      ValueError: with `data_parallel`, a global batch smaller than the device count.
     """
     from tqdm.auto import tqdm
 
+    t = cfg.train
+    noise = (
+        NoiseSettings(**cfg.noise.settings()) if hasattr(cfg.noise, "settings") else NoiseSettings()
+    )
+    steps = (_data_parallel_steps if data_parallel else _single_device_steps)(
+        cfg, train_examples, noise
+    )
+    trainer = steps.trainer
+    # Data-parallel processes share one workdir: only the first writes the run's files.
+    primary = not data_parallel or jax.process_index() == 0
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     cfg_path = workdir / "config.json"
@@ -431,18 +527,10 @@ def train(
             raise ValueError(
                 f"{workdir} holds a run with a different config; use another --workdir"
             )
-    else:
+    elif primary:
         text = json.dumps(cfg.to_dict(), indent=2)
         atomic_write(cfg_path, lambda tmp: Path(tmp).write_text(text))
-    t = cfg.train
-    noise = (
-        NoiseSettings(**cfg.noise.settings()) if hasattr(cfg.noise, "settings") else NoiseSettings()
-    )
-    trainer = Trainer(cfg)
-    first = training_batch(
-        train_examples, 0, batch_size=t.batch_size, seed=t.seed, noise=noise, rotate=t.rotate
-    )
-    state = trainer.init(first)
+    state = steps.base.init(steps.first)
     if init_params is not None:
         fresh = jax.tree_util.tree_structure(merge_params(state.params))
         if jax.tree_util.tree_structure(init_params) != fresh:
@@ -451,6 +539,7 @@ def train(
     latest, best = _checkpointers(workdir, t.ckpt_keep)
     if latest.latest_step() is not None:
         state = restore_checkpoint(latest, state)
+    state = steps.place(state)
     eval_batches = {
         name: evaluation_batches(ex, seed=t.seed + 12345, noise=noise, rotate=t.rotate)
         for name, ex in (eval_sets or {}).items()
@@ -462,24 +551,16 @@ def train(
     bar = tqdm(total=t.steps, initial=start, disable=not progress, desc="train", unit="step")
     last_eval: dict = {}
     t0 = time.time()
-    with open(log_path, "a") as log:
+    with open(log_path if primary else os.devnull, "a") as log:
         if log.tell():
             with open(log_path, "rb") as fh:
                 fh.seek(-1, 2)
                 if fh.read(1) != b"\n":
                     log.write("\n")  # a killed run's cut-off row must not swallow the next
         for step in range(start, end):
-            batch = training_batch(
-                train_examples,
-                step,
-                batch_size=t.batch_size,
-                seed=t.seed,
-                noise=noise,
-                rotate=t.rotate,
+            new_state, out = steps.run(
+                state, step, inject_nan_at is not None and step == inject_nan_at
             )
-            if inject_nan_at is not None and step == inject_nan_at:
-                batch = batch._replace(noisy=np.full_like(batch.noisy, np.nan))
-            new_state, out = trainer.train_step(state, batch)
             loss = float(out["loss"])
             if not math.isfinite(loss):
                 bar.close()
@@ -499,10 +580,10 @@ def train(
             bar.update(1)
             done = step + 1
             if eval_batches and ((t.eval_every and done % t.eval_every == 0) or done == t.steps):
-                params = merge_params(state.params)
+                params = steps.local(merge_params(state.params))
                 last_eval = {"kind": "eval", "step": done}
                 for name, batches in eval_batches.items():
-                    for k, v in trainer.evaluate(params, batches).items():
+                    for k, v in steps.base.evaluate(params, batches).items():
                         last_eval[f"{name}/{k}"] = v
                 log.write(json.dumps(last_eval) + "\n")
                 log.flush()
@@ -513,5 +594,6 @@ def train(
                 log.flush()
                 save_checkpoint(latest, state, cfg)
     bar.close()
-    _plot_curves(log_path, workdir / "loss_curve.png")
+    if primary:
+        _plot_curves(log_path, workdir / "loss_curve.png")
     return {"step": int(state.step), "compiles": trainer.compiles, **last_eval, "state": state}

@@ -398,3 +398,290 @@ def test_two_processes_equal_one_device():
     assert results[0]["loss"] == results[1]["loss"]
     np.testing.assert_allclose(results[0]["loss"], results[0]["ref_loss"], rtol=1e-9)
     assert results[0]["max_param_diff"] <= 1e-9
+
+
+# --------------------------------------------------------------------------------------
+# train.train(..., data_parallel=True) and the CLI flags
+# --------------------------------------------------------------------------------------
+
+# One subprocess with 2 CPU devices runs the training loop four times: on one device, and
+# data-parallel uninterrupted, stopped after one step and resumed. A persistent
+# compilation cache lets the later runs load the programs the first ones compiled.
+TRAIN_LOOP_SCRIPT = textwrap.dedent(
+    """
+    import json, sys
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    jax.config.update("jax_compilation_cache_dir", sys.argv[2])
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)
+    import numpy as np
+    from pathlib import Path
+    sys.path.insert(0, {tests!r})
+    from conftest import icosphere, tetrahedron
+    from test_parallel import box
+    from dmd_jax import config, pipeline, train
+
+    assert jax.device_count() == 2, jax.devices()
+    work = Path(sys.argv[1])
+    cfg = config.preset("test").with_edits(json.loads({edits!r}))
+    examples = pipeline.make_examples([icosphere(1), tetrahedron(), box()])
+    evals = {{"test_intra": examples[1:]}}
+
+    def run(name, **kwargs):
+        out = train.train(
+            cfg, examples, work / name, eval_sets=evals, progress=False, **kwargs
+        )
+        rows = [json.loads(x) for x in (work / name / "log.jsonl").read_text().splitlines()]
+        return out, rows
+
+    single, single_rows = run("single")
+    multi, multi_rows = run("multi", data_parallel=True)
+    stopped, _ = run("resumed", data_parallel=True, stop_after=1)
+    resumed, resumed_rows = run("resumed", data_parallel=True)
+
+    def params(out):
+        return jax.tree.leaves(jax.device_get(out["state"].params))
+
+    def loss(rows):
+        return [r["loss"] for r in rows if r["kind"] == "train"]
+
+    def evaluation(out):
+        return {{k: v for k, v in out.items() if k.startswith("test_intra/")}}
+
+    diff = max(
+        float(np.max(np.abs(a - b))) for a, b in zip(params(single), params(multi))
+    )
+    scale = max(float(np.max(np.abs(a))) for a in params(single))
+    try:
+        run("nan", data_parallel=True, inject_nan_at=1)
+        nan_error = None
+    except train.NonFiniteLossError as exc:
+        nan_error = str(exc)
+    try:
+        train.train(
+            cfg.with_edits({{"train": {{"batch_size": 1}}}}), examples, work / "small",
+            progress=False, data_parallel=True,
+        )
+        error = None
+    except ValueError as exc:
+        error = str(exc)
+    print(json.dumps({{
+        "step": [single["step"], multi["step"], stopped["step"], resumed["step"]],
+        "compiles": [single["compiles"], multi["compiles"], resumed["compiles"]],
+        "loss": [loss(single_rows), loss(multi_rows)],
+        "eval": [evaluation(single), evaluation(multi)],
+        "max_param_diff": diff, "param_scale": scale,
+        "replicated": all(
+            x.sharding.is_fully_replicated and len(x.sharding.device_set) == 2
+            for x in jax.tree.leaves(resumed["state"])
+        ),
+        "resumed_equal": all(
+            np.array_equal(a, b) for a, b in zip(params(multi), params(resumed))
+        ),
+        "resumed_loss": loss(resumed_rows),
+        "best_saved": (work / "multi" / "checkpoints" / "best").is_dir(),
+        "nan_error": nan_error,
+        "small_error": error, "small_workdir": (work / "small").exists(),
+    }}))
+    """
+)
+
+
+def test_train_loop_data_parallel_on_two_devices(tmp_path):
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    flags = "--xla_force_host_platform_device_count=2"
+    env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " " + flags).strip()
+    edits = {**CONFIGS[0].values[0], "train": {"batch_size": 3, "steps": 3}}
+    script = TRAIN_LOOP_SCRIPT.format(tests=str(REPO / "tests"), edits=json.dumps(edits))
+    proc = subprocess.run(
+        [sys.executable, "-c", script, str(tmp_path / "runs"), str(tmp_path / "cache")],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    # (a) The data-parallel loop equals the single-device loop: losses, params and the
+    # final evaluation (of the merged params), to the order of float64 sums.
+    assert result["step"] == [3, 3, 1, 3]
+    assert result["compiles"] == [1, 1, 1]
+    np.testing.assert_allclose(result["loss"][1], result["loss"][0], rtol=1e-9)
+    assert result["max_param_diff"] <= 1e-9 * max(result["param_scale"], 1.0)
+    single_eval, multi_eval = result["eval"]
+    assert single_eval and single_eval.keys() == multi_eval.keys()
+    for key, value in single_eval.items():
+        np.testing.assert_allclose(multi_eval[key], value, rtol=1e-7, err_msg=key)
+    assert result["best_saved"]
+    # (b) Stopped after one step and resumed from its checkpoint (restored on the host,
+    # then replicated): the same params, bit for bit, as the uninterrupted run.
+    assert result["replicated"]
+    assert result["resumed_equal"]
+    assert result["resumed_loss"][1:] == result["loss"][1][1:]
+    # A NaN batch (in every group) stops the data-parallel loop as it stops the other.
+    assert "non-finite loss (nan) at step 1" in result["nan_error"]
+    # (c) A global batch smaller than the device count: a clear error, no workdir.
+    assert "at least one mesh per device" in result["small_error"]
+    assert "train.batch_size is 1 but there are 2 devices" in result["small_error"]
+    assert not result["small_workdir"]
+
+
+@pytest.mark.parametrize(
+    ("flags", "message"),
+    [
+        (["--coordinator", "localhost:1234"], "missing --num-processes, --process-id"),
+        (["--num-processes", "2", "--process-id", "0"], "missing --coordinator"),
+        (["--coordinator", "localhost", "--num-processes", "2", "--process-id", "0"], "HOST:PORT"),
+        (["--coordinator", "h:1", "--num-processes", "2", "--process-id", "2"], "0..1"),
+        (["--coordinator", "h:1", "--num-processes", "0", "--process-id", "0"], "at least 1"),
+    ],
+)
+def test_cli_multi_host_flags_are_checked(tmp_path, monkeypatch, capsys, flags, message):
+    from dmd_jax import cli
+
+    def refuse(**kwargs):
+        raise AssertionError(f"jax.distributed.initialize called with {kwargs}")
+
+    monkeypatch.setattr(jax.distributed, "initialize", refuse)
+    argv = ["train", "--data", str(tmp_path / "data"), "--workdir", str(tmp_path / "run")]
+    assert cli.main(argv + ["--data-parallel"] + flags) == 2
+    err = capsys.readouterr().err
+    assert "dmd-jax train: error:" in err and message in err
+    assert not (tmp_path / "run").exists()
+
+
+def test_cli_multi_host_flags_initialize_first(tmp_path, monkeypatch, capsys):
+    from dmd_jax import cli
+
+    calls = []
+    monkeypatch.setattr(jax.distributed, "initialize", lambda **kw: calls.append(kw))
+    argv = ["train", "--data", str(tmp_path / "data"), "--workdir", str(tmp_path / "run")]
+    flags = ["--coordinator", "10.0.0.1:1234", "--num-processes", "2", "--process-id", "0"]
+    # Without --data-parallel the flags are refused before initializing anything.
+    assert cli.main(argv + flags) == 2
+    assert "need --data-parallel" in capsys.readouterr().err and not calls
+    # With it, initialize comes first; the missing dataset is found only afterwards.
+    assert cli.main(argv + flags + ["--data-parallel"]) == 2
+    assert calls == [{"coordinator_address": "10.0.0.1:1234", "num_processes": 2, "process_id": 0}]
+    assert "no such dataset directory" in capsys.readouterr().err
+
+
+# Two JAX processes (one CPU device each) run the data-parallel loop in one shared
+# workdir, stopped after one step and resumed: Orbax checkpoints from process 0, only
+# process 0 writes the log. Process 0 then trains on its own device alone.
+MULTI_PROCESS_TRAIN_SCRIPT = textwrap.dedent(
+    """
+    import json, sys
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    pid, port, work = int(sys.argv[1]), sys.argv[2], sys.argv[3]
+    jax.distributed.initialize(
+        coordinator_address=f"localhost:{{port}}", num_processes=2, process_id=pid
+    )
+    import numpy as np
+    from pathlib import Path
+    sys.path.insert(0, {tests!r})
+    from conftest import icosphere, tetrahedron
+    from test_parallel import box
+    from dmd_jax import config, pipeline, train
+
+    assert jax.device_count() == 2 and jax.local_device_count() == 1
+    cfg = config.preset("test").with_edits(json.loads({edits!r}))
+    examples = pipeline.make_examples([icosphere(1), tetrahedron(), box()])
+    evals = {{"test_intra": examples[1:]}}
+    run = Path(work) / "run"
+    kwargs = dict(eval_sets=evals, progress=False, data_parallel=True)
+    stopped = train.train(cfg, examples, run, stop_after=1, **kwargs)
+    final = train.train(cfg, examples, run, **kwargs)
+    params = jax.tree.map(lambda a: np.asarray(a.addressable_data(0)), final["state"].params)
+    result = {{"pid": pid, "step": [stopped["step"], final["step"]],
+               "normal_deg": final.get("test_intra/normal_deg")}}
+    if pid == 0:
+        t = cfg.train
+        single = train.Trainer(cfg)
+        state, ref = None, []
+        for s in range(t.steps):
+            b = pipeline.training_batch(
+                examples, s, batch_size=t.batch_size, seed=t.seed,
+                noise=pipeline.NoiseSettings(**cfg.noise.settings()), rotate=t.rotate,
+            )
+            state = state or single.init(b)
+            state, out = single.train_step(state, b)
+            ref.append(float(out["loss"]))
+        rows = [json.loads(x) for x in (run / "log.jsonl").read_text().splitlines()]
+        result["log_steps"] = [r["step"] for r in rows if r["kind"] == "train"]
+        result["loss"] = [r["loss"] for r in rows if r["kind"] == "train"]
+        result["ref_loss"] = ref
+        result["max_param_diff"] = max(
+            float(np.max(np.abs(a - np.asarray(b))))
+            for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(state.params))
+        )
+        result["checkpoints"] = sorted(
+            p.name for p in (run / "checkpoints" / "latest").iterdir() if p.name.isdigit()
+        )
+    print(json.dumps(result))
+    jax.distributed.shutdown()
+    """
+)
+
+
+@pytest.mark.slow
+def test_two_processes_train_loop_with_resume(tmp_path):
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("localhost", 0))
+        port = s.getsockname()[1]
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    env.pop("XLA_FLAGS", None)
+    edits = {**CONFIGS[0].values[0], "train": {"batch_size": 3, "steps": 3}}
+    script = MULTI_PROCESS_TRAIN_SCRIPT.format(tests=str(REPO / "tests"), edits=json.dumps(edits))
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-c", script, str(pid), str(port), str(tmp_path)],
+            cwd=REPO,
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for pid in (0, 1)
+    ]
+    results = []
+    try:
+        for proc in procs:
+            out, err = proc.communicate(timeout=900)
+            assert proc.returncode == 0, err[-4000:]
+            results.append(json.loads(out.strip().splitlines()[-1]))
+    finally:
+        for proc in procs:  # a process left waiting for its peer
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+    assert [r["step"] for r in results] == [[1, 3], [1, 3]]
+    assert results[0]["normal_deg"] == results[1]["normal_deg"] is not None
+    first = results[0]
+    assert first["log_steps"] == [1, 2, 3]  # one row per step: only process 0 logs
+    assert first["checkpoints"] == ["1", "3"]
+    np.testing.assert_allclose(first["loss"], first["ref_loss"], rtol=1e-9)
+    assert first["max_param_diff"] <= 1e-9
+
+
+@pytest.mark.slow
+def test_train_loop_data_parallel_on_one_device(tmp_path, examples):
+    from dmd_jax import config, train
+
+    edits = {**CONFIGS[0].values[0], "train": {"batch_size": 2, "steps": 2}}
+    cfg = config.preset("test").with_edits(edits)
+    data = examples[:3]
+    single = train.train(cfg, data, tmp_path / "single", progress=False)
+    multi = train.train(cfg, data, tmp_path / "multi", progress=False, data_parallel=True)
+    assert multi["step"] == 2 and multi["compiles"] == 1
+    for a, b in zip(
+        jax.tree.leaves(jax.device_get(single["state"].params)),
+        jax.tree.leaves(jax.device_get(multi["state"].params)),
+        strict=True,
+    ):
+        np.testing.assert_allclose(b, a, rtol=1e-9, atol=1e-12)
