@@ -18,12 +18,20 @@ import jax.numpy as jnp
 import numpy as np
 
 from dmd_jax.config import ExperimentConfig
-from dmd_jax.mesh import atomic_write, build_mesh_graph, canonical_frame, validate_mesh
+from dmd_jax.mesh import (
+    atomic_write,
+    build_mesh_graph,
+    canonical_frame,
+    pad_vertex_array,
+    validate_mesh,
+    with_ell_layout,
+)
 from dmd_jax.pipeline import collate
 
 WEIGHTS_FORMAT = "dmd_jax-weights"
 WEIGHTS_VERSION = 1
 PRETRAINED_NAME = "dmd_small.msgpack"
+AGGREGATIONS = ("ell", "segment_sum")
 
 
 class ModelBundle(NamedTuple):
@@ -198,7 +206,13 @@ def as_bundle(params, config: ExperimentConfig | None = None) -> ModelBundle:
 
 
 def denoise(
-    vertices, faces, params, *, config: ExperimentConfig | None = None, iterations: int = 1
+    vertices,
+    faces,
+    params,
+    *,
+    config: ExperimentConfig | None = None,
+    iterations: int = 1,
+    aggregation: str = "ell",
 ) -> np.ndarray:
     """Denoises a triangle mesh with a trained DMD-Net.
 
@@ -213,29 +227,43 @@ def denoise(
         `config`.
       config: the experiment config, needed only with raw params.
       iterations: how many times to apply the network (each pass starts from the last).
+      aggregation: how the GCN aggregations run (the same operator either way, equal up
+        to float summation order): `"ell"` through padded neighbour tables
+        (`mesh.with_ell_layout`; faster on CPU, no scatter), or `"segment_sum"`
+        over the edge lists, as in training. Attention models use the edge lists
+        regardless.
 
     Returns:
       `[n_vertex, 3]` denoised vertices in the input frame; float32 for float32 input,
       float64 otherwise.
 
     Raises:
-      ValueError: bad mesh (see `dmd_jax.mesh.validate_mesh`) or bad params.
+      ValueError: bad mesh (see `dmd_jax.mesh.validate_mesh`), bad params, or an
+        unknown `aggregation`.
     """
     if int(iterations) < 1:
         raise ValueError(f"iterations must be at least 1, got {iterations}")
+    if aggregation not in AGGREGATIONS:
+        raise ValueError(
+            f"unknown aggregation {aggregation!r}; choose one of {', '.join(AGGREGATIONS)}"
+        )
     v, f = validate_mesh(vertices, faces)
     in_dtype = np.asarray(vertices).dtype
     bundle = as_bundle(params, config)
     frame = canonical_frame(v)
     x = frame.apply(v)
-    graph = build_mesh_graph(f, v.shape[0])
+    # The padded graph does not change between passes: build it (edge lists, ELL
+    # tables) and move it to the device once, not once per pass.
+    graph = collate([x], [x], [build_mesh_graph(f, v.shape[0])]).graph
+    if aggregation == "ell":
+        graph = with_ell_layout(graph)
+    graph = jax.tree.map(jnp.asarray, graph)
     predict = _predictor(json.dumps(bundle.config.to_dict(), sort_keys=True))
-    n = v.shape[0]
+    n, n_padded = v.shape[0], graph.n_vertex
     for _ in range(int(iterations)):
-        batch = collate([x], [x], [graph])
-        out = predict(
-            bundle.params, jnp.asarray(batch.noisy), jax.tree.map(jnp.asarray, batch.graph)
-        )
+        # As `collate` pads the noisy positions: float32, zeros on padding rows.
+        noisy = pad_vertex_array(x.astype(np.float32), n_padded)
+        out = predict(bundle.params, jnp.asarray(noisy), graph)
         x = np.asarray(out[:n], np.float64)
         if not np.all(np.isfinite(x)):
             raise ValueError("the network produced non-finite vertices (broken weights?)")

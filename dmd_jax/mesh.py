@@ -11,9 +11,12 @@ import tempfile
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
+
+if TYPE_CHECKING:  # ops imports this module (and JAX); the layouts are only annotated here
+    from dmd_jax.ops import EllLayout
 
 SUPPORTED_EXTENSIONS = (".obj", ".off", ".ply", ".stl")
 
@@ -103,6 +106,12 @@ class MeshGraph(NamedTuple):
     the padding vertices and faces belong to an extra last graph and are `False` in the
     masks; their edges carry weight 0.
 
+    The two ELL fields are optional, precomputed padded-neighbour tables of the same GCN
+    operators (see `with_ell_layout`); the model aggregates through them when they are
+    set. They are `None` (an empty pytree: jit, `jax.tree.map` and sharding skip it)
+    unless `with_ell_layout` added them, and `batch_mesh_graphs` and `pad_mesh_graph`
+    drop them, because renumbering or adding nodes invalidates the tables.
+
     Attributes:
       faces: `[n_face, 3]` int32 vertex indices.
       vertex_senders: `[n_vertex_edge]` int32; primal edges in both directions plus one
@@ -121,6 +130,10 @@ class MeshGraph(NamedTuple):
       face_mask: `[n_face]` bool, `False` on padding.
       n_vertex_per_graph: `[n_graph]` int32, real (unpadded) vertex count of every graph.
       n_face_per_graph: `[n_graph]` int32, real face count of every graph.
+      vertex_ell: `None`, or the `ops.EllLayout` of the vertex edges, three
+        `[n_vertex, width]` tables.
+      face_ell: `None`, or the `ops.EllLayout` of the face edges, three
+        `[n_face, width]` tables.
     """
 
     faces: np.ndarray
@@ -137,6 +150,8 @@ class MeshGraph(NamedTuple):
     face_mask: np.ndarray
     n_vertex_per_graph: np.ndarray
     n_face_per_graph: np.ndarray
+    vertex_ell: EllLayout | None = None
+    face_ell: EllLayout | None = None
 
     @property
     def n_vertex(self) -> int:
@@ -254,7 +269,11 @@ def build_mesh_graph(faces, n_vertex: int) -> MeshGraph:
 
 
 def batch_mesh_graphs(graphs: Sequence[MeshGraph]) -> MeshGraph:
-    """Disjoint union of several graphs (indices offset, graph ids renumbered)."""
+    """Disjoint union of several graphs (indices offset, graph ids renumbered).
+
+    ELL layouts of the inputs are dropped (the result has `vertex_ell = face_ell =
+    None`): build them on the final padded graph with `with_ell_layout`.
+    """
     if not graphs:
         raise ValueError("batch_mesh_graphs needs at least one graph")
     v_off = np.cumsum([0] + [g.n_vertex for g in graphs[:-1]])
@@ -322,6 +341,8 @@ def pad_mesh_graph(graph: MeshGraph, sizes: PaddedSizes) -> MeshGraph:
 
     Padding faces are the degenerate triangle `(p, p, p)` on the first padding vertex
     `p`; padding edges are weight-0 self loops there. The masks are `False` on padding.
+    ELL layouts of the input are dropped (their tables have the unpadded row count);
+    call `with_ell_layout` on the result.
     """
     nv, nf = graph.n_vertex, graph.n_face
     ne, nfe = graph.vertex_senders.shape[0], graph.face_senders.shape[0]
@@ -362,6 +383,59 @@ def pad_mesh_graph(graph: MeshGraph, sizes: PaddedSizes) -> MeshGraph:
         face_mask=pad(graph.face_mask, extra_nodes_f, False),
         n_vertex_per_graph=pad(graph.n_vertex_per_graph, extra_graphs, 0),
         n_face_per_graph=pad(graph.n_face_per_graph, extra_graphs, 0),
+    )
+
+
+def with_ell_layout(graph: MeshGraph, *, slot_multiple: int = 4) -> MeshGraph:
+    """`graph` with `vertex_ell` and `face_ell` built from its edge lists (host, NumPy).
+
+    Call it on the final graph, after `batch_mesh_graphs` and `pad_mesh_graph` (both
+    drop the layouts). The model then aggregates with `ops.gcn_aggregate_ell`, the same
+    operator as the sorted segment sum over the edge lists and several times faster on
+    CPU. The table width, the largest valence plus one (self loop), is rounded up to a
+    multiple of `slot_multiple`, so meshes whose maximum valences differ by a little
+    share one compiled program; the extra slots point at their own row with weight 0
+    (and are their own reverse slot), which changes nothing.
+
+    Args:
+      graph: a `MeshGraph` of NumPy arrays (symmetric edge lists, as built here).
+      slot_multiple: the table width is a multiple of this (≥ 1).
+
+    Returns:
+      `graph` with `vertex_ell` (`[n_vertex, width_v]` tables) and `face_ell`
+      (`[n_face, width_f]` tables) set; every other field is unchanged.
+
+    Raises:
+      ValueError: `slot_multiple < 1`, or an edge list that is not structurally
+        symmetric (see `ops.ell_layout`).
+    """
+    # Imported here: ops imports this module, and mesh stays usable without JAX loaded.
+    from dmd_jax.ops import ell_layout
+
+    if int(slot_multiple) < 1:
+        raise ValueError(f"slot_multiple must be at least 1, got {slot_multiple}")
+
+    def layout(senders, receivers, weight, n_node):
+        ell = ell_layout(senders, receivers, weight, n_node)
+        width = ell.neighbours.shape[1]
+        extra = -width % int(slot_multiple)
+        if extra == 0:
+            return ell
+        rows = np.arange(n_node, dtype=np.int32)[:, None]
+        slots = np.arange(width, width + extra, dtype=np.int32)[None, :]
+        return type(ell)(
+            np.concatenate([ell.neighbours, np.broadcast_to(rows, (n_node, extra))], 1),
+            np.concatenate([ell.weights, np.zeros((n_node, extra), ell.weights.dtype)], 1),
+            np.concatenate([ell.reverse_slot, np.broadcast_to(slots, (n_node, extra))], 1),
+        )
+
+    return graph._replace(
+        vertex_ell=layout(
+            graph.vertex_senders, graph.vertex_receivers, graph.vertex_edge_weight, graph.n_vertex
+        ),
+        face_ell=layout(
+            graph.face_senders, graph.face_receivers, graph.face_edge_weight, graph.n_face
+        ),
     )
 
 

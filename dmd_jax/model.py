@@ -2,10 +2,11 @@
 denoiser, and every structure-ablation variant, switched by a `ModelConfig`.
 
 All graph work goes through `dmd_jax.ops` (gather + segment sum over the index arrays of
-a `MeshGraph`); no dense adjacency matrix is built. A batch is a padded disjoint union of
-meshes, so every per-mesh quantity (FAP, the transformation `W_tf`, the STN matrix) is
-computed per graph id, and padding rows, which form a separate graph with zero-weight
-edges, never reach a real row.
+a `MeshGraph`, or the padded-neighbour gather of its ELL layouts when the graph carries
+them, as inference's does); no dense adjacency matrix is built. A batch is a padded
+disjoint union of meshes, so every per-mesh quantity (FAP, the transformation `W_tf`, the
+STN matrix) is computed per graph id, and padding rows, which form a separate graph with
+zero-weight edges, never reach a real row.
 
 Call:
 
@@ -107,6 +108,11 @@ class Aggregator(nn.Module):
     `α_ij = softmax_j(LeakyReLU(a_s·W x_j + a_r·W x_i))` over the same edge lists (self
     loops included); edges of weight 0 (padding) are left out of the softmax.
 
+    Without attention, an `ell` layout of the same edges (`MeshGraph.vertex_ell` or
+    `face_ell`, from `mesh.with_ell_layout`) replaces the segment sum by
+    `ops.gcn_aggregate_ell`: the same operator, faster on CPU (inference uses it). The
+    attention path ignores `ell`; its softmax needs the edge lists.
+
     Attributes:
       features: output width.
       residual: add the input when its width equals `features`.
@@ -122,7 +128,16 @@ class Aggregator(nn.Module):
     param_dtype: Dtype = jnp.float32
 
     @nn.compact
-    def __call__(self, x, senders, receivers, edge_weight, *, deterministic: bool = True):
+    def __call__(
+        self,
+        x,
+        senders,
+        receivers,
+        edge_weight,
+        *,
+        deterministic: bool = True,
+        ell: ops.EllLayout | None = None,
+    ):
         """Aggregates, transforms and activates node features.
 
         Args:
@@ -130,6 +145,8 @@ class Aggregator(nn.Module):
           senders, receivers: `[n_edge]` int32 edges of `A + I` (receivers sorted).
           edge_weight: `[n_edge]` GCN weights; 0 marks padding edges.
           deterministic: turn dropout off.
+          ell: optional `ops.EllLayout` of the same edges (`[n_node, width]` tables);
+            used instead of the edge lists when attention is off.
 
         Returns:
           `[n_node, features]`.
@@ -143,11 +160,18 @@ class Aggregator(nn.Module):
         bias = self.param("bias", nn.initializers.zeros, (self.features,), self.param_dtype)
         if self.attention:
             h = self._attend(kernel(x), senders, receivers, edge_weight)
-        elif d_in < self.features:
-            # Aggregate at the narrower width: the product is linear, the order is free.
-            h = kernel(symmetric_aggregate(x, senders, receivers, edge_weight))
         else:
-            h = symmetric_aggregate(kernel(x), senders, receivers, edge_weight)
+
+            def aggregate(y):
+                if ell is not None:  # the same operator as a padded table: no scatter
+                    return ops.gcn_aggregate_ell(y, *ell)
+                return symmetric_aggregate(y, senders, receivers, edge_weight)
+
+            if d_in < self.features:
+                # Aggregate at the narrower width: the product is linear, the order is free.
+                h = kernel(aggregate(x))
+            else:
+                h = aggregate(kernel(x))
         h = nn.relu(h + bias.astype(h.dtype))
         h = nn.Dropout(self.dropout_rate)(h, deterministic=deterministic)
         if self.residual and d_in == self.features:
@@ -222,6 +246,7 @@ class TwoStream(nn.Module):
                 graph.vertex_receivers,
                 graph.vertex_edge_weight,
                 deterministic=deterministic,
+                ell=graph.vertex_ell,
             )
         if not self.two_stream:
             return p
@@ -235,6 +260,7 @@ class TwoStream(nn.Module):
                 graph.face_receivers,
                 graph.face_edge_weight,
                 deterministic=deterministic,
+                ell=graph.face_ell,
             )
         fused = ops.dual_to_primal(
             ops.dual_average_pool(p, d, graph.faces), graph.faces, graph.vertex_face_degree
@@ -341,6 +367,7 @@ class Transformer(nn.Module):
         if x_in.shape[1] != in_dim:
             raise ValueError(f"transformer input must have {in_dim} columns, got {x_in.shape}")
         edges = (graph.vertex_senders, graph.vertex_receivers, graph.vertex_edge_weight)
+        ell = graph.vertex_ell
         agg = dict(
             dropout_rate=cfg.dropout, attention=cfg.attention, param_dtype=pd, residual=False
         )
@@ -351,11 +378,11 @@ class Transformer(nn.Module):
         for i in range(cfg.dense_layers):
             outs.append(
                 Aggregator(hidden, name=f"dense_agg{i}", **agg)(
-                    jnp.concatenate(outs, axis=-1), *edges, deterministic=deterministic
+                    jnp.concatenate(outs, axis=-1), *edges, deterministic=deterministic, ell=ell
                 )
             )
         h = Aggregator(hidden, name="agg", **agg)(
-            jnp.concatenate(outs, axis=-1), *edges, deterministic=deterministic
+            jnp.concatenate(outs, axis=-1), *edges, deterministic=deterministic, ell=ell
         )
 
         # One (rows x cols) matrix per transformation of the cascade, each from its own
@@ -380,7 +407,7 @@ class Transformer(nn.Module):
             dropout_rate=cfg.dropout,
             attention=cfg.attention,
             param_dtype=pd,
-        )(t, *edges, deterministic=deterministic)
+        )(t, *edges, deterministic=deterministic, ell=ell)
         return t, mats
 
 
