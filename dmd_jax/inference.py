@@ -31,7 +31,12 @@ from dmd_jax.pipeline import collate
 WEIGHTS_FORMAT = "dmd_jax-weights"
 WEIGHTS_VERSION = 1
 PRETRAINED_NAME = "dmd_small.msgpack"
-AGGREGATIONS = ("ell", "segment_sum")
+AGGREGATIONS = ("auto", "ell", "segment_sum")
+# `auto` keeps a graph's ELL table while it holds at most this many slots per distinct
+# edge. The shared meshes, padded, need 1.8-2.9 (vertex graph) and 1.2-1.4 (face graph);
+# truck.obj, with a vertex of valence 36, 6.6, where its table still beat the segment sum
+# (benchmarks/README.md). A pole of valence 1000 would need hundreds.
+AUTO_MAX_FILL = 8.0
 
 
 class ModelBundle(NamedTuple):
@@ -212,7 +217,7 @@ def denoise(
     *,
     config: ExperimentConfig | None = None,
     iterations: int = 1,
-    aggregation: str = "ell",
+    aggregation: str = "auto",
 ) -> np.ndarray:
     """Denoises a triangle mesh with a trained DMD-Net.
 
@@ -229,9 +234,11 @@ def denoise(
       iterations: how many times to apply the network (each pass starts from the last).
       aggregation: how the GCN aggregations run (the same operator either way, equal up
         to float summation order): `"ell"` through padded neighbour tables
-        (`mesh.with_ell_layout`; faster on CPU, no scatter), or `"segment_sum"`
-        over the edge lists, as in training. Attention models use the edge lists
-        regardless.
+        (`mesh.with_ell_layout`; faster on CPU, no scatter), `"segment_sum"` over the
+        edge lists, as in training, or `"auto"`: the tables of the vertex and face
+        graphs, except a table padded to more than `AUTO_MAX_FILL` slots per edge (a
+        vertex of very high valence), whose graph then uses its edge lists. Attention
+        models use the edge lists regardless.
 
     Returns:
       `[n_vertex, 3]` denoised vertices in the input frame; float32 for float32 input,
@@ -255,8 +262,8 @@ def denoise(
     # The padded graph does not change between passes: build it (edge lists, ELL
     # tables) and move it to the device once, not once per pass.
     graph = collate([x], [x], [build_mesh_graph(f, v.shape[0])]).graph
-    if aggregation == "ell":
-        graph = with_ell_layout(graph)
+    if aggregation != "segment_sum":
+        graph = with_ell_layout(graph, max_fill=AUTO_MAX_FILL if aggregation == "auto" else None)
     graph = jax.tree.map(jnp.asarray, graph)
     predict = _predictor(json.dumps(bundle.config.to_dict(), sort_keys=True))
     n, n_padded = v.shape[0], graph.n_vertex

@@ -386,7 +386,9 @@ def pad_mesh_graph(graph: MeshGraph, sizes: PaddedSizes) -> MeshGraph:
     )
 
 
-def with_ell_layout(graph: MeshGraph, *, slot_multiple: int = 4) -> MeshGraph:
+def with_ell_layout(
+    graph: MeshGraph, *, slot_multiple: int = 4, max_fill: float | None = None
+) -> MeshGraph:
     """`graph` with `vertex_ell` and `face_ell` built from its edge lists (host, NumPy).
 
     Call it on the final graph, after `batch_mesh_graphs` and `pad_mesh_graph` (both
@@ -397,26 +399,41 @@ def with_ell_layout(graph: MeshGraph, *, slot_multiple: int = 4) -> MeshGraph:
     share one compiled program; the extra slots point at their own row with weight 0
     (and are their own reverse slot), which changes nothing.
 
+    The table costs `n_node × width` work and memory however few rows reach the
+    width, so one high-valence vertex (the pole of a UV sphere, a fan of a scanner's
+    hole filling) can make it many times the edge list. `max_fill` bounds that: a
+    graph whose table would hold more than `max_fill` slots per edge keeps no table
+    (`None`) and the model aggregates it over its edge lists, as in training.
+
     Args:
       graph: a `MeshGraph` of NumPy arrays (symmetric edge lists, as built here).
       slot_multiple: the table width is a multiple of this (≥ 1).
+      max_fill: leave out a table with more than this many slots per edge (None: keep
+        every table).
 
     Returns:
       `graph` with `vertex_ell` (`[n_vertex, width_v]` tables) and `face_ell`
-      (`[n_face, width_f]` tables) set; every other field is unchanged.
+      (`[n_face, width_f]` tables) set, or `None` where `max_fill` left one out; every
+      other field is unchanged.
 
     Raises:
-      ValueError: `slot_multiple < 1`, or an edge list that is not structurally
-        symmetric (see `ops.ell_layout`).
+      ValueError: `slot_multiple < 1`, `max_fill < 1`, or an edge list that is not
+        structurally symmetric (see `ops.ell_layout`).
     """
     # Imported here: ops imports this module, and mesh stays usable without JAX loaded.
     from dmd_jax.ops import ell_layout
 
     if int(slot_multiple) < 1:
         raise ValueError(f"slot_multiple must be at least 1, got {slot_multiple}")
+    if max_fill is not None and not max_fill >= 1:
+        raise ValueError(f"max_fill must be at least 1 (slots per edge), got {max_fill}")
 
     def layout(senders, receivers, weight, n_node):
-        ell = ell_layout(senders, receivers, weight, n_node)
+        # The fill is judged before rounding: the rounding slots add at most
+        # slot_multiple - 1 per row, the same for every mesh.
+        ell = ell_layout(senders, receivers, weight, n_node, max_fill=max_fill)
+        if ell is None:
+            return None
         width = ell.neighbours.shape[1]
         extra = -width % int(slot_multiple)
         if extra == 0:

@@ -149,7 +149,9 @@ class EllLayout(NamedTuple):
     reverse_slot: np.ndarray
 
 
-def ell_layout(senders, receivers, edge_weight, n_node: int) -> EllLayout:
+def ell_layout(
+    senders, receivers, edge_weight, n_node: int, *, max_fill: float | None = None
+) -> EllLayout | None:
     """Builds the ELL layout of the operator `out[r] += w * x[s]` on the host (NumPy).
 
     Duplicate `(sender, receiver)` pairs are merged by summing their weights (the padding
@@ -165,9 +167,12 @@ def ell_layout(senders, receivers, edge_weight, n_node: int) -> EllLayout:
       receivers: `[n_edge]` integer receiver of each edge.
       edge_weight: `[n_edge]` weight of each edge.
       n_node: number of nodes.
+      max_fill: return None, before allocating the table, when it would hold more than
+        this many slots (`n_node × max_degree`) per distinct edge (None: no limit).
 
     Returns:
-      An `EllLayout`; pass it as `gcn_aggregate_ell(features, *layout)`.
+      An `EllLayout`; pass it as `gcn_aggregate_ell(features, *layout)`. None if
+      `max_fill` is exceeded.
 
     Raises:
       ValueError: on mismatched shapes, indices outside `[0, n_node)`, or an edge whose
@@ -199,6 +204,8 @@ def ell_layout(senders, receivers, edge_weight, n_node: int) -> EllLayout:
     r, s = np.divmod(key, n_node)
     degree = np.bincount(r, minlength=n_node)
     width = max(int(degree.max()), 1)
+    if max_fill is not None and n_node * width > max_fill * max(key.size, 1):
+        return None
     slot = np.arange(key.size) - (np.cumsum(degree) - degree)[r]
     rows = np.arange(n_node)
     neighbours = np.repeat(rows[:, None], width, axis=1).astype(np.int32)

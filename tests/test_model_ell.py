@@ -198,6 +198,7 @@ def test_denoise_ell_matches_segment_sum(small_bundle, monkeypatch):
     assert len(built) == 1  # ...segment_sum does not
     assert np.abs(seg - v).max() > 1e-4 * scale  # the network does move vertices
     np.testing.assert_allclose(ell, seg, rtol=1e-5, atol=1e-5 * scale)
+    # fandisk's tables are far below the cap: "auto" keeps both, as "ell" does.
     explicit = denoise(v, f, small_bundle, aggregation="ell")
     np.testing.assert_array_equal(explicit, ell)
 
@@ -207,3 +208,55 @@ def test_denoise_rejects_unknown_aggregation(small_bundle, bad):
     v, f = tetrahedron()
     with pytest.raises(ValueError, match="unknown aggregation"):
         denoise(v, f, small_bundle, aggregation=bad)
+
+
+def bipyramid(k: int):
+    """Two apexes of valence `k` over a `k`-gon ring: `([k + 2, 3] vertices, [2k, 3] faces)`."""
+    t = 2 * np.pi * np.arange(k) / k
+    ring = np.stack([np.cos(t), np.sin(t), np.zeros(k)], 1)
+    v = np.concatenate([ring, [[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]]])
+    i, j = np.arange(k), (np.arange(k) + 1) % k
+    f = np.concatenate([np.stack([i, j, np.full(k, k)], 1), np.stack([j, i, np.full(k, k + 1)], 1)])
+    return v, f
+
+
+def test_max_fill_leaves_out_only_the_table_of_a_high_valence_graph():
+    v, f = bipyramid(60)
+    g = build_mesh_graph(f, len(v))
+    graph = pad_mesh_graph(g, padded_sizes_for(g))
+    # Vertex graph: 64 slots per row for a mean of about 6 distinct edges per row.
+    capped = with_ell_layout(graph, max_fill=8.0)
+    assert capped.vertex_ell is None
+    assert capped.face_ell is not None  # every face has 3 neighbours: width 4
+    full = with_ell_layout(graph)
+    np.testing.assert_array_equal(capped.face_ell.neighbours, full.face_ell.neighbours)
+    assert full.vertex_ell.neighbours.shape[1] == 64
+    # A regular mesh keeps both tables under the same cap.
+    v2, f2 = icosphere(2)
+    g2 = build_mesh_graph(f2, len(v2))
+    kept = with_ell_layout(pad_mesh_graph(g2, padded_sizes_for(g2)), max_fill=8.0)
+    assert kept.vertex_ell is not None and kept.face_ell is not None
+    with pytest.raises(ValueError, match="max_fill"):
+        with_ell_layout(graph, max_fill=0.5)
+
+
+def test_denoise_auto_falls_back_to_the_edge_lists_where_a_table_is_mostly_padding(
+    small_bundle, monkeypatch
+):
+    v, f = bipyramid(60)
+    v = v + 0.01 * np.random.default_rng(1).standard_normal(v.shape)
+    built = []
+
+    def spy(graph, **kwargs):
+        out = with_ell_layout(graph, **kwargs)
+        built.append(out)
+        return out
+
+    monkeypatch.setattr(inference, "with_ell_layout", spy)
+    auto = denoise(v, f, small_bundle)
+    assert built[-1].vertex_ell is None and built[-1].face_ell is not None
+    forced = denoise(v, f, small_bundle, aggregation="ell")
+    assert built[-1].vertex_ell is not None
+    seg = denoise(v, f, small_bundle, aggregation="segment_sum")
+    for got in (auto, forced):
+        np.testing.assert_allclose(got, seg, rtol=1e-5, atol=1e-5)
