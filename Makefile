@@ -41,8 +41,7 @@ bench: $(STAMP)
 	$(MAKE) bench-inference bench-training
 
 # Inference scaling and training throughput, each command under 10 minutes (--append
-# adds to the same report). The last inference run is the small preset with XLA's
-# sequential CPU scheduler, which needs a third of the memory (results/inference.md).
+# adds to the same report).
 HUGE := GLIBC_TUNABLES=glibc.malloc.hugetlb=1
 bench-inference: $(STAMP)
 	$(HUGE) $(BIN)/python benchmarks/bench_inference.py --presets small \
@@ -52,9 +51,6 @@ bench-inference: $(STAMP)
 		--faces 1000 3000 10000 30000 --append
 	$(HUGE) $(BIN)/python benchmarks/bench_inference.py --presets paper \
 		--faces 100000 300000 1000000 --append
-	XLA_FLAGS=--xla_cpu_enable_concurrency_optimized_scheduler=false $(HUGE) \
-		$(BIN)/python benchmarks/bench_inference.py --presets small \
-		--faces 100000 300000 1000000 --pymeshlab-faces 0 --name inference_sequential_scheduler
 
 bench-training: $(STAMP)
 	$(HUGE) $(BIN)/python benchmarks/bench_training.py --presets test
