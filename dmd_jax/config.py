@@ -38,6 +38,8 @@ from typing import Any
 
 from flax import struct
 
+from dmd_jax.noise import NOISE_KINDS
+
 VARIANT_NAMES = ("fgt8", "fgt3", "wo_t", "mt", "do_2s", "do_1s", "fgt_1s")
 SCHEMES = ("joint", "alter", "two_phase", "u_fe")
 SCHEDULES = ("constant", "cosine")
@@ -46,7 +48,6 @@ DTYPES = ("float32", "float64")
 # asinh(κ), which keeps the heavy tail of κ at sharp edges (1e3–1e5 in the canonical
 # frame) from swamping the loss while staying monotone and exact near zero.
 FEATURE_CURVATURES = ("raw", "asinh")
-NOISE_KINDS = ("gaussian", "uniform", "gamma", "impulse")
 DATA_SOURCES = ("procedural", "folder")
 
 

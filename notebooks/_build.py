@@ -107,6 +107,9 @@ NOTEBOOKS["01_graph_ops"] = [
     tet = build_mesh_graph(tet_f, n_vertex=4)
 
     for name, value in tet._asdict().items():
+        if value is None:  # the ELL tables, built for inference (end of this notebook)
+            print(f"{name:20s} None")
+            continue
         print(f"{name:20s} {str(value.dtype):8s} {str(value.shape):8s}", value.ravel()[:16])
     """),
     md(r"""
@@ -351,7 +354,7 @@ NOTEBOOKS["01_graph_ops"] = [
     print(
         f"MeshGraph primal edges: {len(g.vertex_senders)} ({len(g.vertex_senders) / n:.2f} per vertex)"
     )
-    graph_bytes_per_vertex = sum(a.nbytes for a in g) / n
+    graph_bytes_per_vertex = sum(a.nbytes for a in jax.tree.leaves(g)) / n
     print(f"MeshGraph: {graph_bytes_per_vertex:.0f} bytes per vertex")
     for n_big in (50_000, 1_000_000):
         print(
@@ -381,6 +384,29 @@ NOTEBOOKS["01_graph_ops"] = [
     aggregate = jax.jit(ops.primal_aggregate)
     graph_arrays = jax.tree.map(jnp.asarray, g)
     print("jit == eager:", np.allclose(aggregate(graph_arrays, xv), ops.primal_aggregate(g, xv)))
+    """),
+    md(r"""
+    ## The inference layout: padded neighbour tables
+
+    A segment sum is a scatter, which XLA runs serially on CPU. For inference, `denoise`
+    turns each edge list into an ELL table once per mesh (`mesh.with_ell_layout`): row
+    $i$ lists the senders into node $i$, one per column, padded with zero-weight self
+    slots to a multiple of 4, and `ops.gcn_aggregate_ell` sums one gather per column.
+    It is the same operator (training keeps the edge lists); on the tetrahedron every row
+    has exactly four entries:
+    """),
+    code(r"""
+    from dmd_jax.mesh import with_ell_layout
+
+    ell = with_ell_layout(tet).vertex_ell
+    print("neighbours\n", ell.neighbours, "\nweights\n", ell.weights)
+    x = np.arange(12, dtype=np.float32).reshape(4, 3)
+    by_table = ops.gcn_aggregate_ell(jnp.asarray(x), *ell)
+    by_edges = ops.primal_aggregate(tet, jnp.asarray(x))
+    print("table == edge lists:", np.allclose(by_table, by_edges))
+
+    big = with_ell_layout(g)  # the bracket: the table width is the largest valence + 1, rounded up
+    print("bracket vertex table", big.vertex_ell.neighbours.shape, "face table", big.face_ell.neighbours.shape)
     """),
 ]
 
