@@ -69,9 +69,7 @@ def make_meshes(n_mesh: int, vertex_range=VERTEX_RANGE, *, seed: int = 0):
 class Run:
     """One preset and batch size: its trainer, state and prebuilt batches."""
 
-    def __init__(
-        self, preset: str, batch_size: int, examples, *, timed_steps: int, edits=None
-    ):
+    def __init__(self, preset: str, batch_size: int, examples, *, timed_steps: int, edits=None):
         import jax
 
         from dmd_jax import config, pipeline, train

@@ -405,8 +405,8 @@ NOTEBOOKS["01_graph_ops"] = [
     by_edges = ops.primal_aggregate(tet, jnp.asarray(x))
     print("table == edge lists:", np.allclose(by_table, by_edges))
 
-    big = with_ell_layout(g)  # the bracket: the table width is the largest valence + 1, rounded up
-    print("bracket vertex table", big.vertex_ell.neighbours.shape, "face table", big.face_ell.neighbours.shape)
+    big = with_ell_layout(g)  # the bracket: width = largest valence + 1, rounded up
+    print("bracket tables:", big.vertex_ell.neighbours.shape, big.face_ell.neighbours.shape)
     """),
 ]
 
