@@ -360,8 +360,12 @@ MULTI_PROCESS_SCRIPT = textwrap.dedent(
 )
 
 
-@pytest.mark.slow
-def test_two_processes_equal_one_device():
+def run_two_processes(script: str, *args: str) -> list[dict]:
+    """Runs `script` as processes 0 and 1 of a `jax.distributed` job on one machine.
+
+    Each process gets `argv[1:] = [process id, coordinator port, *args]` and must print
+    one JSON object as its last line; returns them in process order.
+    """
     import socket
 
     with socket.socket() as s:
@@ -369,12 +373,9 @@ def test_two_processes_equal_one_device():
         port = s.getsockname()[1]
     env = dict(os.environ, JAX_PLATFORMS="cpu")
     env.pop("XLA_FLAGS", None)
-    script = MULTI_PROCESS_SCRIPT.format(
-        tests=str(REPO / "tests"), edits=json.dumps(CONFIGS[0].values[0])
-    )
     procs = [
         subprocess.Popen(
-            [sys.executable, "-c", script, str(pid), str(port)],
+            [sys.executable, "-c", script, str(pid), str(port), *args],
             cwd=REPO,
             env=env,
             stdout=subprocess.PIPE,
@@ -394,6 +395,15 @@ def test_two_processes_equal_one_device():
             if proc.poll() is None:
                 proc.kill()
                 proc.communicate()
+    return results
+
+
+@pytest.mark.slow
+def test_two_processes_equal_one_device():
+    script = MULTI_PROCESS_SCRIPT.format(
+        tests=str(REPO / "tests"), edits=json.dumps(CONFIGS[0].values[0])
+    )
+    results = run_two_processes(script)
     assert [r["mine"] for r in results] == [[0], [1]]
     assert results[0]["loss"] == results[1]["loss"]
     np.testing.assert_allclose(results[0]["loss"], results[0]["ref_loss"], rtol=1e-9)
@@ -629,37 +639,9 @@ MULTI_PROCESS_TRAIN_SCRIPT = textwrap.dedent(
 
 @pytest.mark.slow
 def test_two_processes_train_loop_with_resume(tmp_path):
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("localhost", 0))
-        port = s.getsockname()[1]
-    env = dict(os.environ, JAX_PLATFORMS="cpu")
-    env.pop("XLA_FLAGS", None)
     edits = {**CONFIGS[0].values[0], "train": {"batch_size": 3, "steps": 3}}
     script = MULTI_PROCESS_TRAIN_SCRIPT.format(tests=str(REPO / "tests"), edits=json.dumps(edits))
-    procs = [
-        subprocess.Popen(
-            [sys.executable, "-c", script, str(pid), str(port), str(tmp_path)],
-            cwd=REPO,
-            env=env,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-        )
-        for pid in (0, 1)
-    ]
-    results = []
-    try:
-        for proc in procs:
-            out, err = proc.communicate(timeout=900)
-            assert proc.returncode == 0, err[-4000:]
-            results.append(json.loads(out.strip().splitlines()[-1]))
-    finally:
-        for proc in procs:  # a process left waiting for its peer
-            if proc.poll() is None:
-                proc.kill()
-                proc.communicate()
+    results = run_two_processes(script, str(tmp_path))
     assert [r["step"] for r in results] == [[1, 3], [1, 3]]
     assert results[0]["normal_deg"] == results[1]["normal_deg"] is not None
     first = results[0]
