@@ -40,7 +40,7 @@ from benchmarks.common import (  # noqa: E402
     RESULTS_DIR,
     Timing,
     environment,
-    format_ms,
+    format_timing,
     markdown_table,
     peak_rss_gib,
     plot_loglog,
@@ -277,10 +277,6 @@ def run_problem(problem: Problem, *, methods=METHODS, repeat=5, min_total_s=3.0,
     ]
 
 
-def _cell(t: Timing | None) -> str:
-    return "—" if t is None else f"{format_ms(t.median)} ({format_ms(t.iqr)})"
-
-
 def _ratio(r: float | None) -> str:
     return "—" if r is None else f"{r:.2f}×"
 
@@ -291,8 +287,8 @@ def table(rows: list[Row], *, graph_column: bool = False) -> str:
     headers += ["fwd / scipy", "fwd+bwd / scipy", "runs"]
     body = []
     for r in rows:
-        line = [f"{r.n_node:,}", f"{r.n_edge:,}", r.width, r.method, _cell(r.fwd)]
-        line += [_cell(r.fwd_bwd), _ratio(r.ratio_fwd), _ratio(r.ratio_fwd_bwd)]
+        line = [f"{r.n_node:,}", f"{r.n_edge:,}", r.width, r.method, format_timing(r.fwd)]
+        line += [format_timing(r.fwd_bwd), _ratio(r.ratio_fwd), _ratio(r.ratio_fwd_bwd)]
         line += [r.fwd.n if r.fwd else "—"]
         if graph_column:
             line = [r.graph, r.max_degree] + line

@@ -51,7 +51,9 @@ from benchmarks.common import (  # noqa: E402
     command_line,
     environment,
     format_ms,
+    format_timing,
     markdown_table,
+    median,
     peak_rss_gib,
     plot_loglog,
     time_interleaved,
@@ -253,10 +255,6 @@ def available_gib() -> float:
     return float("inf")
 
 
-def median(times) -> float:
-    return float(np.median(times))
-
-
 def cpu_seconds(row: dict) -> float:
     """Median process CPU time (all threads) of one denoise call."""
     return median(row.get("denoise_cpu_s") or [row["first_call_cpu_s"]])
@@ -318,16 +316,11 @@ def sweep(preset: str, sizes, args) -> tuple[list[dict], list[str]]:
     return rows, notes
 
 
-def _cell(times) -> str:
-    q1, q3 = np.percentile(times, [25, 75])
-    return f"{format_ms(median(times))} ({format_ms(q3 - q1)})"
-
-
 def _segment_sum_cells(t: dict) -> list[str]:
     seg = t.get("network (segment_sum)")
     if not seg:  # results from before the network used ELL tables
         return ["—", "—"]
-    return [_cell(seg), f"{median(seg) / median(t['network']):.2f}×"]
+    return [format_timing(seg), f"{median(seg) / median(t['network']):.2f}×"]
 
 
 def table(rows: list[dict]) -> str:
@@ -342,8 +335,8 @@ def table(rows: list[dict]) -> str:
         rest = median(t["denoise"]) - median(t["network"]) - median(t["build_mesh_graph"])
         body.append(
             [r["preset"], f"{r['faces']:,}", f"{r['vertices']:,}", f"{r['padded_vertices']:,}"]
-            + [f"{r['compile_s']:.1f}", _cell(t["denoise"]), _cell(t["network"])]
-            + [_cell(t["build_mesh_graph"]), format_ms(rest)]
+            + [f"{r['compile_s']:.1f}", format_timing(t["denoise"]), format_timing(t["network"])]
+            + [format_timing(t["build_mesh_graph"]), format_ms(rest)]
             + _segment_sum_cells(t)
             + [f"{cpu_seconds(r):.3g}", len(t["denoise"]), f"{r['load_1min']:.1f}"]
             + [r.get("run", 0)]

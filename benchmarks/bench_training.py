@@ -39,8 +39,9 @@ from benchmarks.common import (  # noqa: E402
     RESULTS_DIR,
     command_line,
     environment,
-    format_ms,
+    format_timing,
     markdown_table,
+    median,
     peak_rss_gib,
     time_interleaved,
     write_csv,
@@ -182,15 +183,6 @@ def measure(preset: str, batch_sizes, examples, *, rounds: int, edits=None) -> l
     return rows
 
 
-def median(times) -> float:
-    return float(np.median(times))
-
-
-def _cell(times) -> str:
-    q1, q3 = np.percentile(times, [25, 75])
-    return f"{format_ms(median(times))} ({format_ms(q3 - q1)})"
-
-
 def table(rows: list[dict]) -> str:
     headers = ["preset", "params", "batch", "step ms (IQR)", "steps/s", "meshes/s"]
     headers += ["input ms (IQR)", "serial meshes/s", "runs", "load"]
@@ -198,8 +190,8 @@ def table(rows: list[dict]) -> str:
     for r in rows:
         step, inp = median(r["step_times"]), median(r["input_times"])
         body.append(
-            [r["preset"], f"{r['params']:,}", r["batch_size"], _cell(r["step_times"])]
-            + [f"{1 / step:.3g}", f"{r['batch_size'] / step:.3g}", _cell(r["input_times"])]
+            [r["preset"], f"{r['params']:,}", r["batch_size"], format_timing(r["step_times"])]
+            + [f"{1 / step:.3g}", f"{r['batch_size'] / step:.3g}", format_timing(r["input_times"])]
             + [f"{r['batch_size'] / (step + inp):.3g}", len(r["step_times"])]
             + [f"{r['load_1min']:.1f}"]
         )

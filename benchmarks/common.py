@@ -201,6 +201,19 @@ def format_ms(seconds: float | None) -> str:
     return f"{ms:.3g}" if ms < 1000 else f"{ms:.0f}"
 
 
+def median(times: Sequence[float]) -> float:
+    """The median of raw times (seconds), as `Timing.median`."""
+    return float(np.median(times))
+
+
+def format_timing(times: Timing | Sequence[float] | None) -> str:
+    """`median (IQR)` in milliseconds of a `Timing` or of raw times; `—` for None."""
+    if times is None:
+        return "—"
+    t = times if isinstance(times, Timing) else Timing(tuple(times))
+    return f"{format_ms(t.median)} ({format_ms(t.iqr)})"
+
+
 def markdown_table(headers: Sequence[str], rows: Sequence[Sequence[object]]) -> str:
     """A GitHub-flavoured markdown table; numeric-looking columns are right-aligned."""
 
