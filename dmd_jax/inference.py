@@ -47,17 +47,21 @@ class ModelBundle(NamedTuple):
     meta: dict
 
 
-def save_weights(
-    path, params, config: ExperimentConfig, meta: dict | None = None, *, overwrite: bool = False
+def write_weights_file(
+    path, *, fmt: str, version: int, config: dict, meta: dict, params, overwrite: bool = False
 ) -> Path:
-    """Writes params + config + meta to one msgpack file, atomically."""
+    """Writes one msgpack weights file (format tag, version, config, meta, params), atomically.
+
+    The container of every weights file of this project (DMD-Net's and CNR's); `fmt`
+    tells them apart and `read_weights_file` checks it.
+    """
     from flax import serialization
 
     payload = {
-        "format": WEIGHTS_FORMAT,
-        "version": WEIGHTS_VERSION,
-        "config": json.dumps(config.to_dict()),
-        "meta": json.dumps(meta or {}),
+        "format": fmt,
+        "version": version,
+        "config": json.dumps(config),
+        "meta": json.dumps(meta),
         "params": serialization.to_state_dict(jax.device_get(params)),
     }
     data = serialization.msgpack_serialize(payload)
@@ -69,6 +73,64 @@ def save_weights(
     return atomic_write(path, write, overwrite=overwrite)
 
 
+def read_weights_file(path, *, fmt: str, version: int, kind: str, parse_config):
+    """Reads a file of `write_weights_file`: `(config, meta, params)`.
+
+    Args:
+      path: the file.
+      fmt, version: the format tag and version it must carry.
+      kind: names the format in errors ("not a {kind} weights file").
+      parse_config: builds the config object from the stored dict.
+
+    Raises:
+      FileNotFoundError: no such file.
+      ValueError: a truncated or corrupt file, another format or version, a missing
+        field, or an unreadable config or meta.
+    """
+    from flax import serialization
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such weights file")
+    try:
+        payload = serialization.msgpack_restore(path.read_bytes())
+    except Exception as exc:  # msgpack raises several types on truncated data
+        raise ValueError(
+            f"{path}: not a readable weights file (truncated or corrupt: {exc})"
+        ) from exc
+    if not isinstance(payload, dict) or payload.get("format") != fmt:
+        raise ValueError(f"{path}: not a {kind} weights file")
+    if payload.get("version") != version:
+        raise ValueError(
+            f"{path}: weights format version {payload.get('version')} is not supported "
+            f"(this dmd_jax reads version {version})"
+        )
+    missing = [k for k in ("config", "meta", "params") if k not in payload]
+    if missing:
+        raise ValueError(f"{path}: incomplete weights file (no {', '.join(missing)})")
+    try:
+        config = parse_config(json.loads(payload["config"]))
+        meta = json.loads(payload["meta"])
+    except (TypeError, ValueError) as exc:  # JSONDecodeError is a ValueError
+        raise ValueError(f"{path}: unreadable config or meta in the weights file ({exc})") from exc
+    return config, meta, payload["params"]
+
+
+def save_weights(
+    path, params, config: ExperimentConfig, meta: dict | None = None, *, overwrite: bool = False
+) -> Path:
+    """Writes params + config + meta to one msgpack file, atomically."""
+    return write_weights_file(
+        path,
+        fmt=WEIGHTS_FORMAT,
+        version=WEIGHTS_VERSION,
+        config=config.to_dict(),
+        meta=meta or {},
+        params=params,
+        overwrite=overwrite,
+    )
+
+
 def load_weights(path) -> ModelBundle:
     """Reads a weights file written by `save_weights`, checking format, version and config.
 
@@ -76,34 +138,13 @@ def load_weights(path) -> ModelBundle:
       ValueError: not a dmd_jax weights file, another format version, a truncated file,
         or params whose structure or shapes do not match the stored config.
     """
-    from flax import serialization
-
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such weights file")
-    raw = path.read_bytes()
-    try:
-        payload = serialization.msgpack_restore(raw)
-    except Exception as exc:  # msgpack raises several types on truncated data
-        raise ValueError(
-            f"{path}: not a readable weights file (truncated or corrupt: {exc})"
-        ) from exc
-    if not isinstance(payload, dict) or payload.get("format") != WEIGHTS_FORMAT:
-        raise ValueError(f"{path}: not a dmd_jax weights file")
-    if payload.get("version") != WEIGHTS_VERSION:
-        raise ValueError(
-            f"{path}: weights format version {payload.get('version')} is not supported "
-            f"(this dmd_jax reads version {WEIGHTS_VERSION})"
-        )
-    missing = [k for k in ("config", "meta", "params") if k not in payload]
-    if missing:
-        raise ValueError(f"{path}: incomplete weights file (no {', '.join(missing)})")
-    try:
-        config = ExperimentConfig.from_dict(json.loads(payload["config"]))
-        meta = json.loads(payload["meta"])
-    except (TypeError, ValueError) as exc:  # JSONDecodeError is a ValueError
-        raise ValueError(f"{path}: unreadable config or meta in the weights file ({exc})") from exc
-    params = payload["params"]
+    config, meta, params = read_weights_file(
+        path,
+        fmt=WEIGHTS_FORMAT,
+        version=WEIGHTS_VERSION,
+        kind="dmd_jax",
+        parse_config=ExperimentConfig.from_dict,
+    )
     if not isinstance(params, dict):
         raise ValueError(f"{path}: params must be a nested dict of arrays")
     _check_params(params, config, str(path))

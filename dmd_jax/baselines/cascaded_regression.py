@@ -46,7 +46,6 @@ sizes so that meshes of similar size share one compiled program.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import platform
 import time
@@ -73,7 +72,8 @@ from dmd_jax.baselines._common import (
     vertex_corner_arrays,
 )
 from dmd_jax.geometry import face_areas, face_normals, safe_norm, safe_normalize
-from dmd_jax.mesh import atomic_write, bucket_size, canonical_frame, validate_mesh
+from dmd_jax.inference import read_weights_file, write_weights_file
+from dmd_jax.mesh import bucket_size, canonical_frame, validate_mesh
 
 WEIGHTS_FORMAT = "dmd_jax-cnr-weights"
 WEIGHTS_VERSION = 1
@@ -443,53 +443,40 @@ def _check_stage_params(params, cfg: CNRConfig, name: str) -> None:
 
 def save_cnr_weights(path, weights: CNRWeights, *, overwrite: bool = False) -> Path:
     """Writes a `CNRWeights` as one msgpack file (float32 params), atomically."""
-    from flax import serialization
-
     if len(weights.params) < 1:
         raise ValueError("CNRWeights holds no stage")
     params = {
         str(i): jax.tree.map(lambda a: np.asarray(a, np.float32), p)
         for i, p in enumerate(weights.params)
     }
-    payload = {
-        "format": WEIGHTS_FORMAT,
-        "version": WEIGHTS_VERSION,
-        "config": json.dumps(weights.config.to_dict()),
-        "meta": json.dumps(weights.meta),
-        "params": serialization.to_state_dict(params),
-    }
-    data = serialization.msgpack_serialize(payload)
-
-    def write(tmp):
-        with open(tmp, "wb") as fh:
-            fh.write(data)
-
-    return atomic_write(path, write, overwrite=overwrite)
+    return write_weights_file(
+        path,
+        fmt=WEIGHTS_FORMAT,
+        version=WEIGHTS_VERSION,
+        config=weights.config.to_dict(),
+        meta=weights.meta,
+        params=params,
+        overwrite=overwrite,
+    )
 
 
 def load_cnr_weights(path) -> CNRWeights:
     """Reads a file written by `save_cnr_weights`, checking format, version and shapes."""
-    from flax import serialization
-
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such CNR weights file")
-    try:
-        payload = serialization.msgpack_restore(path.read_bytes())
-    except Exception as exc:  # msgpack raises several types on truncated data
-        raise ValueError(f"{path}: not a readable weights file ({exc})") from exc
-    if not isinstance(payload, dict) or payload.get("format") != WEIGHTS_FORMAT:
-        raise ValueError(f"{path}: not a CNR weights file")
-    if payload.get("version") != WEIGHTS_VERSION:
-        raise ValueError(f"{path}: CNR weights version {payload.get('version')} is not supported")
-    cfg = CNRConfig.from_dict(json.loads(payload["config"]))
-    raw = payload["params"]
+    cfg, meta, raw = read_weights_file(
+        path,
+        fmt=WEIGHTS_FORMAT,
+        version=WEIGHTS_VERSION,
+        kind="CNR",
+        parse_config=CNRConfig.from_dict,
+    )
+    if not isinstance(raw, dict):
+        raise ValueError(f"{path}: params must be a dict of stages")
     stages = tuple(raw[str(i)] for i in range(len(raw)))
     if len(stages) != cfg.n_stages:
         raise ValueError(f"{path}: {len(stages)} stages stored, config says {cfg.n_stages}")
     for i, p in enumerate(stages):
         _check_stage_params(p, cfg, f"{path} stage {i}")
-    return CNRWeights(params=stages, config=cfg, meta=json.loads(payload["meta"]))
+    return CNRWeights(params=stages, config=cfg, meta=meta)
 
 
 def bundled_weights_path() -> Path:
