@@ -8,7 +8,7 @@ are skipped when neither exists.
 
 from __future__ import annotations
 
-import os
+import importlib.util
 import re
 from pathlib import Path
 
@@ -19,6 +19,10 @@ nbclient = pytest.importorskip("nbclient")
 pytest.importorskip("ipykernel")
 
 NOTEBOOK_DIR = Path(__file__).resolve().parents[1] / "notebooks"
+# `make notebooks`'s runner (not a package): the tests execute notebooks the same way.
+_spec = importlib.util.spec_from_file_location("notebook_runner", NOTEBOOK_DIR / "_run.py")
+runner = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(runner)
 NOTEBOOKS = [
     "01_graph_ops",
     "02_node_feature_collision",
@@ -27,25 +31,12 @@ NOTEBOOKS = [
     "05_feature_guided_transformer",
     "06_denoise_walkthrough",
 ]
-NEEDS_WEIGHTS = {"05_feature_guided_transformer", "06_denoise_walkthrough"}
 # Per cell; a whole notebook takes well under a minute on two idle cores.
 CELL_TIMEOUT_S = 300
 
 
 def _path(name: str) -> Path:
     return NOTEBOOK_DIR / f"{name}.ipynb"
-
-
-def _missing_weights_reason() -> str | None:
-    env = os.environ.get("DMD_JAX_WEIGHTS")
-    if env:
-        return None if Path(env).is_file() else f"DMD_JAX_WEIGHTS={env} is not a file"
-    from dmd_jax.inference import pretrained_path
-
-    path = pretrained_path()
-    if path.is_file():
-        return None
-    return f"bundled weights {path} do not exist yet and DMD_JAX_WEIGHTS is not set"
 
 
 def test_notebook_set_is_complete():
@@ -76,16 +67,10 @@ def test_notebook_needs_no_shared_data(name):
 
 @pytest.mark.parametrize("name", NOTEBOOKS)
 def test_notebook_executes(name, tmp_path):
-    if name in NEEDS_WEIGHTS and (reason := _missing_weights_reason()):
+    if name in runner.NEEDS_WEIGHTS and (reason := runner.weights_available()):
         pytest.skip(reason)
-    nb = nbformat.read(_path(name), as_version=4)
-    client = nbclient.NotebookClient(
-        nb,
-        timeout=CELL_TIMEOUT_S,
-        kernel_name="python3",
-        resources={"metadata": {"path": str(tmp_path)}},
-    )
-    client.execute()  # raises CellExecutionError, naming the cell, on any error
+    # Raises CellExecutionError, naming the cell, on any error.
+    nb = runner.execute(_path(name), timeout=CELL_TIMEOUT_S, cwd=tmp_path)
     errors = [
         o for c in nb.cells if c.cell_type == "code" for o in c.outputs if o.output_type == "error"
     ]
