@@ -46,3 +46,13 @@ def icosphere(subdivisions: int = 2, radius: float = 1.0) -> tuple[np.ndarray, n
 
     s = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
     return np.asarray(s.vertices, np.float64), np.asarray(s.faces, np.int32)
+
+
+def crop_mesh(v: np.ndarray, f: np.ndarray, centre, radius: float):
+    """The faces whose centroid lies within `radius` of `centre`, re-indexed: `(v, f)`."""
+    keep = np.linalg.norm(v[f].mean(axis=1) - centre, axis=1) < radius
+    fk = f[keep]
+    used = np.unique(fk)
+    remap = np.full(v.shape[0], -1)
+    remap[used] = np.arange(used.size)
+    return v[used], remap[fk].astype(np.int32)

@@ -9,7 +9,7 @@ from collections import defaultdict
 import jax
 import numpy as np
 import pytest
-from conftest import icosphere, shared_mesh_path, tetrahedron
+from conftest import crop_mesh, icosphere, shared_mesh_path, tetrahedron
 from scipy.spatial.distance import pdist
 
 from dmd_jax import baselines
@@ -35,16 +35,6 @@ def _noisy(v, f, level, seed=0):
     return np.asarray(add_noise(key, v, f, "gaussian", level, units="edge"), np.float64)
 
 
-def _crop(v, f, centre, radius):
-    """The faces whose centroid lies within `radius` of `centre`, re-indexed."""
-    keep = np.linalg.norm(v[f].mean(axis=1) - centre, axis=1) < radius
-    fk = f[keep]
-    used = np.unique(fk)
-    remap = np.full(v.shape[0], -1)
-    remap[used] = np.arange(used.size)
-    return v[used], remap[fk].astype(np.int32)
-
-
 @pytest.fixture(scope="module")
 def knight():
     v, f = load_mesh(shared_mesh_path("decimated-knight.off"))
@@ -60,7 +50,7 @@ def fandisk():
 def fandisk_crop(fandisk):
     """About 1600 faces of fandisk around a corner: open boundary, 115 sharp edges."""
     v, f = fandisk
-    return _crop(v, f, np.array([3.5, 14.3, -1.4]), 1.2)
+    return crop_mesh(v, f, np.array([3.5, 14.3, -1.4]), 1.2)
 
 
 def _near_sharp_faces(v, f, degrees=60.0):

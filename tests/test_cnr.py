@@ -6,7 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import icosphere, shared_mesh_path, tetrahedron
+from conftest import crop_mesh, icosphere, shared_mesh_path, tetrahedron
 
 from dmd_jax import baselines
 from dmd_jax.baselines import cascaded_regression as C
@@ -225,20 +225,10 @@ def bundled():
     return C.load_bundled_cnr()
 
 
-def _crop(v, f, centre, radius):
-    """The faces whose centroid lies within `radius` of `centre`, re-indexed."""
-    keep = np.linalg.norm(v[f].mean(axis=1) - centre, axis=1) < radius
-    fk = f[keep]
-    used = np.unique(fk)
-    remap = np.full(v.shape[0], -1)
-    remap[used] = np.arange(used.size)
-    return v[used], remap[fk].astype(np.int32)
-
-
 def test_bundled_cnr_reduces_the_normal_error(bundled):
     """A fandisk corner (1604 faces) at 0.3 × mean edge noise: 35.8° → 10.7° measured."""
     v, f = load_mesh(shared_mesh_path("fandisk.off"))
-    v, f = _crop(v, f, np.array([3.5, 14.3, -1.4]), 1.2)
+    v, f = crop_mesh(v, f, np.array([3.5, 14.3, -1.4]), 1.2)
     noisy = _noisy(v, f, 0.3)
     out = baselines.denoise_with("cnr", noisy, f)
     assert out.shape == v.shape and np.all(np.isfinite(out))
