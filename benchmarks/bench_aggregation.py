@@ -49,6 +49,7 @@ from benchmarks.common import (  # noqa: E402
     write_report,
 )
 from dmd_jax import ops  # noqa: E402
+from dmd_jax.graph import ell_layout  # noqa: E402
 
 METHODS = ("segment_sum", "ell", "bcoo", "bcsr", "scipy_csr")
 MODES = ("fwd", "fwd+bwd")
@@ -165,7 +166,7 @@ def make_problem(senders, receivers, weight, n_node: int, width: int, *, label="
     x_np = np.random.default_rng(seed).standard_normal((n_node, width), dtype=np.float32)
     csr = sp.csr_matrix((w, (r, s)), shape=(n_node, n_node))
     csr.sort_indices()
-    layout = ops.ell_layout(s, r, w, n_node)
+    layout = ell_layout(s, r, w, n_node)
     x = jnp.asarray(x_np)
     sj, rj, wj = jnp.asarray(s), jnp.asarray(r), jnp.asarray(w)
     bcoo = jsparse.BCOO(
@@ -354,7 +355,8 @@ def plot(rows: list[Row], path: Path) -> Path:
 
 def mesh_problems(names, width: int):
     """Vertex and face graphs of meshes in ../shared/meshes (skipped when absent)."""
-    from dmd_jax.mesh import build_mesh_graph, load_mesh
+    from dmd_jax.graph import build_mesh_graph
+    from dmd_jax.io import load_mesh
 
     folder = Path(os.environ.get("DMD_SHARED_MESHES", REPO.parent / "shared" / "meshes"))
     for name in names:

@@ -40,6 +40,7 @@ from benchmarks.common import (  # noqa: E402
     write_report,
 )
 from dmd_jax import ops  # noqa: E402
+from dmd_jax.graph import ell_layout  # noqa: E402
 
 
 def _segment_sum_unsorted(x, s, r, w):
@@ -103,7 +104,7 @@ def run(n_target: int, width: int, *, repeat: int = 5, seed: int = 0):
     operands = {
         "edges": (s, r, w),
         "shuffled": (s[perm], r[perm], w[perm]),
-        "ell": tuple(ops.ell_layout(s, r, w, n)),
+        "ell": tuple(ell_layout(s, r, w, n)),
     }
     operands = {k: tuple(jnp.asarray(a) for a in v) for k, v in operands.items()}
     x = jnp.asarray(x_np)

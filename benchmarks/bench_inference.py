@@ -13,7 +13,7 @@ is the compile time), then these cases are timed round-robin:
   canonical frame, `build_mesh_graph`, padding, host-to-device copy, the network, copy
   back;
 * `network`: the jitted network alone, on the padded batch already on the device, with
-  the ELL neighbour tables `denoise` uses (`mesh.with_ell_layout`);
+  the ELL neighbour tables `denoise` uses (`graph.with_ell_layout`);
 * `network (segment_sum)`: the same network on the same batch without the tables, so
   every aggregation is a sorted `segment_sum` (as in training);
 * `build_mesh_graph`: the host-side graph construction alone;
@@ -135,6 +135,7 @@ def measure(
     import jax.numpy as jnp
 
     from dmd_jax import config, inference, mesh, model, pipeline
+    from dmd_jax import graph as graph_lib
     from dmd_jax.evaluate import pymeshlab_filter
 
     load = os.getloadavg()[0]
@@ -148,11 +149,11 @@ def measure(
     # cache then holds it, and `denoise` below does not compile again.
     predict = inference._predictor(json.dumps(cfg.to_dict(), sort_keys=True))
     x = mesh.canonical_frame(v).apply(v)
-    graph = mesh.build_mesh_graph(f, v.shape[0])
+    graph = graph_lib.build_mesh_graph(f, v.shape[0])
     batch = pipeline.collate([x], [x], [graph])
     noisy = jnp.asarray(batch.noisy)
     # `denoise` aggregates through ELL tables; the segment-sum graph is the comparison.
-    graph_ell = jax.tree.map(jnp.asarray, mesh.with_ell_layout(batch.graph))
+    graph_ell = jax.tree.map(jnp.asarray, graph_lib.with_ell_layout(batch.graph))
     graph_seg = jax.tree.map(jnp.asarray, batch.graph)
     start = time.perf_counter()
     compiled = predict.lower(bundle.params, noisy, graph_ell).compile()
@@ -183,7 +184,7 @@ def measure(
     cases = {
         "denoise": timed_denoise,
         "network": lambda: predict(bundle.params, noisy, graph_ell),
-        "build_mesh_graph": lambda: mesh.build_mesh_graph(f, v.shape[0]),
+        "build_mesh_graph": lambda: graph_lib.build_mesh_graph(f, v.shape[0]),
     }
     if compare:
         cases["network (segment_sum)"] = lambda: predict(bundle.params, noisy, graph_seg)

@@ -263,12 +263,11 @@ def plot(rows: list[dict], path: Path) -> Path:
         a.legend(fontsize=8)
     fig.suptitle("Training step throughput (CPU, float32, joint scheme)", fontsize=10)
     fig.tight_layout()
-    path = Path(path)
-    tmp = path.with_name(path.stem + ".tmp.png")
-    fig.savefig(tmp, dpi=110)
+    from dmd_jax.io import atomic_write
+
+    atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=110, format="png"), overwrite=True)
     plt.close(fig)
-    os.replace(tmp, path)
-    return path
+    return Path(path)
 
 
 def parse_args(argv=None):

@@ -233,12 +233,11 @@ def markdown_table(headers: Sequence[str], rows: Sequence[Sequence[object]]) -> 
 
 def write_text(path: Path, text: str) -> Path:
     """Writes `text` to `path` atomically (a finished file or none)."""
+    from dmd_jax.io import write_text_atomic
+
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
-    return path
+    return write_text_atomic(path, text)
 
 
 def write_report(
@@ -272,15 +271,17 @@ def write_report(
 
 def write_csv(path: Path, headers: Sequence[str], rows: Sequence[Sequence[object]]) -> Path:
     """Writes raw results as CSV next to the report, for re-plotting without re-running."""
+    from dmd_jax.io import atomic_write
+
+    def write(tmp):
+        with open(tmp, "w", newline="") as fh:
+            writer = csv.writer(fh)
+            writer.writerow(headers)
+            writer.writerows(rows)
+
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    with tmp.open("w", newline="") as fh:
-        writer = csv.writer(fh)
-        writer.writerow(headers)
-        writer.writerows(rows)
-    os.replace(tmp, path)
-    return path
+    return atomic_write(path, write, overwrite=True)
 
 
 def plot_loglog(
@@ -340,12 +341,12 @@ def plot_loglog(
     if suptitle:
         fig.suptitle(suptitle, fontsize=10)
     fig.tight_layout()
+    from dmd_jax.io import atomic_write
+
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.stem + ".tmp.png")
-    fig.savefig(tmp, dpi=110)
+    atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=110, format="png"), overwrite=True)
     plt.close(fig)
-    os.replace(tmp, path)
     return path
 
 

@@ -113,7 +113,7 @@ def evaluate_mesh(
     from dmd_jax.demo import gaussian_edge_noise
     from dmd_jax.evaluate import pymeshlab_filter
     from dmd_jax.inference import denoise
-    from dmd_jax.mesh import load_mesh
+    from dmd_jax.io import load_mesh
     from dmd_jax.metrics import mesh_metrics
 
     path = Path(path)

@@ -61,7 +61,7 @@ def _cmd_denoise(args: argparse.Namespace) -> int:
     import time
 
     from dmd_jax import inference
-    from dmd_jax.mesh import load_mesh, save_mesh
+    from dmd_jax.io import load_mesh, save_mesh
 
     if args.iterations < 1:
         raise ValueError(f"--iterations must be at least 1, got {args.iterations}")
@@ -106,7 +106,7 @@ def _cmd_add_noise(args: argparse.Namespace) -> int:
     import jax
     import numpy as np
 
-    from dmd_jax.mesh import load_mesh, save_mesh
+    from dmd_jax.io import load_mesh, save_mesh
     from dmd_jax.noise import add_noise
 
     vertices, faces = load_mesh(args.input)
@@ -131,7 +131,7 @@ def _cmd_add_noise(args: argparse.Namespace) -> int:
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     import json
 
-    from dmd_jax.mesh import load_mesh
+    from dmd_jax.io import load_mesh
     from dmd_jax.metrics import mesh_metrics
 
     gt_v, gt_f = load_mesh(args.gt)
@@ -160,7 +160,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 def _cmd_render(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from dmd_jax.mesh import load_mesh
+    from dmd_jax.io import load_mesh
     from dmd_jax.render import render_meshes
 
     _check_output(args.output, args.inputs + ([args.gt] if args.gt else []), args.overwrite)

@@ -157,7 +157,7 @@ def run_demo(
     from dmd_jax import baselines, inference
     from dmd_jax.data import generate_shape
     from dmd_jax.evaluate import markdown_table, pymeshlab_filter
-    from dmd_jax.mesh import save_mesh
+    from dmd_jax.io import save_mesh
     from dmd_jax.metrics import face_normal_errors_deg, mesh_metrics
 
     out = Path(out_dir)
@@ -238,12 +238,12 @@ def run_demo(
         "metrics": metrics,
     }
 
-    def write_json(tmp):
-        Path(tmp).write_text(json.dumps(payload, indent=2) + "\n")
+    from dmd_jax.io import atomic_write
 
-    from dmd_jax.mesh import atomic_write
-
-    files["metrics"] = atomic_write(out / METRICS_FILE, write_json, overwrite=overwrite)
+    text = json.dumps(payload, indent=2) + "\n"
+    files["metrics"] = atomic_write(
+        out / METRICS_FILE, lambda tmp: Path(tmp).write_text(text), overwrite=overwrite
+    )
     if render:
         from dmd_jax.render import render_meshes
 

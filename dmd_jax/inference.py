@@ -18,14 +18,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from dmd_jax.config import ExperimentConfig
-from dmd_jax.mesh import (
-    atomic_write,
-    build_mesh_graph,
-    canonical_frame,
-    pad_vertex_array,
-    validate_mesh,
-    with_ell_layout,
-)
+from dmd_jax.graph import build_mesh_graph, pad_vertex_array, with_ell_layout
+from dmd_jax.io import atomic_write
+from dmd_jax.mesh import canonical_frame, validate_mesh
 from dmd_jax.pipeline import collate
 
 WEIGHTS_FORMAT = "dmd_jax-weights"
@@ -158,7 +153,7 @@ def _abstract_params(config: ExperimentConfig):
 @lru_cache(maxsize=8)
 def _abstract_params_of(config_json: str):
     """Param shapes and dtypes of a config (traced once per config and process)."""
-    from dmd_jax.mesh import build_mesh_graph as _build
+    from dmd_jax.graph import build_mesh_graph as _build
     from dmd_jax.model import DMDNet
 
     config = ExperimentConfig.from_dict(json.loads(config_json))

@@ -62,7 +62,7 @@ from flax import linen as nn
 from dmd_jax import ops
 from dmd_jax.config import ModelConfig
 from dmd_jax.geometry import safe_normalize
-from dmd_jax.mesh import MeshGraph, build_mesh_graph
+from dmd_jax.graph import MeshGraph, build_mesh_graph
 
 Dtype = jnp.dtype
 

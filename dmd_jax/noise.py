@@ -51,7 +51,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dmd_jax.mesh import bucket_size, mean_edge_length, vertex_edges
+from dmd_jax.graph import bucket_size, vertex_edges
+from dmd_jax.mesh import mean_edge_length
 
 NOISE_KINDS = ("gaussian", "uniform", "gamma", "impulse")
 NOISE_UNITS = ("canonical", "edge")

@@ -6,13 +6,10 @@ adjacency matrix is ever built; tests compare each op with the paper's dense for
 
 from __future__ import annotations
 
-from typing import NamedTuple
-
 import jax
 import jax.numpy as jnp
-import numpy as np
 
-from dmd_jax.mesh import MeshGraph
+from dmd_jax.graph import MeshGraph
 
 
 def gcn_aggregate(features, senders, receivers, edge_weight):
@@ -129,101 +126,8 @@ def broadcast_to_vertices(graph_features, vertex_graph):
 
 
 # --------------------------------------------------------------------------------------
-# Padded-neighbour (ELL) layout: the same operator as `gcn_aggregate`, faster on CPU
+# Padded-neighbour (ELL) tables: the same operator as `gcn_aggregate`, faster on CPU
 # --------------------------------------------------------------------------------------
-
-
-class EllLayout(NamedTuple):
-    """A graph operator as a padded neighbour table (ELL format); see `ell_layout`.
-
-    Attributes:
-      neighbours: `[n_node, max_degree]` int32; row `i` lists the senders into node `i`;
-        unused slots point at `i` itself.
-      weights: `[n_node, max_degree]`, the weight of each slot; 0 on unused slots.
-      reverse_slot: `[n_node, max_degree]` int32; for the entry `j -> i` in slot `k` of
-        row `i`, the slot of the entry `i -> j` in row `j` (unused slots: their own slot).
-    """
-
-    neighbours: np.ndarray
-    weights: np.ndarray
-    reverse_slot: np.ndarray
-
-
-def ell_layout(
-    senders, receivers, edge_weight, n_node: int, *, max_fill: float | None = None
-) -> EllLayout | None:
-    """Builds the ELL layout of the operator `out[r] += w * x[s]` on the host (NumPy).
-
-    Duplicate `(sender, receiver)` pairs are merged by summing their weights (the padding
-    self loops of `pad_mesh_graph` become one zero-weight slot), so the layout is the same
-    operator as `gcn_aggregate(x, senders, receivers, edge_weight)`. The edge set must be
-    structurally symmetric (every `s -> r` has an `r -> s`, as in `MeshGraph`); the
-    weights need not be. The table has `max_degree` columns, so the work is
-    `n_node * max_degree` rather than `n_edge`: fine for meshes (valence ≤ ~15), wasteful
-    for graphs with a few very high-degree nodes.
-
-    Args:
-      senders: `[n_edge]` integer sender of each edge.
-      receivers: `[n_edge]` integer receiver of each edge.
-      edge_weight: `[n_edge]` weight of each edge.
-      n_node: number of nodes.
-      max_fill: return None, before allocating the table, when it would hold more than
-        this many slots (`n_node × max_degree`) per distinct edge (None: no limit).
-
-    Returns:
-      An `EllLayout`; pass it as `gcn_aggregate_ell(features, *layout)`. None if
-      `max_fill` is exceeded.
-
-    Raises:
-      ValueError: on mismatched shapes, indices outside `[0, n_node)`, or an edge whose
-        reverse is missing.
-    """
-    s = np.asarray(senders).astype(np.int64)
-    r = np.asarray(receivers).astype(np.int64)
-    w = np.asarray(edge_weight)
-    if s.ndim != 1 or s.shape != r.shape or s.shape != w.shape:
-        raise ValueError(
-            "senders, receivers and edge_weight must be 1-D of one length, got shapes "
-            f"{s.shape}, {r.shape}, {w.shape}"
-        )
-    if n_node < 1:
-        raise ValueError(f"n_node must be positive, got {n_node}")
-    if s.size and (min(s.min(), r.min()) < 0 or max(s.max(), r.max()) >= n_node):
-        raise ValueError(f"edge indices must lie in [0, {n_node})")
-    if not np.issubdtype(w.dtype, np.floating):
-        w = w.astype(np.float32)
-    # np.sort plus a mask rather than np.unique: the same result, several times faster.
-    key = r * n_node + s
-    order = np.argsort(key, kind="stable")
-    key = key[order]
-    first = np.ones(key.size, bool)
-    first[1:] = key[1:] != key[:-1]
-    group = np.cumsum(first) - 1
-    key = key[first]
-    weight = np.bincount(group, weights=w[order].astype(np.float64), minlength=key.size)
-    r, s = np.divmod(key, n_node)
-    degree = np.bincount(r, minlength=n_node)
-    width = max(int(degree.max()), 1)
-    if max_fill is not None and n_node * width > max_fill * max(key.size, 1):
-        return None
-    slot = np.arange(key.size) - (np.cumsum(degree) - degree)[r]
-    rows = np.arange(n_node)
-    neighbours = np.repeat(rows[:, None], width, axis=1).astype(np.int32)
-    weights = np.zeros((n_node, width), w.dtype)
-    reverse_slot = np.repeat(np.arange(width)[None, :], n_node, axis=0).astype(np.int32)
-    reverse = np.searchsorted(key, s * n_node + r)
-    found = reverse < key.size
-    found[found] = key[reverse[found]] == (s * n_node + r)[found]
-    if not found.all():
-        i = int(np.flatnonzero(~found)[0])
-        raise ValueError(
-            f"edge {s[i]} -> {r[i]} has no reverse {r[i]} -> {s[i]}; the ELL layout needs "
-            "a structurally symmetric edge set"
-        )
-    neighbours[r, slot] = s
-    weights[r, slot] = weight
-    reverse_slot[r, slot] = slot[reverse]
-    return EllLayout(neighbours, weights, reverse_slot)
 
 
 def _ell_sum(features, neighbours, weights):

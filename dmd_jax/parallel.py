@@ -50,7 +50,7 @@ from jax.sharding import PartitionSpec as P
 
 from dmd_jax import losses, train
 from dmd_jax.config import ExperimentConfig
-from dmd_jax.mesh import (
+from dmd_jax.graph import (
     MeshGraph,
     PaddedSizes,
     batch_mesh_graphs,

@@ -15,16 +15,16 @@ import jax
 import numpy as np
 
 from dmd_jax import noise as noise_lib
-from dmd_jax.mesh import (
+from dmd_jax.graph import (
     MeshGraph,
     PaddedSizes,
     batch_mesh_graphs,
     bucket_size,
     build_mesh_graph,
-    canonical_frame,
     pad_mesh_graph,
     pad_vertex_array,
 )
+from dmd_jax.mesh import canonical_frame
 
 # Upper bounds of padded sizes per padded vertex: a closed triangle mesh has f ≈ 2v,
 # 2e + v ≈ 7v primal edges with self loops and 4f dual edges with self loops.

@@ -7,7 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from dmd_jax.mesh import atomic_write, canonical_frame
+from dmd_jax.io import atomic_write
+from dmd_jax.mesh import canonical_frame
 
 # A fixed view and light so renders of different methods compare pixel for pixel.
 _ELEV, _AZIM = 20.0, -60.0

@@ -35,7 +35,8 @@ import optax
 
 from dmd_jax import geometry, losses, metrics
 from dmd_jax.config import ExperimentConfig
-from dmd_jax.mesh import MeshGraph, atomic_write
+from dmd_jax.graph import MeshGraph
+from dmd_jax.io import atomic_write
 from dmd_jax.model import DMDNet
 from dmd_jax.pipeline import (
     Batch,

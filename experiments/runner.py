@@ -102,10 +102,10 @@ def host_info() -> dict[str, Any]:
 
 def _write_json(path: Path, data: Any) -> None:
     """Writes JSON atomically (a reader never sees half a metrics.json)."""
+    from dmd_jax.io import write_text_atomic
+
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2, allow_nan=True) + "\n")
-    os.replace(tmp, path)
+    write_text_atomic(path, json.dumps(data, indent=2, allow_nan=True) + "\n")
 
 
 def _read_json(path: Path) -> Any:

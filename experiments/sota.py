@@ -288,7 +288,7 @@ def run_sota(
     """
     import jax
 
-    from dmd_jax.mesh import load_mesh
+    from dmd_jax.io import load_mesh
     from dmd_jax.metrics import mesh_metrics
     from dmd_jax.noise import add_noise
 
@@ -463,16 +463,20 @@ def render_grid(renders: dict, path: Path, *, panel_size: float = 1.7, max_bytes
     for im in images:
         grid.paste(im, (0, y))
         y += im.height
-    colors = 128
-    while True:
-        pal = grid.quantize(colors=colors, method=Image.Quantize.MEDIANCUT)
-        tmp_path = path.with_suffix(".tmp.png")
-        pal.save(tmp_path, optimize=True)
-        if tmp_path.stat().st_size <= max_bytes or colors <= 16:
-            break
-        colors //= 2
-    os.replace(tmp_path, path)
-    return path
+
+    def write(tmp):
+        # Halve the palette until the file fits (or 16 colours are left).
+        colors = 128
+        while True:
+            pal = grid.quantize(colors=colors, method=Image.Quantize.MEDIANCUT)
+            pal.save(tmp, format="PNG", optimize=True)
+            if Path(tmp).stat().st_size <= max_bytes or colors <= 16:
+                return
+            colors //= 2
+
+    from dmd_jax.io import atomic_write
+
+    return atomic_write(path, write, overwrite=True)
 
 
 # --------------------------------------------------------------------------------------

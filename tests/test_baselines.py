@@ -15,7 +15,9 @@ from scipy.spatial.distance import pdist
 from dmd_jax import baselines
 from dmd_jax.baselines import l0_minimization
 from dmd_jax.baselines._common import TRACE_COUNTS
-from dmd_jax.mesh import face_adjacency, load_mesh, mean_edge_length
+from dmd_jax.graph import face_adjacency
+from dmd_jax.io import load_mesh
+from dmd_jax.mesh import mean_edge_length
 from dmd_jax.metrics import face_normal_errors_deg
 from dmd_jax.noise import add_noise
 

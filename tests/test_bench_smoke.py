@@ -13,7 +13,7 @@ from benchmarks import bench_inference as inference
 from benchmarks import bench_training as training
 from benchmarks.common import Timing, markdown_table, time_interleaved
 from dmd_jax import pipeline
-from dmd_jax.mesh import build_mesh_graph
+from dmd_jax.graph import build_mesh_graph
 
 
 @pytest.mark.parametrize("mesh", ["grid", "icosphere"])

@@ -20,7 +20,8 @@ from test_inference import tiny_params
 from dmd_jax import baselines, inference
 from dmd_jax.cli import main
 from dmd_jax.config import preset
-from dmd_jax.mesh import load_mesh, mean_edge_length, save_mesh
+from dmd_jax.io import load_mesh, save_mesh
+from dmd_jax.mesh import mean_edge_length
 from dmd_jax.metrics import mesh_metrics
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"

@@ -11,7 +11,7 @@ from conftest import crop_mesh, icosphere, shared_mesh_path, tetrahedron
 from dmd_jax import baselines
 from dmd_jax.baselines import cascaded_regression as C
 from dmd_jax.baselines._common import TRACE_COUNTS
-from dmd_jax.mesh import load_mesh
+from dmd_jax.io import load_mesh
 from dmd_jax.metrics import mesh_metrics
 from dmd_jax.noise import add_noise
 

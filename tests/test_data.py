@@ -26,7 +26,8 @@ from dmd_jax.data import (
     make_dataset,
     remesh,
 )
-from dmd_jax.mesh import load_mesh, save_mesh, validate_mesh
+from dmd_jax.io import load_mesh, save_mesh
+from dmd_jax.mesh import validate_mesh
 from tests.conftest import icosphere, shared_mesh_path, tetrahedron
 
 SMALL = dict(min_vertices=300, max_vertices=1500)

@@ -24,7 +24,8 @@ from conftest import tetrahedron
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from dmd_jax.mesh import load_mesh, validate_mesh
+from dmd_jax.io import load_mesh
+from dmd_jax.mesh import validate_mesh
 
 FEW = settings(
     max_examples=40, deadline=None, database=None, suppress_health_check=[HealthCheck.too_slow]

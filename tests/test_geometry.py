@@ -14,7 +14,7 @@ from conftest import icosphere, shared_mesh_path, tetrahedron
 from jax.test_util import check_grads
 
 from dmd_jax import geometry as G
-from dmd_jax.mesh import load_mesh
+from dmd_jax.io import load_mesh
 
 ALL_FUNCTIONS = (
     "face_cross",

@@ -17,8 +17,8 @@ from conftest import icosphere
 
 from dmd_jax import inference
 from dmd_jax.config import preset
+from dmd_jax.graph import build_mesh_graph
 from dmd_jax.inference import denoise, load_weights, save_weights
-from dmd_jax.mesh import build_mesh_graph
 from dmd_jax.model import DMDNet, param_shapes
 
 HEAD_SCALE = 1e-3  # head kernel std: vertex offsets of a few hundredths on a unit sphere

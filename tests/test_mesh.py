@@ -17,25 +17,20 @@ import trimesh
 from conftest import SHARED_MESHES, icosphere, shared_mesh_path, tetrahedron
 
 from dmd_jax import ops
-from dmd_jax.mesh import (
-    CanonicalFrame,
+from dmd_jax.graph import (
     MeshGraph,
     PaddedSizes,
-    atomic_write,
     batch_mesh_graphs,
     bucket_size,
     build_mesh_graph,
-    canonical_frame,
     face_adjacency,
-    load_mesh,
-    mean_edge_length,
     pad_mesh_graph,
     pad_vertex_array,
     padded_sizes_for,
-    save_mesh,
-    validate_mesh,
     vertex_edges,
 )
+from dmd_jax.io import atomic_write, load_mesh, save_mesh
+from dmd_jax.mesh import CanonicalFrame, canonical_frame, mean_edge_length, validate_mesh
 
 # --------------------------------------------------------------------------------------
 # Independent references

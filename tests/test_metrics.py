@@ -10,7 +10,7 @@ import pytest
 from conftest import icosphere, shared_mesh_path
 from scipy.spatial import cKDTree
 
-from dmd_jax.mesh import load_mesh
+from dmd_jax.io import load_mesh
 from dmd_jax.metrics import face_normal_errors_deg, mesh_metrics
 from dmd_jax.noise import add_noise
 

@@ -14,7 +14,7 @@ import pytest
 from conftest import icosphere, tetrahedron
 
 from dmd_jax.config import VARIANT_NAMES, VARIANTS, ModelConfig, preset, variant_config
-from dmd_jax.mesh import (
+from dmd_jax.graph import (
     PaddedSizes,
     batch_mesh_graphs,
     build_mesh_graph,

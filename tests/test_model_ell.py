@@ -18,16 +18,17 @@ from test_model import FAST_COMPILE, random_params
 
 from dmd_jax import inference, ops
 from dmd_jax.config import preset, variant_config
-from dmd_jax.inference import denoise
-from dmd_jax.mesh import (
+from dmd_jax.graph import (
     batch_mesh_graphs,
     build_mesh_graph,
-    load_mesh,
+    ell_layout,
     pad_mesh_graph,
     pad_vertex_array,
     padded_sizes_for,
     with_ell_layout,
 )
+from dmd_jax.inference import denoise
+from dmd_jax.io import load_mesh
 from dmd_jax.model import Aggregator, DMDNet, param_shapes
 
 
@@ -51,7 +52,7 @@ def test_with_ell_layout_is_ell_layout_plus_rounding_slots(slot_multiple):
     _, graph = padded_pair()
     out = with_ell_layout(graph, slot_multiple=slot_multiple)
     for stream, n_node in (("vertex", graph.n_vertex), ("face", graph.n_face)):
-        ref = ops.ell_layout(
+        ref = ell_layout(
             getattr(graph, f"{stream}_senders"),
             getattr(graph, f"{stream}_receivers"),
             getattr(graph, f"{stream}_edge_weight"),

@@ -25,13 +25,8 @@ from conftest import icosphere, shared_mesh_path, tetrahedron
 from jax.test_util import check_grads
 
 from dmd_jax import ops
-from dmd_jax.mesh import (
-    batch_mesh_graphs,
-    build_mesh_graph,
-    load_mesh,
-    pad_mesh_graph,
-    padded_sizes_for,
-)
+from dmd_jax.graph import batch_mesh_graphs, build_mesh_graph, pad_mesh_graph, padded_sizes_for
+from dmd_jax.io import load_mesh
 
 
 def assert_close_f32_weights(actual, expected):

@@ -15,13 +15,14 @@ import pytest
 from conftest import icosphere, shared_mesh_path, tetrahedron
 
 from dmd_jax import ops
-from dmd_jax.mesh import (
+from dmd_jax.graph import (
     batch_mesh_graphs,
     build_mesh_graph,
-    load_mesh,
+    ell_layout,
     pad_mesh_graph,
     padded_sizes_for,
 )
+from dmd_jax.io import load_mesh
 
 
 def dense_operator(senders, receivers, weight, n_node):
@@ -51,7 +52,7 @@ def test_forward_matches_gcn_aggregate(graph, stream, use_jit):
     r = getattr(graph, f"{stream}_receivers")
     w = getattr(graph, f"{stream}_edge_weight")
     n = graph.n_vertex if stream == "vertex" else graph.n_face
-    layout = ops.ell_layout(s, r, w, n)
+    layout = ell_layout(s, r, w, n)
     x = jnp.asarray(np.random.default_rng(0).normal(size=(n, 6)))
     agg = jax.jit(ops.gcn_aggregate_ell) if use_jit else ops.gcn_aggregate_ell
     expected = ops.gcn_aggregate(x, s, r, w)
@@ -62,7 +63,7 @@ def test_layout_of_tetrahedron_by_hand():
     # Every vertex of a tetrahedron sees all four (self loop included), weight 1/4 each.
     _, f = tetrahedron()
     g = build_mesh_graph(f, 4)
-    layout = ops.ell_layout(g.vertex_senders, g.vertex_receivers, g.vertex_edge_weight, 4)
+    layout = ell_layout(g.vertex_senders, g.vertex_receivers, g.vertex_edge_weight, 4)
     assert layout.neighbours.shape == (4, 4)
     np.testing.assert_array_equal(np.sort(layout.neighbours, axis=1), np.tile(np.arange(4), (4, 1)))
     np.testing.assert_allclose(layout.weights, 0.25)
@@ -80,7 +81,7 @@ def test_padded_batch_matches_gcn_aggregate():
     g = pad_mesh_graph(batch, padded_sizes_for(batch))
     # pad_mesh_graph repeats the zero-weight padding self loop: the layout merges them.
     assert len(np.unique(g.vertex_senders[-5:])) == 1
-    layout = ops.ell_layout(g.vertex_senders, g.vertex_receivers, g.vertex_edge_weight, g.n_vertex)
+    layout = ell_layout(g.vertex_senders, g.vertex_receivers, g.vertex_edge_weight, g.n_vertex)
     assert layout.neighbours.shape[1] == np.bincount(batch.vertex_receivers).max()
     x = jnp.asarray(np.random.default_rng(1).normal(size=(g.n_vertex, 3)))
     expected = ops.gcn_aggregate(x, g.vertex_senders, g.vertex_receivers, g.vertex_edge_weight)
@@ -90,7 +91,7 @@ def test_padded_batch_matches_gcn_aggregate():
 def test_real_mesh_float32_matches_gcn_aggregate():
     v, f = load_mesh(shared_mesh_path("fandisk.off"))
     g = build_mesh_graph(f, len(v))
-    layout = ops.ell_layout(g.vertex_senders, g.vertex_receivers, g.vertex_edge_weight, len(v))
+    layout = ell_layout(g.vertex_senders, g.vertex_receivers, g.vertex_edge_weight, len(v))
     x = jnp.asarray(np.random.default_rng(2).normal(size=(len(v), 16)), jnp.float32)
     out = jax.jit(ops.gcn_aggregate_ell)(x, *layout)
     assert out.dtype == jnp.float32
@@ -105,7 +106,7 @@ def test_gradients_match_dense_autodiff_with_asymmetric_weights(graph):
     # Weights differ between s -> r and r -> s, so a backward pass that reused the
     # forward table (a symmetric transpose) would be wrong.
     w = rng.uniform(0.1, 1.0, size=s.shape)
-    layout = ops.ell_layout(s, r, w, n)
+    layout = ell_layout(s, r, w, n)
     slot_of_edge = {
         (int(layout.neighbours[i, k]), i): (i, k)
         for i in range(n)
@@ -136,7 +137,7 @@ def test_feature_gradient_matches_gcn_aggregate_through_layers():
     # on which aggregation runs.
     v, f = icosphere(2)
     g = build_mesh_graph(f, len(v))
-    layout = ops.ell_layout(g.vertex_senders, g.vertex_receivers, g.vertex_edge_weight, len(v))
+    layout = ell_layout(g.vertex_senders, g.vertex_receivers, g.vertex_edge_weight, len(v))
     rng = np.random.default_rng(4)
     w = jnp.asarray(rng.normal(size=(5, 5)) / 2)
     x = jnp.asarray(rng.normal(size=(len(v), 5)))
@@ -160,17 +161,17 @@ def test_feature_gradient_matches_gcn_aggregate_through_layers():
 
 def test_layout_rejects_bad_input():
     with pytest.raises(ValueError, match="no reverse"):
-        ops.ell_layout(np.array([0, 1]), np.array([1, 1]), np.ones(2), 2)
+        ell_layout(np.array([0, 1]), np.array([1, 1]), np.ones(2), 2)
     with pytest.raises(ValueError, match="1-D of one length"):
-        ops.ell_layout(np.array([0, 1]), np.array([1]), np.ones(2), 2)
+        ell_layout(np.array([0, 1]), np.array([1]), np.ones(2), 2)
     with pytest.raises(ValueError, match=r"lie in \[0, 2\)"):
-        ops.ell_layout(np.array([0, 2]), np.array([2, 0]), np.ones(2), 2)
+        ell_layout(np.array([0, 2]), np.array([2, 0]), np.ones(2), 2)
     with pytest.raises(ValueError, match="n_node must be positive"):
-        ops.ell_layout(np.array([], int), np.array([], int), np.ones(0), 0)
+        ell_layout(np.array([], int), np.array([], int), np.ones(0), 0)
 
 
 def test_aggregate_rejects_bad_shapes():
-    layout = ops.ell_layout(np.array([0, 1]), np.array([1, 0]), np.ones(2), 2)
+    layout = ell_layout(np.array([0, 1]), np.array([1, 0]), np.ones(2), 2)
     with pytest.raises(ValueError, match="features must be"):
         ops.gcn_aggregate_ell(jnp.zeros(2), *layout)
     with pytest.raises(ValueError, match="neighbours must be"):

@@ -23,7 +23,8 @@ from scipy.spatial import cKDTree
 from test_reliability import CONFIG, random_params
 
 from dmd_jax import inference, losses
-from dmd_jax.mesh import build_mesh_graph, canonical_frame, validate_mesh
+from dmd_jax.graph import build_mesh_graph
+from dmd_jax.mesh import canonical_frame, validate_mesh
 from dmd_jax.metrics import mesh_metrics
 
 FEW = settings(

@@ -27,7 +27,7 @@ from conftest import REPO, shared_mesh_path, tetrahedron
 from dmd_jax import inference
 from dmd_jax.cli import main
 from dmd_jax.config import preset
-from dmd_jax.mesh import atomic_write, load_mesh, save_mesh
+from dmd_jax.io import atomic_write, load_mesh, save_mesh
 from dmd_jax.model import param_shapes
 
 # --------------------------------------------------------------------------------------

@@ -10,7 +10,7 @@ import pytest
 from conftest import REPO, SHARED_MESHES, shared_mesh_path
 
 from dmd_jax.baselines import taubin
-from dmd_jax.mesh import load_mesh
+from dmd_jax.io import load_mesh
 from dmd_jax.metrics import mesh_metrics
 
 

@@ -20,7 +20,8 @@ import numpy as np
 import scipy.sparse as sp
 
 from dmd_jax.geometry import safe_norm
-from dmd_jax.mesh import canonical_frame, face_adjacency, validate_mesh
+from dmd_jax.graph import face_adjacency
+from dmd_jax.mesh import canonical_frame, validate_mesh
 
 # How many times each jitted core has been traced; tests read it to check that a
 # second call on a mesh of the same size reuses the compiled program.

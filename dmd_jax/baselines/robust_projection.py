@@ -29,7 +29,8 @@ from dmd_jax.baselines._common import (
     run_in_canonical_frame,
 )
 from dmd_jax.geometry import face_areas, face_normals
-from dmd_jax.mesh import bucket_size, mean_edge_length
+from dmd_jax.graph import bucket_size
+from dmd_jax.mesh import mean_edge_length
 
 
 def _weighted_mean(weights, values, receivers, n, fallback):

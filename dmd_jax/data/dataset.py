@@ -36,13 +36,8 @@ from dmd_jax.data.shapes import (
     generate_shape,
     remesh,
 )
-from dmd_jax.mesh import (
-    SUPPORTED_EXTENSIONS,
-    atomic_write,
-    canonical_frame,
-    load_mesh,
-    validate_mesh,
-)
+from dmd_jax.io import SUPPORTED_EXTENSIONS, atomic_write, load_mesh
+from dmd_jax.mesh import canonical_frame, validate_mesh
 
 MANIFEST_NAME = "manifest.json"
 MANIFEST_FORMAT = "dmd_jax-mesh-dataset"
