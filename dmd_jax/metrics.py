@@ -9,6 +9,7 @@ where a mesh sits or how large it is. The metrics are the training losses of
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
@@ -85,3 +86,110 @@ def face_normal_errors_deg(pred_vertices, gt_vertices, faces, *, undefined=0.0) 
     angles, gt_ok = losses.face_normal_angles(pred, gt, f)
     deg = np.asarray(angles, np.float64) * (180.0 / math.pi)
     return np.where(np.asarray(gt_ok), deg, float(undefined))
+
+
+# --------------------------------------------------------------------------------------
+# One vocabulary for printing the metrics: names, units, scaling, legend.
+# `dmd-jax evaluate`, the demo, benchmarks/sota_lite.py and the notebooks all print
+# through these, so a number means the same wherever it appears.
+# --------------------------------------------------------------------------------------
+
+
+class MetricSpec(NamedTuple):
+    """How one entry of `mesh_metrics` is shown to a reader."""
+
+    key: str  # key in the dict `mesh_metrics` returns
+    name: str  # short column name
+    unit: str  # unit of the displayed (scaled) number
+    scale: float  # displayed number = raw value × scale
+    digits: int  # decimals shown
+    meaning: str  # one phrase for the legend
+
+
+VERTEX = MetricSpec(
+    "vertex_per_coord",
+    "vertex",
+    "×1e-4",
+    1e4,
+    3,
+    "mean squared vertex error per coordinate (the paper's vertex metric)",
+)
+VERTEX_SUM = MetricSpec(
+    "vertex",
+    "vertex xyz",
+    "×1e-4",
+    1e4,
+    3,
+    "squared vertex distance summed over x, y, z (3 × vertex; the training loss)",
+)
+NORMAL = MetricSpec(
+    "normal_deg", "normal", "°", 1.0, 2, "mean angle between corresponding face normals"
+)
+CHAMFER = MetricSpec(
+    "chamfer",
+    "chamfer",
+    "×1e-4",
+    1e4,
+    3,
+    "symmetric chamfer distance (squared) between the vertex sets",
+)
+
+# The three metrics shown by default, in this order (the paper's Table II columns).
+DEFAULT_METRICS: tuple[MetricSpec, ...] = (VERTEX, NORMAL, CHAMFER)
+ALL_METRICS: dict[str, MetricSpec] = {m.key: m for m in (VERTEX, VERTEX_SUM, NORMAL, CHAMFER)}
+
+FRAME_NOTE = (
+    "lengths in the clean mesh's canonical frame (bounding box centred, longest side 1); "
+    "lower is better"
+)
+
+
+def metric_header(spec: MetricSpec) -> str:
+    """Column header of a metric: `vertex (×1e-4)`, `normal (°)`."""
+    return f"{spec.name} ({spec.unit})"
+
+
+def format_metric(spec: MetricSpec, value: float) -> str:
+    """The displayed number of one raw metric value (scaled, fixed decimals)."""
+    return f"{float(value) * spec.scale:.{spec.digits}f}"
+
+
+def metric_cells(metrics: dict, specs=DEFAULT_METRICS) -> list[str]:
+    """One table row's cells for a `mesh_metrics` dict."""
+    return [format_metric(s, metrics[s.key]) for s in specs]
+
+
+def metrics_legend(specs=DEFAULT_METRICS) -> str:
+    """The legend line printed under every metrics table."""
+    parts = [f"{s.name} ({s.unit}): {s.meaning}" for s in specs]
+    return "; ".join(parts) + "; " + FRAME_NOTE + "."
+
+
+def metrics_table(
+    rows: dict, specs=DEFAULT_METRICS, *, label: str = "mesh", style: str = "markdown"
+) -> str:
+    """A table of metrics, one row per `name -> mesh_metrics dict`, then the legend line.
+
+    Args:
+      rows: `{row label: metrics dict}`; extra keys of a dict are ignored.
+      specs: the metrics to show, as columns.
+      label: header of the first column.
+      style: `"markdown"` (GitHub table) or `"text"` (aligned columns for a terminal).
+    """
+    header = [label] + [metric_header(s) for s in specs]
+    body = [[str(name), *metric_cells(m, specs)] for name, m in rows.items()]
+    if style == "markdown":
+        lines = ["| " + " | ".join(header) + " |", "|---|" + "---:|" * len(specs)]
+        lines += ["| " + " | ".join(row) + " |" for row in body]
+    elif style == "text":
+        widths = [max(len(r[i]) for r in [header, *body]) for i in range(len(header))]
+        lines = [
+            "  ".join(
+                c.ljust(w) if i == 0 else c.rjust(w)
+                for i, (c, w) in enumerate(zip(row, widths, strict=True))
+            ).rstrip()
+            for row in [header, *body]
+        ]
+    else:
+        raise ValueError(f"style must be 'markdown' or 'text', got {style!r}")
+    return "\n".join(lines) + "\n\n" + metrics_legend(specs) + "\n"

@@ -1,7 +1,23 @@
-"""Shaded renders of meshes side by side (matplotlib, headless), optional error colour maps."""
+"""Static pictures of meshes side by side (matplotlib, headless): shaded, zoomed, coloured.
+
+Each mesh is drawn in its own canonical frame with an orthographic camera: faces are
+projected to 2-D and painted back to front (`PolyCollection`), so a panel's limits are
+the mesh's projected extent and panels fill the figure edge to edge, with no 3-D axes
+box around them. One figure holds up to three rows, one column per mesh:
+
+* `shaded`: grey two-sided Lambert shading, to judge edges and flat regions;
+* `zoom`: the same, zoomed on one face (e.g. the sharpest feature, `sharpest_face`);
+* `values`: faces coloured by a per-face value (e.g. the normal error against the
+  clean mesh), on a colour scale from `nice_range` unless given; one colour bar in a
+  strip under the row.
+
+`up` names the model's up axis (`"z"`, `"y"` or `"auto"`, see `guess_up_axis`), so a
+Y-up scan is seen from above its equator, not from below.
+"""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -10,9 +26,12 @@ import numpy as np
 from dmd_jax.io import atomic_write
 from dmd_jax.mesh import canonical_frame
 
-# A fixed view and light so renders of different methods compare pixel for pixel.
+# A fixed view so renders of different methods compare pixel for pixel.
 _ELEV, _AZIM = 20.0, -60.0
-_LIGHT = np.array([0.4, -0.6, 0.7])
+UP_AXES = ("z", "y", "auto")
+_GREY = np.array([0.74, 0.77, 0.84])
+_TITLE_IN = 0.3  # inches of title strip above the first row
+_BAR_IN = 0.62  # inches of colour-bar strip under the values row
 
 
 def _face_normals_np(v: np.ndarray, f: np.ndarray) -> np.ndarray:
@@ -21,9 +40,172 @@ def _face_normals_np(v: np.ndarray, f: np.ndarray) -> np.ndarray:
     return np.divide(n, norm, out=np.zeros_like(n), where=norm > 0)
 
 
-def _view_direction(elev: float, azim: float) -> np.ndarray:
-    e, a = np.radians(elev), np.radians(azim)
-    return np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+def _camera(elev: float, azim: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(towards the viewer, screen right, screen up) unit vectors, Z-up world."""
+    e, a = math.radians(elev), math.radians(azim)
+    view = np.array([math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)])
+    right = np.array([-math.sin(a), math.cos(a), 0.0])
+    return view, right, np.cross(view, right)
+
+
+def _to_z_up(v: np.ndarray, up: str) -> np.ndarray:
+    """Rotates Y-up coordinates so that +Y becomes +Z (a right-handed turn about X)."""
+    if up == "z":
+        return v
+    if up == "y":
+        return np.stack([v[:, 0], -v[:, 2], v[:, 1]], axis=1)
+    raise ValueError(f"up must be one of {UP_AXES}, got {up!r}")
+
+
+def guess_up_axis(vertices, faces) -> str:
+    """`"y"` or `"z"`: the axis a mesh most plausibly stands on.
+
+    A mesh that rests on a flat base (CAD parts, most scans of statues) has many
+    downward-facing faces at the bottom of its up axis. For Y and Z, this sums the area
+    of faces whose normal is within 25° of `-axis` and whose centroid lies in the lowest
+    5 % of the extent, and picks the larger; with no such base on either axis it picks
+    Z (the convention of CAD and of this project's generator). Winding may be
+    inconsistent, so normals are compared by absolute value.
+    """
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64)
+    v = canonical_frame(v).apply(v)
+    cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    area = 0.5 * np.linalg.norm(cross, axis=1)
+    normal = _face_normals_np(v, f)
+    centroid = v[f].mean(axis=1)
+    support = {}
+    for name, axis in (("y", 1), ("z", 2)):
+        low = v[:, axis].min()
+        extent = max(np.ptp(v[:, axis]), 1e-12)
+        at_base = centroid[:, axis] <= low + 0.05 * extent
+        flat = np.abs(normal[:, axis]) >= math.cos(math.radians(25))
+        support[name] = float(area[at_base & flat].sum())
+    total = float(area.sum()) or 1.0
+    if max(support.values()) < 0.01 * total:
+        return "z"
+    return "y" if support["y"] > support["z"] else "z"
+
+
+def dihedral_angles(vertices, faces) -> np.ndarray:
+    """Per face, the largest angle (degrees) between its normal and a neighbour's.
+
+    Only edges shared by exactly two faces count; a face with none gets 0.
+    """
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64)
+    n = _face_normals_np(v, f)
+    edges = np.sort(np.stack([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], axis=1), axis=2)
+    edges = edges.reshape(-1, 2)
+    owner = np.repeat(np.arange(len(f)), 3)
+    key = edges[:, 0] * (int(v.shape[0]) + 1) + edges[:, 1]
+    order = np.argsort(key, kind="stable")
+    key, owner = key[order], owner[order]
+    _, start, count = np.unique(key, return_index=True, return_counts=True)
+    pairs = start[count == 2]
+    a, b = owner[pairs], owner[pairs + 1]
+    angle = np.degrees(np.arccos(np.clip(np.sum(n[a] * n[b], axis=1), -1.0, 1.0)))
+    out = np.zeros(len(f))
+    np.maximum.at(out, a, angle)
+    np.maximum.at(out, b, angle)
+    return out
+
+
+def sharpest_face(
+    vertices,
+    faces,
+    *,
+    elev: float = _ELEV,
+    azim: float = _AZIM,
+    up: str = "z",
+    crop_size: float = 0.15,
+) -> int:
+    """A face on the sharpest feature of a mesh that the camera sees: a crop centre.
+
+    Candidates are faces whose largest dihedral angle is within 20 % of the mesh's
+    largest and whose normal faces the camera (either winding); of up to 32 of them,
+    the one whose zoom window (`crop_size`, canonical units) is most covered by
+    surface, with candidates hidden behind another face left out.
+    """
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64)
+    v = _to_z_up(canonical_frame(v).apply(v), _resolve_up(up, v, f))
+    sharp = dihedral_angles(v, f)
+    view, right, screen_up = _camera(elev, azim)
+    candidates = np.flatnonzero(sharp >= 0.8 * sharp.max())
+    facing = np.abs(_face_normals_np(v, f[candidates]) @ view) > 0.2
+    if facing.any():
+        candidates = candidates[facing]
+    if len(candidates) > 32:
+        candidates = candidates[np.linspace(0, len(candidates) - 1, 32).astype(int)]
+    xy = np.stack([v @ right, v @ screen_up], axis=1)
+    tri = xy[f]  # [n_face, 3, 2]
+    depth = v[f].mean(axis=1) @ view
+
+    def covering(points):
+        """[n_point, n_face] bool: the point lies inside the face's projection."""
+        p = points[:, None, :]
+        d = [
+            (tri[None, :, (k + 1) % 3, 0] - tri[None, :, k, 0]) * (p[..., 1] - tri[None, :, k, 1])
+            - (tri[None, :, (k + 1) % 3, 1] - tri[None, :, k, 1]) * (p[..., 0] - tri[None, :, k, 0])
+            for k in range(3)
+        ]
+        return ((d[0] >= 0) & (d[1] >= 0) & (d[2] >= 0)) | ((d[0] <= 0) & (d[1] <= 0) & (d[2] <= 0))
+
+    grid = np.stack(np.meshgrid(np.linspace(-1, 1, 5), np.linspace(-1, 1, 5)), -1).reshape(-1, 2)
+    best, best_score = int(candidates[0]), -np.inf
+    for c in candidates:
+        p = tri[c].mean(axis=0)
+        hidden = np.any(covering(p[None])[0] & (depth > depth[c] + 1e-3))
+        covered = covering(p + crop_size * grid).any(axis=1).mean()
+        score = float(covered) - (10.0 if hidden else 0.0)
+        if score > best_score:
+            best, best_score = int(c), score
+    return best
+
+
+def nice_range(values: Sequence[np.ndarray], percentile: float = 95.0) -> tuple[float, float]:
+    """A colour range that resolves the best panel: `(0, p95)`, rounded up.
+
+    `values` holds one array per panel. The top is the smallest, over panels, of each
+    panel's `percentile` (panels whose percentile is 0 left out), rounded up to 1, 2,
+    2.5 or 5 times a power of ten: the best result's errors span the whole scale, and a
+    worse panel (the noisy input) saturates in the brightest colour rather than
+    squashing every other panel into the darkest tenth. Values with negative entries
+    get a symmetric `(-t, t)` from the absolute values.
+    """
+    arrays = [np.ravel(np.asarray(x, np.float64)) for x in values]
+    arrays = [a[np.isfinite(a)] for a in arrays]
+    arrays = [a for a in arrays if a.size]
+    if not arrays:
+        return 0.0, 1.0
+    signed = any(bool((a < 0).any()) for a in arrays)
+    tops = [float(np.percentile(np.abs(a) if signed else a, percentile)) for a in arrays]
+    tops = [t for t in tops if t > 0]
+    top = min(tops) if tops else max(float(np.abs(a).max()) for a in arrays) or 1.0
+    power = 10.0 ** math.floor(math.log10(top))
+    top = next(m * power for m in (1, 2, 2.5, 5, 10) if m * power >= top * (1 - 1e-9))
+    return (-top, top) if signed else (0.0, top)
+
+
+def resolve_up(up: str, meshes: Sequence[tuple[np.ndarray, np.ndarray]]) -> str:
+    """`up` itself, or for `"auto"` the majority of `guess_up_axis` over the meshes.
+
+    Noise can hide a flat base, so several versions of one shape (noisy, denoised,
+    clean) vote; a tie goes to Z.
+    """
+    if up != "auto":
+        return _resolve_up(up, None, None)
+    votes = [guess_up_axis(v, f) for v, f in meshes]
+    return "y" if votes.count("y") > votes.count("z") else "z"
+
+
+def _resolve_up(up: str, v, f) -> str:
+    if up == "auto":
+        return guess_up_axis(v, f)
+    if up not in ("y", "z"):
+        raise ValueError(f"up must be one of {UP_AXES}, got {up!r}")
+    return up
 
 
 def render_meshes(
@@ -32,93 +214,240 @@ def render_meshes(
     *,
     titles: Sequence[str] | None = None,
     face_values: Sequence[np.ndarray | None] | None = None,
-    value_label: str = "normal error (deg)",
+    value_label: str = "normal error (°)",
     value_range: tuple[float, float] | None = None,
     elev: float = _ELEV,
     azim: float = _AZIM,
+    up: str = "z",
     panel_size: float = 3.2,
+    shaded_row: bool | None = None,
+    crop_face: int | None = None,
+    crop_size: float = 0.15,
+    cmap: str = "inferno",
+    dpi: int = 110,
     overwrite: bool = False,
     max_faces: int = 200_000,
 ) -> Path:
-    """Renders meshes side by side to a PNG, each in its own canonical frame.
+    """Renders meshes side by side to a PNG: shaded, zoomed and coloured rows.
 
     Args:
-      meshes: `(vertices [n, 3], faces [f, 3])` pairs.
+      meshes: `(vertices [n, 3], faces [f, 3])` pairs, each drawn in its own canonical
+        frame.
       path: output PNG (written atomically).
-      titles: one title per panel.
-      face_values: per panel, `[f]` values to colour faces by (e.g. normal error against
-        a ground truth), or None for grey Lambert shading.
+      titles: one title per column.
+      face_values: per mesh, `[f]` values to colour faces by (e.g. normal error
+        against a ground truth), or None (that panel is shaded grey and marked
+        `reference`). Without it there is no values row.
       value_label: colour-bar label for `face_values`.
-      value_range: colour scale limits; default 0 to the 99th percentile over panels.
-      elev, azim: camera angles in degrees.
-      panel_size: inches per panel.
+      value_range: colour scale limits; default `nice_range` of all values (0 to the
+        95th percentile, rounded up; symmetric if any value is negative).
+      elev, azim: camera angles in degrees, about the model's up axis.
+      up: the model's up axis, `"z"`, `"y"` or `"auto"` (`resolve_up`: the meshes vote).
+      panel_size: inches of a panel's longer side.
+      shaded_row: add a grey shaded row above the values; default: only when there are
+        no `face_values` (then it is the only row).
+      crop_face: a face index (the same in every mesh, e.g. from `sharpest_face`):
+        adds a shaded row zoomed on that face.
+      crop_size: half-width of the zoom window, in canonical units (bounding box
+        longest side 1).
+      cmap: matplotlib colour map of the values row.
+      dpi: pixels per inch.
       overwrite: replace an existing file.
       max_faces: refuse meshes larger than this (matplotlib is not a rasteriser for
         millions of faces).
+
+    Returns:
+      The path written.
     """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+    from matplotlib.collections import PolyCollection
 
     if not meshes:
         raise ValueError("render_meshes needs at least one mesh")
-    titles = list(titles) if titles is not None else [""] * len(meshes)
-    face_values = list(face_values) if face_values is not None else [None] * len(meshes)
-    if len(titles) != len(meshes) or len(face_values) != len(meshes):
+    n_col = len(meshes)
+    titles = list(titles) if titles is not None else [""] * n_col
+    has_values = face_values is not None
+    face_values = list(face_values) if has_values else [None] * n_col
+    if len(titles) != n_col or len(face_values) != n_col:
         raise ValueError("titles and face_values need one entry per mesh")
-    vals = [np.asarray(x) for x in face_values if x is not None]
-    if vals and value_range is None:
-        value_range = (0.0, float(np.percentile(np.concatenate(vals), 99)) or 1.0)
-    cmap = plt.get_cmap("inferno")
-    view = _view_direction(elev, azim)
-    light = _LIGHT / np.linalg.norm(_LIGHT)
-
-    fig = plt.figure(figsize=(panel_size * len(meshes), panel_size + 0.3))
-    fig.subplots_adjust(left=0, right=1, bottom=0, top=0.92, wspace=0)
-    for i, ((v, f), title, fv) in enumerate(zip(meshes, titles, face_values, strict=True)):
+    if panel_size <= 0:
+        raise ValueError(f"panel_size must be positive, got {panel_size}")
+    prepared = []
+    for i, (v, f) in enumerate(meshes):
         v = np.asarray(v, np.float64)
         f = np.asarray(f, np.int64)
         if f.shape[0] > max_faces:
             raise ValueError(f"mesh {i} has {f.shape[0]} faces; render supports ≤ {max_faces}")
-        v = canonical_frame(v).apply(v)
-        n = _face_normals_np(v, f)
-        # Two-sided Lambert shading, so inconsistent winding still renders.
-        shade = 0.25 + 0.75 * np.abs(n @ light)
-        if fv is None:
-            colors = np.repeat(shade[:, None], 3, axis=1) * np.array([0.75, 0.78, 0.85])
-            colors = np.concatenate([colors, np.ones((len(f), 1))], axis=1)
-        else:
-            lo, hi = value_range
-            t = np.clip((np.asarray(fv) - lo) / max(hi - lo, 1e-12), 0, 1)
-            colors = cmap(t)
-            colors[:, :3] *= (0.55 + 0.45 * shade)[:, None]
-        # Painter's algorithm: draw far faces first.
-        depth = v[f].mean(axis=1) @ view
-        order = np.argsort(depth)
-        ax = fig.add_subplot(1, len(meshes), i + 1, projection="3d")
-        poly = Poly3DCollection(
-            v[f[order]], facecolors=colors[order], edgecolors="none", linewidths=0
+        if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
+            raise ValueError(f"mesh {i}: faces must be a non-empty [n_face, 3] array")
+        if crop_face is not None and not 0 <= crop_face < len(f):
+            raise ValueError(f"crop_face {crop_face} is out of range for mesh {i}")
+        prepared.append((canonical_frame(v).apply(v), f))
+    for i, fv in enumerate(face_values):
+        if fv is not None and np.shape(fv) != (len(prepared[i][1]),):
+            raise ValueError(f"face_values[{i}] needs one value per face of mesh {i}")
+    up = resolve_up(up, prepared)
+    vals = [np.asarray(x, np.float64) for x in face_values if x is not None]
+    if has_values and not vals:
+        has_values = False
+    if has_values and value_range is None:
+        value_range = nice_range(vals)
+    if value_range is not None and not value_range[1] > value_range[0]:
+        raise ValueError(f"value_range needs low < high, got {tuple(value_range)}")
+
+    view, right, screen_up = _camera(elev, azim)
+    # Light from the upper left of the viewer, fixed to the camera.
+    light = view + 0.55 * screen_up - 0.45 * right
+    light /= np.linalg.norm(light)
+    projected = []
+    for v, f in prepared:
+        v = _to_z_up(v, up)
+        xy = np.stack([v @ right, v @ screen_up], axis=1)
+        order = np.argsort(v[f].mean(axis=1) @ view)  # painter's algorithm: far first
+        shade = 0.22 + 0.78 * np.abs(_face_normals_np(v, f) @ light)
+        projected.append((xy, f, order, shade))
+
+    # Panel shape: the projected extent of the first mesh, clamped to 1:2 .. 2:1.
+    lo = np.min([p[0].min(axis=0) for p in projected], axis=0)
+    hi = np.max([p[0].max(axis=0) for p in projected], axis=0)
+    span = hi - lo
+    aspect = float(np.clip(span[1] / max(span[0], 1e-12), 0.5, 2.0))
+    panel_w, panel_h = (
+        (panel_size, panel_size * aspect)
+        if aspect <= 1
+        else (
+            panel_size / aspect,
+            panel_size,
         )
-        ax.add_collection3d(poly)
-        ax.set_xlim(-0.5, 0.5)
-        ax.set_ylim(-0.5, 0.5)
-        ax.set_zlim(-0.5, 0.5)
-        ax.set_box_aspect((1, 1, 1), zoom=1.25)
-        ax.view_init(elev=elev, azim=azim)
-        ax.set_axis_off()
-        ax.set_title(title, fontsize=9)
-    if vals:
-        sm = plt.cm.ScalarMappable(cmap=cmap, norm=plt.Normalize(*value_range))
-        fig.colorbar(sm, ax=fig.axes, shrink=0.6, label=value_label)
-    else:
-        fig.tight_layout()
+    )
+    rows = []
+    if shaded_row or not has_values:
+        rows.append("shaded")
+    if crop_face is not None:
+        rows.append("zoom")
+    if has_values:
+        rows.append("values")
+    title_in = _TITLE_IN * (1 + max(t.count("\n") for t in titles)) if any(titles) else 0.0
+    # The colour bar goes into the values cell of a mesh without values (the reference,
+    # which would only repeat its shaded panel), else into a strip under the figure.
+    bar_cell = next((i for i, x in enumerate(face_values) if x is None), None)
+    bar_in = _BAR_IN if has_values and bar_cell is None else 0.0
+    fig_w = panel_w * n_col
+    fig_h = title_in + panel_h * len(rows) + bar_in
+    fig = plt.figure(figsize=(fig_w, fig_h))
+    cm = plt.get_cmap(cmap)
+    zoom = max(span.max(), 1e-12) / (2 * crop_size)
+
+    def limits(center, half_w, half_h, ax):
+        ax.set_xlim(center[0] - half_w, center[0] + half_w)
+        ax.set_ylim(center[1] - half_h, center[1] + half_h)
+
+    for r, row in enumerate(rows):
+        bottom = bar_in + panel_h * (len(rows) - 1 - r)
+        for c, (xy, f, order, shade) in enumerate(projected):
+            ax = fig.add_axes(
+                [c * panel_w / fig_w, bottom / fig_h, panel_w / fig_w, panel_h / fig_h]
+            )
+            ax.set_axis_off()
+            fv = face_values[c]
+            if row == "values" and c == bar_cell:
+                bar = ax.inset_axes([0.12, 0.22, 0.76, 0.07])
+                _colour_bar(fig, bar, cm, value_range, value_label, vals)
+                continue
+            if row == "values" and fv is not None:
+                t = (np.asarray(fv, np.float64) - value_range[0]) / (
+                    value_range[1] - value_range[0]
+                )
+                colors = cm(np.clip(np.nan_to_num(t), 0, 1))
+                colors[:, :3] *= (0.6 + 0.4 * shade)[:, None]
+            else:
+                colors = np.concatenate(
+                    [shade[:, None] * _GREY[None, :], np.ones((len(f), 1))], axis=1
+                )
+            ax.add_collection(
+                PolyCollection(
+                    xy[f[order]],
+                    facecolors=colors[order],
+                    edgecolors=colors[order],
+                    linewidths=0.15,
+                    antialiaseds=False,
+                )
+            )
+            # Half-extents of a panel in data units (2 % margin), widened to its shape.
+            half = 0.5 * np.maximum(span, 1e-12) * 1.04
+            if half[0] / half[1] < panel_w / panel_h:
+                half[0] = half[1] * panel_w / panel_h
+            else:
+                half[1] = half[0] * panel_h / panel_w
+            if row == "zoom":
+                center = xy[f[crop_face]].mean(axis=0)
+                limits(center, half[0] / zoom, half[1] / zoom, ax)
+            else:
+                limits(0.5 * (lo + hi), half[0], half[1], ax)
+            label = {"shaded": "", "zoom": f"zoom ×{zoom:.1f}", "values": ""}[row]
+            if row == "values" and fv is None:
+                label = "reference"
+            if label:
+                ax.text(
+                    0.03,
+                    0.97,
+                    label,
+                    transform=ax.transAxes,
+                    ha="left",
+                    va="top",
+                    fontsize=8,
+                    color="0.25",
+                )
+            if r == 0 and titles[c]:
+                fig.text(
+                    (c + 0.5) * panel_w / fig_w,
+                    1 - 0.5 * title_in / fig_h,
+                    titles[c],
+                    ha="center",
+                    va="center",
+                    fontsize=9,
+                )
+    if has_values and bar_cell is None:
+        bar = fig.add_axes([0.2, (0.34 * bar_in) / fig_h, 0.6, 0.16 * bar_in / fig_h])
+        _colour_bar(fig, bar, cm, value_range, value_label, vals)
 
     def write(tmp):
-        fig.savefig(tmp, dpi=110, format="png")
+        fig.savefig(tmp, dpi=dpi, format="png")
 
     try:
         return atomic_write(path, write, overwrite=overwrite)
     finally:
         plt.close(fig)
+
+
+def _colour_bar(fig, cax, cm, value_range, value_label, vals) -> None:
+    import matplotlib.pyplot as plt
+
+    sm = plt.cm.ScalarMappable(cmap=cm, norm=plt.Normalize(*value_range))
+    cb = fig.colorbar(sm, cax=cax, orientation="horizontal")
+    cb.ax.tick_params(labelsize=7, length=2, pad=1)
+    cb.set_label(value_label, fontsize=8, labelpad=2)
+    cb.ax.xaxis.set_label_position("top")
+    if value_range[1] < max(float(np.nanmax(x)) for x in vals):
+        cb.ax.text(
+            1.0,
+            -2.2,
+            "brighter = larger; the top colour includes all above",
+            transform=cb.ax.transAxes,
+            ha="right",
+            va="top",
+            fontsize=6.5,
+            color="0.3",
+        )
+
+
+def white_fraction(png_path, *, threshold: int = 250) -> float:
+    """Share of a PNG's pixels that are blank (every channel ≥ `threshold`)."""
+    from PIL import Image
+
+    with Image.open(png_path) as image:
+        rgb = np.asarray(image.convert("RGB"))
+    return float(np.mean(np.all(rgb >= threshold, axis=-1)))
