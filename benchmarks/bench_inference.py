@@ -134,27 +134,28 @@ def measure(
     import jax
     import jax.numpy as jnp
 
-    from dmd_jax import config, inference, mesh, model, pipeline
+    from dmd_jax import config, inference, mesh, model
     from dmd_jax import graph as graph_lib
+    from dmd_jax.checkpoints import ModelBundle
     from dmd_jax.evaluate import pymeshlab_filter
 
     load = os.getloadavg()[0]
     cfg = config.preset(preset)
     params = model.init_params(cfg.model, jax.random.PRNGKey(0))
-    bundle = inference.ModelBundle(params=params, config=cfg, meta={})
+    bundle = ModelBundle(params=params, config=cfg, meta={})
     v, f = noisy_grid(n_face)
     rss_before = peak_rss_gib()
 
     # The network on the padded batch `denoise` builds, compiled ahead of time: the jit
     # cache then holds it, and `denoise` below does not compile again.
-    predict = inference._predictor(json.dumps(cfg.to_dict(), sort_keys=True))
+    predict = inference._predictor(cfg)
     x = mesh.canonical_frame(v).apply(v)
     graph = graph_lib.build_mesh_graph(f, v.shape[0])
-    batch = pipeline.collate([x], [x], [graph])
-    noisy = jnp.asarray(batch.noisy)
+    graph = graph_lib.pad_mesh_graph(graph, graph_lib.padded_sizes_for(graph))
+    noisy = jnp.asarray(graph_lib.pad_vertex_array(x.astype(np.float32), graph.n_vertex))
     # `denoise` aggregates through ELL tables; the segment-sum graph is the comparison.
-    graph_ell = jax.tree.map(jnp.asarray, graph_lib.with_ell_layout(batch.graph))
-    graph_seg = jax.tree.map(jnp.asarray, batch.graph)
+    graph_ell = jax.tree.map(jnp.asarray, graph_lib.with_ell_layout(graph))
+    graph_seg = jax.tree.map(jnp.asarray, graph)
     start = time.perf_counter()
     compiled = predict.lower(bundle.params, noisy, graph_ell).compile()
     compile_s = time.perf_counter() - start
@@ -202,8 +203,8 @@ def measure(
         "preset": preset,
         "faces": int(f.shape[0]),
         "vertices": int(v.shape[0]),
-        "padded_vertices": int(batch.graph.n_vertex),
-        "padded_faces": int(batch.graph.n_face),
+        "padded_vertices": int(graph.n_vertex),
+        "padded_faces": int(graph.n_face),
         "load_1min": load,
         "compile_s": compile_s,
         "first_call_s": first_s,

@@ -204,7 +204,7 @@ def tables(rows: list[list]) -> tuple[str, str]:
 
 
 def _weights_description(bundle, weights) -> dict[str, str]:
-    from dmd_jax.inference import pretrained_path
+    from dmd_jax.checkpoints import pretrained_path
     from dmd_jax.model import param_count
 
     path = pretrained_path() if weights is None else Path(weights)

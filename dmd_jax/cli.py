@@ -40,21 +40,11 @@ def _cmd_info(args: argparse.Namespace) -> int:
 
 def _load_model_or_method(args: argparse.Namespace):
     """The denoiser the user asked for: a baseline name, a weights file, a checkpoint dir."""
-    from dmd_jax import inference
+    from dmd_jax.checkpoints import load_model
 
     if getattr(args, "method", "dmd") != "dmd":
         return None
-    if args.weights is None:
-        return inference.load_pretrained()
-    from pathlib import Path
-
-    path = Path(args.weights)
-    if path.is_dir():
-        from dmd_jax.train import load_params
-
-        params, cfg = load_params(path)
-        return inference.ModelBundle(params=params, config=cfg, meta={"source": str(path)})
-    return inference.load_weights(path)
+    return load_model(args.weights)
 
 
 def _cmd_denoise(args: argparse.Namespace) -> int:
@@ -326,7 +316,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         )
     init = None
     if args.init_from:
-        from dmd_jax.train import load_params
+        from dmd_jax.checkpoints import load_params
 
         init, init_cfg = load_params(args.init_from)
         if init_cfg.model != cfg.model:
@@ -352,8 +342,7 @@ def _cmd_export_weights(args: argparse.Namespace) -> int:
     import json
     import platform
 
-    from dmd_jax.inference import save_weights
-    from dmd_jax.train import load_params
+    from dmd_jax.checkpoints import load_params, save_weights
 
     params, cfg = load_params(args.checkpoint)
     meta = {"source": str(args.checkpoint), "platform": platform.platform()}

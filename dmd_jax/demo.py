@@ -85,7 +85,7 @@ def load_bundle(weights=None):
     """The model to run: the bundled weights, a weights file, or a checkpoint directory.
 
     Args:
-      weights: None for `dmd_jax.inference.load_pretrained()`; otherwise a path to a
+      weights: None for `dmd_jax.load_pretrained()`; otherwise a path to a
         file written by `save_weights` / `dmd-jax export-weights`, or an Orbax
         checkpoint directory written by `dmd-jax train`.
 
@@ -93,22 +93,16 @@ def load_bundle(weights=None):
       FileNotFoundError: the bundled weights or the given path is missing.
       ValueError: the file is not a valid weights file.
     """
-    from dmd_jax import inference
+    from dmd_jax.checkpoints import load_model
 
-    if weights is None:
-        try:
-            return inference.load_pretrained()
-        except FileNotFoundError as exc:
-            raise FileNotFoundError(
-                f"{exc}; pass --weights PATH (a file from `dmd-jax export-weights`)"
-            ) from exc
-    path = Path(weights)
-    if path.is_dir():
-        from dmd_jax.train import load_params
-
-        params, cfg = load_params(path)
-        return inference.ModelBundle(params=params, config=cfg, meta={"source": str(path)})
-    return inference.load_weights(path)
+    try:
+        return load_model(weights)
+    except FileNotFoundError as exc:
+        if weights is not None:
+            raise
+        raise FileNotFoundError(
+            f"{exc}; pass --weights PATH (a file from `dmd-jax export-weights`)"
+        ) from exc
 
 
 def _describe(bundle, weights) -> str:

@@ -343,14 +343,56 @@ def bucket_size(n: int, *, minimum: int = 64) -> int:
     return 2 ** (k + 1)
 
 
-def padded_sizes_for(graph: MeshGraph, *, n_graph: int | None = None) -> PaddedSizes:
-    """Bucketed sizes that hold `graph` plus at least one padding vertex, face and graph."""
+# Upper bounds of padded sizes per padded vertex: a closed triangle mesh has f ≈ 2v,
+# 2e + v ≈ 7v primal edges with self loops and 4f dual edges with self loops.
+_FACE_RATIO = 2.25
+_VERTEX_EDGE_RATIO = 7.5
+_FACE_EDGE_RATIO = 4.0 * _FACE_RATIO
+
+
+def sizes_for_vertices(
+    n_vertex: int, n_face: int, n_vertex_edge: int, n_face_edge: int, n_graph: int
+) -> PaddedSizes:
+    """The sizing policy: every padded size derives from one vertex bucket.
+
+    The vertex count is rounded up by `bucket_size` (with room for a padding vertex),
+    and faces and edges get fixed multiples of it, so a run compiles one program per
+    vertex bucket it touches. A mesh whose faces or edges exceed those multiples moves
+    up a bucket.
+
+    Args:
+      n_vertex, n_face, n_vertex_edge, n_face_edge: real counts of the (batched) graph.
+      n_graph: real graphs; one padding graph is added.
+    """
+    nv = bucket_size(n_vertex + 1)
+    while (
+        int(_FACE_RATIO * nv) < n_face
+        or int(_VERTEX_EDGE_RATIO * nv) < n_vertex_edge
+        or int(_FACE_EDGE_RATIO * nv) < n_face_edge
+    ):
+        nv = bucket_size(nv + 1)
     return PaddedSizes(
-        n_vertex=bucket_size(graph.n_vertex + 1),
-        n_face=bucket_size(graph.n_face + 1),
-        n_vertex_edge=bucket_size(graph.vertex_senders.shape[0] + 1),
-        n_face_edge=bucket_size(graph.face_senders.shape[0] + 1),
-        n_graph=(graph.n_graph + 1) if n_graph is None else n_graph,
+        n_vertex=nv,
+        n_face=int(_FACE_RATIO * nv),
+        n_vertex_edge=int(_VERTEX_EDGE_RATIO * nv),
+        n_face_edge=int(_FACE_EDGE_RATIO * nv),
+        n_graph=n_graph + 1,
+    )
+
+
+def padded_sizes_for(graph: MeshGraph, *, n_graph: int | None = None) -> PaddedSizes:
+    """`sizes_for_vertices` of a (batched) graph: room for it plus one padding graph.
+
+    Args:
+      graph: an unpadded `MeshGraph`.
+      n_graph: padded graph count (default `graph.n_graph + 1`).
+    """
+    return sizes_for_vertices(
+        graph.n_vertex,
+        graph.n_face,
+        graph.vertex_senders.shape[0],
+        graph.face_senders.shape[0],
+        graph.n_graph if n_graph is None else n_graph - 1,
     )
 
 

@@ -279,8 +279,9 @@ def _mean_dicts(rows: Sequence[dict]) -> dict:
 
 def evaluate_checkpoint(cfg, checkpoint_dir, eval_sets) -> dict:
     """The test metrics `train()` reports at its last step, from a saved checkpoint."""
+    from dmd_jax.checkpoints import load_params
     from dmd_jax.pipeline import NoiseSettings, evaluation_batches
-    from dmd_jax.train import Trainer, load_params
+    from dmd_jax.train import Trainer
 
     params, _ = load_params(checkpoint_dir)
     trainer = Trainer(cfg)
@@ -445,11 +446,11 @@ def _train_home(job: dict, cfg, home: Path, train_ex, evals, log) -> dict:
 
 
 def _bundle(cfg, home: Path):
-    from dmd_jax.inference import ModelBundle
-    from dmd_jax.train import load_params
+    from dmd_jax.checkpoints import load_model
 
-    params, _ = load_params(home / "checkpoints" / "latest")
-    return ModelBundle(params=params, config=cfg, meta={"source": str(home)})
+    # The checkpoint carries the run's config; `cfg` names the run it must be.
+    bundle = load_model(home / "checkpoints" / "latest")
+    return bundle._replace(config=cfg, meta={"source": str(home)})
 
 
 def run_job(job: dict) -> dict:

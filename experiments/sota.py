@@ -145,16 +145,11 @@ class Method(NamedTuple):
 
 def _dmd_method(key: str, label: str, path: Path | None) -> Method:
     from dmd_jax import inference
+    from dmd_jax.checkpoints import load_model
 
     if path is None or not Path(path).exists():
         return Method(key, label, None, PENDING if key == "dmd" else f"missing {path}")
-    if Path(path).is_dir():
-        from dmd_jax.train import load_params
-
-        params, cfg = load_params(path)
-        bundle = inference.ModelBundle(params=params, config=cfg, meta={})
-    else:
-        bundle = inference.load_weights(path)
+    bundle = load_model(path)
     steps = bundle.meta.get("steps")
     trained = f", {steps} training steps" if steps else ""
     return Method(
@@ -180,8 +175,9 @@ def build_methods(
       cnr_weights: CNR weights for ``cnr``; default the bundled file.
       extra_weights: further DMD-Net checkpoints as `(label, path)`.
     """
-    from dmd_jax import baselines, inference
+    from dmd_jax import baselines
     from dmd_jax.baselines import cascaded_regression
+    from dmd_jax.checkpoints import pretrained_path
     from dmd_jax.evaluate import PYMESHLAB_FILTERS, pymeshlab_filter
 
     unknown = sorted(set(names) - set(METHODS))
@@ -227,7 +223,7 @@ def build_methods(
             else:
                 out.append(Method(name, label, None, f"missing {path}"))
         elif name == "dmd":
-            path = Path(dmd_weights) if dmd_weights else inference.pretrained_path()
+            path = Path(dmd_weights) if dmd_weights else pretrained_path()
             out.append(_dmd_method("dmd", label, path))
     for label, path in extra_weights:
         out.append(_dmd_method(f"dmd:{label}", f"DMD-Net ({label})", Path(path)))

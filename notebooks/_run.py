@@ -35,7 +35,7 @@ def weights_available() -> str | None:
     env = os.environ.get("DMD_JAX_WEIGHTS")
     if env:
         return None if Path(env).is_file() else f"DMD_JAX_WEIGHTS={env} is not a file"
-    from dmd_jax.inference import pretrained_path
+    from dmd_jax.checkpoints import pretrained_path
 
     path = pretrained_path()
     if path.is_file():

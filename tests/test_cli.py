@@ -17,7 +17,7 @@ import pytest
 from conftest import icosphere, shared_mesh_path
 from test_inference import tiny_params
 
-from dmd_jax import baselines, inference
+from dmd_jax import baselines, checkpoints, inference
 from dmd_jax.cli import main
 from dmd_jax.config import preset
 from dmd_jax.io import load_mesh, save_mesh
@@ -30,7 +30,7 @@ PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 @pytest.fixture(scope="module")
 def weights(tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("weights") / "tiny.msgpack"
-    return inference.save_weights(path, tiny_params(), preset("test"), {"note": "tiny"})
+    return checkpoints.save_weights(path, tiny_params(), preset("test"), {"note": "tiny"})
 
 
 @pytest.fixture(scope="module")
@@ -374,11 +374,11 @@ def test_demo_refuses_existing_outputs(demo_dir, capsys, weights):
 def test_demo_uses_the_bundled_weights_by_default(monkeypatch, tmp_path, capsys, weights):
     from dmd_jax import demo
 
-    monkeypatch.setattr(inference, "pretrained_path", lambda: tmp_path / "absent.msgpack")
+    monkeypatch.setattr(checkpoints, "pretrained_path", lambda: tmp_path / "absent.msgpack")
     code, _, err = run(capsys, "demo", "--out", tmp_path / "demo")
     assert_one_line_error(code, err, "bundled weights are missing", "--weights")
     assert not (tmp_path / "demo").exists()
-    monkeypatch.setattr(inference, "pretrained_path", lambda: weights)
+    monkeypatch.setattr(checkpoints, "pretrained_path", lambda: weights)
     assert demo.load_bundle(None).meta == {"note": "tiny"}
 
 

@@ -153,7 +153,7 @@ def test_calibration_is_half_the_normal_loss_over_the_median_terms(sphere_exampl
 @pytest.fixture(scope="module")
 def identity_bundle(base):
     """An untrained offset model with a zero head: exactly the identity map."""
-    from dmd_jax.inference import ModelBundle
+    from dmd_jax.checkpoints import ModelBundle
     from dmd_jax.model import init_params
 
     assert base.model.predict_offset and base.model.head_init_scale == 0

@@ -27,9 +27,10 @@ import numpy as np
 import pytest
 from conftest import REPO, icosphere
 
+from dmd_jax.checkpoints import load_params
 from dmd_jax.config import preset
 from dmd_jax.pipeline import NoiseSettings, make_examples, training_batch
-from dmd_jax.train import NonFiniteLossError, load_params, phase_of, train
+from dmd_jax.train import NonFiniteLossError, phase_of, train
 
 STEPS = 6
 CKPT_EVERY = 2

@@ -15,10 +15,11 @@ import numpy as np
 import pytest
 from conftest import icosphere
 
-from dmd_jax import inference
+from dmd_jax import checkpoints
+from dmd_jax.checkpoints import load_weights, save_weights
 from dmd_jax.config import preset
 from dmd_jax.graph import build_mesh_graph
-from dmd_jax.inference import denoise, load_weights, save_weights
+from dmd_jax.inference import denoise
 from dmd_jax.model import DMDNet, param_shapes
 
 HEAD_SCALE = 1e-3  # head kernel std: vertex offsets of a few hundredths on a unit sphere
@@ -234,7 +235,7 @@ def test_not_a_weights_file(tmp_path):
 
 def test_other_format_version(weights_path, tmp_path):
     payload = _payload(weights_path)
-    payload["version"] = inference.WEIGHTS_VERSION + 1
+    payload["version"] = checkpoints.WEIGHTS_VERSION + 1
     path = _write_payload(tmp_path / "v2.msgpack", payload)
     with pytest.raises(ValueError, match="version"):
         load_weights(path)
@@ -256,22 +257,22 @@ def test_config_mismatch(weights_path, tmp_path):
 
 
 def test_load_pretrained_reads_the_package_path(monkeypatch, weights_path, tmp_path):
-    monkeypatch.setattr(inference, "pretrained_path", lambda: weights_path)
-    loaded = inference.load_pretrained()
+    monkeypatch.setattr(checkpoints, "pretrained_path", lambda: weights_path)
+    loaded = checkpoints.load_pretrained()
     assert loaded.config == preset("test") and loaded.meta["note"] == "tiny test model"
-    monkeypatch.setattr(inference, "pretrained_path", lambda: tmp_path / "absent.msgpack")
+    monkeypatch.setattr(checkpoints, "pretrained_path", lambda: tmp_path / "absent.msgpack")
     with pytest.raises(FileNotFoundError, match="bundled weights are missing"):
-        inference.load_pretrained()
+        checkpoints.load_pretrained()
 
 
 @pytest.mark.skipif(
-    not inference.pretrained_path().is_file(), reason="the bundled weights are not installed"
+    not checkpoints.pretrained_path().is_file(), reason="the bundled weights are not installed"
 )
 def test_bundled_model_reduces_normal_error():
     from dmd_jax.demo import gaussian_edge_noise
     from dmd_jax.metrics import mesh_metrics
 
-    pretrained = inference.load_pretrained()
+    pretrained = checkpoints.load_pretrained()
     assert pretrained.config.name == "small"
     v, f = icosphere(3)
     noisy = gaussian_edge_noise(v, f, 0.2, seed=0)

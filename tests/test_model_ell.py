@@ -16,7 +16,7 @@ from conftest import icosphere, shared_mesh_path, tetrahedron
 from test_inference import tiny_params
 from test_model import FAST_COMPILE, random_params
 
-from dmd_jax import inference, ops
+from dmd_jax import checkpoints, inference, ops
 from dmd_jax.config import preset, variant_config
 from dmd_jax.graph import (
     batch_mesh_graphs,
@@ -180,7 +180,7 @@ def test_dmdnet_forward_and_gradient_match_segment_sum(variant):
 
 @pytest.fixture(scope="module")
 def small_bundle():
-    return inference.ModelBundle(params=tiny_params(), config=preset("test"), meta={})
+    return checkpoints.ModelBundle(params=tiny_params(), config=preset("test"), meta={})
 
 
 def test_denoise_ell_matches_segment_sum(small_bundle, monkeypatch):

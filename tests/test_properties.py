@@ -22,7 +22,7 @@ from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 from test_reliability import CONFIG, random_params
 
-from dmd_jax import inference, losses
+from dmd_jax import checkpoints, inference, losses
 from dmd_jax.graph import build_mesh_graph
 from dmd_jax.mesh import canonical_frame, validate_mesh
 from dmd_jax.metrics import mesh_metrics
@@ -37,7 +37,7 @@ MANY = settings(
 
 @pytest.fixture(scope="module")
 def bundle():
-    return inference.ModelBundle(random_params(CONFIG), CONFIG, {})
+    return checkpoints.ModelBundle(random_params(CONFIG), CONFIG, {})
 
 
 # --------------------------------------------------------------------------------------

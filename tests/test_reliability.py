@@ -24,7 +24,7 @@ import pytest
 import trimesh
 from conftest import REPO, shared_mesh_path, tetrahedron
 
-from dmd_jax import inference
+from dmd_jax import checkpoints, inference
 from dmd_jax.cli import main
 from dmd_jax.config import preset
 from dmd_jax.io import atomic_write, load_mesh, save_mesh
@@ -55,13 +55,13 @@ def random_params(config, seed: int = 0):
 
 @pytest.fixture(scope="module")
 def bundle():
-    return inference.ModelBundle(random_params(CONFIG), CONFIG, {})
+    return checkpoints.ModelBundle(random_params(CONFIG), CONFIG, {})
 
 
 @pytest.fixture(scope="module")
 def weights_file(tmp_path_factory, bundle):
     path = tmp_path_factory.mktemp("weights") / "test.msgpack"
-    return inference.save_weights(path, bundle.params, CONFIG, {"purpose": "tests"})
+    return checkpoints.save_weights(path, bundle.params, CONFIG, {"purpose": "tests"})
 
 
 # --------------------------------------------------------------------------------------
@@ -658,7 +658,7 @@ def _write_payload(path: Path, payload: dict) -> Path:
 
 
 def test_weights_round_trip(weights_file, bundle):
-    loaded = inference.load_weights(weights_file)
+    loaded = checkpoints.load_weights(weights_file)
     assert loaded.config == CONFIG and loaded.meta == {"purpose": "tests"}
     _assert_same_params(loaded.params, bundle.params)
 
@@ -750,7 +750,7 @@ def test_bad_weights_file_is_a_clear_value_error(name, weights_file, tmp_path, c
     make, message = WEIGHTS_CASES[name]
     path = make(weights_file, tmp_path / "bad.msgpack")
     with pytest.raises(ValueError, match=message) as info:
-        inference.load_weights(path)
+        checkpoints.load_weights(path)
     assert str(path) in str(info.value)
     mesh = tmp_path / "tet.obj"
     mesh.write_bytes(obj(TET_V, TET_F))
@@ -761,7 +761,8 @@ def test_bad_weights_file_is_a_clear_value_error(name, weights_file, tmp_path, c
 def test_checkpoints_round_trip_export_and_fail_clearly(tmp_path, bundle, capsys):
     import jax.numpy as jnp
 
-    from dmd_jax.train import TrainState, _checkpointers, load_params, save_checkpoint
+    from dmd_jax.checkpoints import checkpoint_managers, load_params, save_checkpoint
+    from dmd_jax.train import TrainState
     from dmd_jax.train import split_params as split
 
     with pytest.raises(FileNotFoundError, match="no such checkpoint directory"):
@@ -770,7 +771,7 @@ def test_checkpoints_round_trip_export_and_fail_clearly(tmp_path, bundle, capsys
     with pytest.raises(ValueError, match="holds no checkpoint"):
         load_params(tmp_path / "empty")
 
-    latest, _ = _checkpointers(tmp_path / "run", 1)
+    latest, _ = checkpoint_managers(tmp_path / "run", 1)
     state = TrainState(jnp.asarray(7, jnp.int32), split(bundle.params), {"fe": {}, "rest": {}})
     save_checkpoint(latest, state, CONFIG)
     ckpt = tmp_path / "run" / "checkpoints" / "latest"
@@ -781,7 +782,7 @@ def test_checkpoints_round_trip_export_and_fail_clearly(tmp_path, bundle, capsys
     # export-weights writes a weights file with the same params and config.
     rc, _, err = _cli(capsys, "export-weights", ckpt, "-o", tmp_path / "w.msgpack")
     assert rc == 0, err
-    exported_bundle = inference.load_weights(tmp_path / "w.msgpack")
+    exported_bundle = checkpoints.load_weights(tmp_path / "w.msgpack")
     assert exported_bundle.config == CONFIG
     _assert_same_params(exported_bundle.params, bundle.params)
 
@@ -864,7 +865,7 @@ def test_failing_writer_leaves_no_partial_and_no_temp_file(tmp_path, exception):
 
 def test_save_mesh_and_weights_are_atomic(tmp_path, monkeypatch, bundle):
     save_mesh(tmp_path / "kept.obj", TET_V, TET_F)
-    inference.save_weights(tmp_path / "kept.msgpack", bundle.params, CONFIG)
+    checkpoints.save_weights(tmp_path / "kept.msgpack", bundle.params, CONFIG)
     originals = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
 
     def failing_export(self, *args, **kwargs):
@@ -886,9 +887,9 @@ def test_save_mesh_and_weights_are_atomic(tmp_path, monkeypatch, bundle):
     with pytest.raises(OSError, match="rename failed"):
         save_mesh(tmp_path / "kept.obj", TET_V * 2, TET_F, overwrite=True)
     with pytest.raises(OSError, match="rename failed"):
-        inference.save_weights(tmp_path / "kept.msgpack", bundle.params, CONFIG, overwrite=True)
+        checkpoints.save_weights(tmp_path / "kept.msgpack", bundle.params, CONFIG, overwrite=True)
     with pytest.raises(OSError, match="rename failed"):
-        inference.save_weights(tmp_path / "new.msgpack", bundle.params, CONFIG)
+        checkpoints.save_weights(tmp_path / "new.msgpack", bundle.params, CONFIG)
     monkeypatch.undo()
     assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == originals
 

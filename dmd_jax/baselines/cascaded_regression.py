@@ -71,9 +71,9 @@ from dmd_jax.baselines._common import (
     run_in_canonical_frame,
     vertex_corner_arrays,
 )
+from dmd_jax.checkpoints import read_weights_file, write_weights_file
 from dmd_jax.geometry import face_areas, face_normals, safe_norm, safe_normalize
 from dmd_jax.graph import bucket_size
-from dmd_jax.inference import read_weights_file, write_weights_file
 from dmd_jax.mesh import canonical_frame, validate_mesh
 
 WEIGHTS_FORMAT = "dmd_jax-cnr-weights"

@@ -1,0 +1,358 @@
+"""Where weights live: the weights-file format, Orbax training checkpoints, `load_model`.
+
+Two stores, one way in:
+
+* a weights file: one msgpack file (`flax.serialization`, never pickle) holding a format
+  tag, a version, the config that built the params, provenance and the params. DMD-Net's
+  (`save_weights` / `load_weights`) and CNR's share the container
+  (`write_weights_file` / `read_weights_file`); the bundled `small` model ships in
+  `dmd_jax/weights/` and is read by `load_pretrained()`.
+* a training checkpoint: an Orbax `CheckpointManager` directory written during
+  training (`checkpoint_managers`, `save_checkpoint`, `restore_checkpoint`); its newest
+  params and config come back from `load_params`.
+
+`load_model(path)` takes either (or nothing, for the bundled model) and returns a
+`ModelBundle`, which is what `denoise` runs.
+"""
+
+from __future__ import annotations
+
+import json
+from functools import lru_cache
+from importlib import resources
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dmd_jax.config import ExperimentConfig
+from dmd_jax.graph import build_mesh_graph, pad_mesh_graph, padded_sizes_for
+from dmd_jax.io import atomic_write
+
+WEIGHTS_FORMAT = "dmd_jax-weights"
+WEIGHTS_VERSION = 1
+PRETRAINED_NAME = "dmd_small.msgpack"
+
+
+class ModelBundle(NamedTuple):
+    """Trained params with the config that built them and where they came from."""
+
+    params: Any
+    config: ExperimentConfig
+    meta: dict
+
+
+def write_weights_file(
+    path, *, fmt: str, version: int, config: dict, meta: dict, params, overwrite: bool = False
+) -> Path:
+    """Writes one msgpack weights file (format tag, version, config, meta, params), atomically.
+
+    The container of every weights file of this project (DMD-Net's and CNR's); `fmt`
+    tells them apart and `read_weights_file` checks it.
+    """
+    from flax import serialization
+
+    payload = {
+        "format": fmt,
+        "version": version,
+        "config": json.dumps(config),
+        "meta": json.dumps(meta),
+        "params": serialization.to_state_dict(jax.device_get(params)),
+    }
+    data = serialization.msgpack_serialize(payload)
+
+    def write(tmp):
+        with open(tmp, "wb") as fh:
+            fh.write(data)
+
+    return atomic_write(path, write, overwrite=overwrite)
+
+
+def read_weights_file(path, *, fmt: str, version: int, kind: str, parse_config):
+    """Reads a file of `write_weights_file`: `(config, meta, params)`.
+
+    Args:
+      path: the file.
+      fmt, version: the format tag and version it must carry.
+      kind: names the format in errors ("not a {kind} weights file").
+      parse_config: builds the config object from the stored dict.
+
+    Raises:
+      FileNotFoundError: no such file.
+      ValueError: a truncated or corrupt file, another format or version, a missing
+        field, or an unreadable config or meta.
+    """
+    from flax import serialization
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such weights file")
+    try:
+        payload = serialization.msgpack_restore(path.read_bytes())
+    except Exception as exc:  # msgpack raises several types on truncated data
+        raise ValueError(
+            f"{path}: not a readable weights file (truncated or corrupt: {exc})"
+        ) from exc
+    if not isinstance(payload, dict) or payload.get("format") != fmt:
+        raise ValueError(f"{path}: not a {kind} weights file")
+    if payload.get("version") != version:
+        raise ValueError(
+            f"{path}: weights format version {payload.get('version')} is not supported "
+            f"(this dmd_jax reads version {version})"
+        )
+    missing = [k for k in ("config", "meta", "params") if k not in payload]
+    if missing:
+        raise ValueError(f"{path}: incomplete weights file (no {', '.join(missing)})")
+    try:
+        config = parse_config(json.loads(payload["config"]))
+        meta = json.loads(payload["meta"])
+    except (TypeError, ValueError) as exc:  # JSONDecodeError is a ValueError
+        raise ValueError(f"{path}: unreadable config or meta in the weights file ({exc})") from exc
+    return config, meta, payload["params"]
+
+
+def save_weights(
+    path, params, config: ExperimentConfig, meta: dict | None = None, *, overwrite: bool = False
+) -> Path:
+    """Writes params + config + meta to one msgpack file, atomically."""
+    return write_weights_file(
+        path,
+        fmt=WEIGHTS_FORMAT,
+        version=WEIGHTS_VERSION,
+        config=config.to_dict(),
+        meta=meta or {},
+        params=params,
+        overwrite=overwrite,
+    )
+
+
+def load_weights(path) -> ModelBundle:
+    """Reads a weights file written by `save_weights`, checking format, version and config.
+
+    Raises:
+      ValueError: not a dmd_jax weights file, another format version, a truncated file,
+        or params whose structure or shapes do not match the stored config.
+    """
+    config, meta, params = read_weights_file(
+        path,
+        fmt=WEIGHTS_FORMAT,
+        version=WEIGHTS_VERSION,
+        kind="dmd_jax",
+        parse_config=ExperimentConfig.from_dict,
+    )
+    if not isinstance(params, dict):
+        raise ValueError(f"{path}: params must be a nested dict of arrays")
+    check_params(params, config, str(path))
+    return ModelBundle(params=params, config=config, meta=meta)
+
+
+@lru_cache(maxsize=8)
+def abstract_params(config: ExperimentConfig):
+    """Param shapes and dtypes of a config (traced once per config and process).
+
+    Configs are frozen and hashable, so they are their own cache key.
+    """
+    from dmd_jax.model import DMDNet
+
+    # A padded tetrahedron: param shapes depend on the config only, not on the mesh.
+    f = np.array([[0, 1, 2], [0, 3, 1], [0, 2, 3], [1, 3, 2]], np.int32)
+    graph = build_mesh_graph(f, 4)
+    graph = pad_mesh_graph(graph, padded_sizes_for(graph))
+    x = np.zeros((graph.n_vertex, 3), np.float32)
+    model = DMDNet(config.model)
+    key = jax.random.PRNGKey(0)
+    return jax.eval_shape(
+        lambda: model.init(
+            {"params": key, "dropout": key},
+            jnp.asarray(x),
+            jax.tree.map(jnp.asarray, graph),
+            deterministic=True,
+        )
+    )["params"]
+
+
+def check_params(params, config: ExperimentConfig, name: str) -> None:
+    expected = abstract_params(config)
+    exp_paths = {
+        jax.tree_util.keystr(p): x.shape
+        for p, x in jax.tree_util.tree_flatten_with_path(expected)[0]
+    }
+    got_paths = {
+        jax.tree_util.keystr(p): np.shape(x)
+        for p, x in jax.tree_util.tree_flatten_with_path(params)[0]
+    }
+    exp_dtypes = {
+        jax.tree_util.keystr(p): np.dtype(x.dtype)
+        for p, x in jax.tree_util.tree_flatten_with_path(expected)[0]
+    }
+    for p, x in jax.tree_util.tree_flatten_with_path(params)[0]:
+        key = jax.tree_util.keystr(p)
+        dtype = getattr(x, "dtype", None)
+        if key in exp_dtypes and dtype != exp_dtypes[key]:
+            raise ValueError(
+                f"{name}: param {key} has dtype {dtype}, its config builds {exp_dtypes[key]}"
+            )
+        if key in exp_dtypes and not np.all(np.isfinite(x)):
+            raise ValueError(f"{name}: param {key} holds NaN or infinite values")
+    if exp_paths != got_paths:
+        missing = sorted(set(exp_paths) - set(got_paths))[:3]
+        extra = sorted(set(got_paths) - set(exp_paths))[:3]
+        wrong = [k for k in exp_paths if k in got_paths and exp_paths[k] != got_paths[k]][:3]
+        raise ValueError(
+            f"{name}: params do not match their config (missing {missing}, unexpected "
+            f"{extra}, wrong shapes {wrong})"
+        )
+
+
+def pretrained_path() -> Path:
+    """Where the bundled `small` weights are installed."""
+    return Path(str(resources.files("dmd_jax") / "weights" / PRETRAINED_NAME))
+
+
+def load_pretrained() -> ModelBundle:
+    """The bundled `small`-preset model (see README, "Bundled weights")."""
+    path = pretrained_path()
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: the bundled weights are missing from this installation")
+    return load_weights(path)
+
+
+def as_bundle(params, config: ExperimentConfig | None = None) -> ModelBundle:
+    """Accepts a `ModelBundle`, a path for `load_model`, or raw params plus `config`."""
+    if isinstance(params, ModelBundle):
+        return params
+    if isinstance(params, (str, Path)):
+        return load_model(params)
+    if config is None:
+        raise ValueError(
+            "raw params need their config: pass config=..., or use load_pretrained() / "
+            "load_weights() which carry it"
+        )
+    return ModelBundle(params=params, config=config, meta={})
+
+
+def load_model(path=None) -> ModelBundle:
+    """The model to run: the bundled weights, a weights file, or a checkpoint directory.
+
+    Args:
+      path: None for `load_pretrained()`; a file written by `save_weights` (`dmd-jax
+        export-weights`); or an Orbax checkpoint directory written by training (its
+        newest step, see `load_params`).
+
+    Returns:
+      A `ModelBundle`; for a checkpoint its meta is `{"source": str(path)}`.
+
+    Raises:
+      FileNotFoundError: the bundled weights or `path` are missing.
+      ValueError: not a valid weights file or checkpoint.
+    """
+    if path is None:
+        return load_pretrained()
+    path = Path(path)
+    if path.is_dir():
+        params, config = load_params(path)
+        return ModelBundle(params=params, config=config, meta={"source": str(path)})
+    return load_weights(path)
+
+
+# --------------------------------------------------------------------------------------
+# Orbax training checkpoints
+# --------------------------------------------------------------------------------------
+
+
+def checkpoint_managers(workdir, keep: int):
+    """`(latest, best)` Orbax managers of a run directory.
+
+    `<workdir>/checkpoints/latest` keeps the last `keep` states;
+    `<workdir>/checkpoints/best` the one with the lowest `normal_deg` metric.
+    """
+    import orbax.checkpoint as ocp
+
+    workdir = Path(workdir)
+    latest = ocp.CheckpointManager(
+        (workdir / "checkpoints" / "latest").absolute(),
+        options=ocp.CheckpointManagerOptions(
+            max_to_keep=keep, create=True, enable_async_checkpointing=False
+        ),
+    )
+    best = ocp.CheckpointManager(
+        (workdir / "checkpoints" / "best").absolute(),
+        options=ocp.CheckpointManagerOptions(
+            max_to_keep=1,
+            create=True,
+            best_fn=lambda m: m["normal_deg"],
+            best_mode="min",
+            enable_async_checkpointing=False,
+        ),
+    )
+    return latest, best
+
+
+def save_checkpoint(manager, state, cfg: ExperimentConfig, metrics: dict | None = None):
+    """Saves a training state (a NamedTuple of arrays) and its config at `state.step`."""
+    import orbax.checkpoint as ocp
+
+    manager.save(
+        int(state.step),
+        args=ocp.args.Composite(
+            state=ocp.args.StandardSave(jax.device_get(state._asdict())),
+            config=ocp.args.JsonSave(cfg.to_dict()),
+        ),
+        metrics=metrics,
+    )
+    manager.wait_until_finished()
+
+
+def restore_checkpoint(manager, template, step: int | None = None):
+    """The state saved at `step` (default: the newest), shaped like `template`.
+
+    Args:
+      manager: an Orbax `CheckpointManager`.
+      template: a state of the same NamedTuple type, structure, shapes and dtypes.
+      step: which step; None takes the newest.
+    """
+    import orbax.checkpoint as ocp
+
+    step = manager.latest_step() if step is None else step
+    abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, jax.device_get(template._asdict()))
+    restored = manager.restore(
+        step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract))
+    )
+    return type(template)(**restored["state"])
+
+
+def load_params(checkpoint_dir) -> tuple[dict, ExperimentConfig]:
+    """Params and config of the newest checkpoint in an Orbax manager directory.
+
+    Training keeps params as halves (`{"fe": ..., "rest": ...}`, see `dmd_jax.train`);
+    they come back merged into the model's own param dict.
+
+    Raises:
+      FileNotFoundError: no such directory.
+      ValueError: the directory holds no checkpoint, or an unreadable one.
+    """
+    import orbax.checkpoint as ocp
+
+    checkpoint_dir = Path(checkpoint_dir).absolute()
+    if not checkpoint_dir.is_dir():
+        raise FileNotFoundError(f"{checkpoint_dir}: no such checkpoint directory")
+    manager = ocp.CheckpointManager(checkpoint_dir)
+    step = manager.latest_step()
+    if step is None:
+        raise ValueError(f"{checkpoint_dir}: holds no checkpoint")
+    try:
+        cfg_dict = manager.restore(step, args=ocp.args.Composite(config=ocp.args.JsonRestore()))
+        cfg = ExperimentConfig.from_dict(cfg_dict["config"])
+        state = manager.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore()))
+    except FileNotFoundError:
+        raise
+    except Exception as exc:  # orbax raises assorted types on corrupt directories
+        message = " ".join(str(exc).split())[:300]
+        raise ValueError(
+            f"{checkpoint_dir}: unreadable checkpoint of step {step} "
+            f"({type(exc).__name__}: {message})"
+        ) from exc
+    halves = state["state"]["params"]
+    return {**halves["fe"], **halves["rest"]}, cfg
