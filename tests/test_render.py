@@ -245,3 +245,54 @@ def test_metrics_table_has_one_vocabulary():
     assert text.splitlines()[0].split()[0] == "mesh" and "|" not in text
     with pytest.raises(ValueError, match="style"):
         metrics_table({"noisy": m}, style="latex")
+
+
+@pytest.mark.skipif(chromium() is None, reason="needs Chromium (apt-get install chromium)")
+def test_comparison_html_links_the_cameras_in_a_browser(noisy_box, tmp_path):
+    """Turning one panel's camera turns the others (the page's plotly_relayout hook)."""
+    import json
+    import re
+
+    from dmd_jax.viewer import comparison_html
+
+    v, noisy, f = noisy_box
+    page = comparison_html([(noisy, f), (v, f), (v, f)], tmp_path / "cmp.html", panel_px=200)
+    probe = """<script>
+    window.addEventListener('load', function () {
+      setTimeout(function () {
+        var gd = document.querySelector('.plotly-graph-div');
+        Plotly.relayout(gd, {'scene.camera': {eye: {x: 0.1, y: 2.2, z: 0.3}}}).then(function () {
+          setTimeout(function () {
+            var out = document.createElement('pre');
+            out.id = 'probe';
+            out.textContent = JSON.stringify(
+              [gd.layout.scene2.camera.eye, gd.layout.scene3.camera.eye]);
+            document.body.appendChild(out);
+          }, 500);
+        });
+      }, 1000);
+    });
+    </script></body>"""
+    html = page.read_text(encoding="utf-8").replace("</body>", probe, 1)
+    page.write_text(html, encoding="utf-8")
+    proc = subprocess.run(
+        [
+            chromium(),
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--enable-unsafe-swiftshader",
+            "--use-angle=swiftshader",
+            "--virtual-time-budget=10000",
+            "--dump-dom",
+            page.as_uri(),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=True,
+    )
+    found = re.search(r'<pre id="probe">([^<]*)</pre>', proc.stdout)
+    assert found, proc.stdout[-2000:]
+    eyes = json.loads(found.group(1).replace("&quot;", '"'))
+    assert eyes == [{"x": 0.1, "y": 2.2, "z": 0.3}] * 2
