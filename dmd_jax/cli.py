@@ -10,6 +10,97 @@ from __future__ import annotations
 import argparse
 import sys
 
+# Every denoiser `dmd-jax denoise --method` accepts: the network, the classic filters of
+# `dmd_jax.baselines.REGISTRY`, then its learned ones (`LEARNED`); a test keeps this in
+# step with the registry (listed here so `--help` does not have to import JAX).
+METHODS = ("dmd", "laplacian", "taubin", "bmd", "nifp", "fefp", "bnf", "gnf", "l0", "cnr")
+# The methods that read `--weights`: DMD-Net and the learned CNR baseline.
+WEIGHTED_METHODS = ("dmd", "cnr")
+MESH_SUFFIXES = (".obj", ".off", ".ply", ".stl")
+
+
+class _HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """Defaults after each option's help (not for None/False, nor when the help names
+    its default itself); the epilog's examples keep their line breaks."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        if action.default is None or action.default is False or "default" in text:
+            return text
+        return super()._get_help_string(action)
+
+
+def _note(message: str) -> None:
+    """A remark that is not an error, on stderr (stdout stays clean for `--json`)."""
+    print(f"note: {message}", file=sys.stderr)
+
+
+def _ply_element_counts(path) -> dict[str, int]:
+    """`{element: count}` of a PLY header (`{}` when the header cannot be read)."""
+    with open(path, "rb") as fh:
+        head = fh.read(1 << 16)
+    end = head.find(b"end_header")
+    counts: dict[str, int] = {}
+    for line in head[: max(end, 0)].decode("ascii", errors="replace").splitlines():
+        parts = line.split()
+        if len(parts) == 3 and parts[0] == "element" and parts[2].isdigit():
+            counts[parts[1]] = int(parts[2])
+    return counts
+
+
+def _zero_area_faces(vertices, faces) -> int:
+    """Faces of zero area, to rounding (1e-12 of the squared longest bounding-box side)."""
+    import numpy as np
+
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces)
+    doubled = np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+    side = float(np.ptp(v, axis=0).max()) if len(v) else 0.0
+    return int(np.count_nonzero(doubled <= 1e-12 * side * side))
+
+
+def _load_input(path):
+    """`load_mesh` for a file the user named, with the CLI's plainer words.
+
+    A directory or a point-cloud PLY is refused with a message that says so; polygon
+    triangulation and zero-area faces each become one `note:` line on stderr instead of
+    a raw Python warning, or silence.
+    """
+    import warnings
+    from pathlib import Path
+
+    from dmd_jax.io import load_mesh
+
+    p = Path(path)
+    if p.is_dir():
+        found = sorted(q.name for q in p.iterdir() if q.suffix.lower() in MESH_SUFFIXES)
+        hint = f"; it holds {len(found)} mesh files, e.g. {found[0]}" if found else ""
+        raise ValueError(
+            f"{path}: is a directory; give one mesh file ({', '.join(MESH_SUFFIXES)}){hint}"
+        )
+    if p.suffix.lower() == ".ply" and p.is_file():
+        counts = _ply_element_counts(p)
+        if counts.get("vertex", 0) > 0 and not counts.get("face"):
+            raise ValueError(
+                f"{path}: is a point cloud ({counts['vertex']} vertices, no faces); "
+                "denoising needs a triangle mesh (reconstruct a surface first)"
+            )
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        vertices, faces = load_mesh(p)
+    for w in caught:
+        text = str(w.message)
+        if "triangulated" in text:
+            text += "; every output of this command is a triangle mesh"
+        _note(text)
+    zero = _zero_area_faces(vertices, faces)
+    if zero:
+        _note(
+            f"{path}: {zero} of {len(faces)} faces have zero area; their normals are "
+            "undefined (the normal error leaves them out)"
+        )
+    return vertices, faces
+
 
 def _cmd_info(args: argparse.Namespace) -> int:
     import jax
@@ -51,11 +142,18 @@ def _cmd_denoise(args: argparse.Namespace) -> int:
     import time
 
     from dmd_jax import inference
-    from dmd_jax.io import load_mesh, save_mesh
+    from dmd_jax.io import save_mesh
 
     if args.iterations < 1:
         raise ValueError(f"--iterations must be at least 1, got {args.iterations}")
-    vertices, faces = load_mesh(args.input)
+    if args.method not in METHODS:
+        raise ValueError(f"unknown --method {args.method!r}; choose one of: {', '.join(METHODS)}")
+    if args.weights is not None and args.method not in WEIGHTED_METHODS:
+        raise ValueError(
+            f"--weights is for --method {' or '.join(WEIGHTED_METHODS)}; {args.method!r} is a "
+            "classic filter with no weights (drop --weights)"
+        )
+    vertices, faces = _load_input(args.input)
     _check_output(args.output, args.input, args.overwrite)
     t0 = time.perf_counter()
     if args.method == "dmd":
@@ -64,9 +162,10 @@ def _cmd_denoise(args: argparse.Namespace) -> int:
     else:
         from dmd_jax import baselines
 
+        params = {"weights": args.weights} if args.weights is not None else {}
         out = vertices
         for _ in range(args.iterations):
-            out = baselines.denoise_with(args.method, out, faces)
+            out = baselines.denoise_with(args.method, out, faces, **params)
     elapsed = time.perf_counter() - t0
     save_mesh(args.output, out, faces, overwrite=args.overwrite, protect=[args.input])
     print(
@@ -96,10 +195,10 @@ def _cmd_add_noise(args: argparse.Namespace) -> int:
     import jax
     import numpy as np
 
-    from dmd_jax.io import load_mesh, save_mesh
+    from dmd_jax.io import save_mesh
     from dmd_jax.noise import add_noise
 
-    vertices, faces = load_mesh(args.input)
+    vertices, faces = _load_input(args.input)
     _check_output(args.output, args.input, args.overwrite)
     noisy = add_noise(
         jax.random.PRNGKey(args.seed), vertices, faces, args.kind, args.level, units=args.units
@@ -121,13 +220,12 @@ def _cmd_add_noise(args: argparse.Namespace) -> int:
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     import json
 
-    from dmd_jax.io import load_mesh
-    from dmd_jax.metrics import mesh_metrics
+    from dmd_jax.metrics import mesh_metrics, metrics_table
 
-    gt_v, gt_f = load_mesh(args.gt)
+    gt_v, gt_f = _load_input(args.gt)
     rows = []
     for path in args.mesh:
-        v, f = load_mesh(path)
+        v, f = _load_input(path)
         if v.shape != gt_v.shape or f.shape != gt_f.shape or (f != gt_f).any():
             raise ValueError(
                 f"{path}: vertex/face correspondence with {args.gt} is required "
@@ -138,35 +236,75 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(rows, indent=2))
     else:
-        print(f"{'mesh':40s} {'vertex(1e-4)':>13s} {'normal(deg)':>12s} {'chamfer(1e-4)':>14s}")
-        for r in rows:
-            print(
-                f"{r['mesh'][-40:]:40s} {r['vertex'] * 1e4:13.4f} {r['normal_deg']:12.3f} "
-                f"{r['chamfer'] * 1e4:14.4f}"
-            )
+        print(metrics_table({r["mesh"]: r for r in rows}, style="text"), end="")
     return 0
 
 
 def _cmd_render(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from dmd_jax.io import load_mesh
-    from dmd_jax.render import render_meshes
+    from dmd_jax.render import render_meshes, resolve_up, sharpest_face
 
+    kind = Path(args.output).suffix.lower()
+    if kind not in (".png", ".html"):
+        raise ValueError(f"{args.output}: write a .png (static picture) or .html (3-D page)")
+    if args.range is not None and not args.range[0] < args.range[1]:
+        raise ValueError(f"--range needs LOW < HIGH, got {args.range[0]:g} {args.range[1]:g}")
     _check_output(args.output, args.inputs + ([args.gt] if args.gt else []), args.overwrite)
-    meshes = [load_mesh(p) for p in args.inputs]
+    meshes = [_load_input(p) for p in args.inputs]
+    titles = args.titles.split(",") if args.titles else [Path(p).stem for p in args.inputs]
     values = None
     if args.gt:
         from dmd_jax.metrics import face_normal_errors_deg
 
-        gt_v, gt_f = load_mesh(args.gt)
+        gt_v, gt_f = _load_input(args.gt)
         values = []
         for path, (v, f) in zip(args.inputs, meshes, strict=True):
             if v.shape != gt_v.shape or (f.shape != gt_f.shape) or (f != gt_f).any():
                 raise ValueError(f"{path}: needs the same vertices/faces layout as {args.gt}")
             values.append(face_normal_errors_deg(v, gt_v, gt_f))
-    titles = args.titles.split(",") if args.titles else [Path(p).stem for p in args.inputs]
-    render_meshes(meshes, args.output, titles=titles, face_values=values, overwrite=args.overwrite)
+        # The clean mesh is the last panel, with no error of its own.
+        meshes.append((gt_v, gt_f))
+        values.append(None)
+        stem = Path(args.gt).stem
+        if len(titles) == len(args.inputs):
+            titles.append(stem if stem == "clean" else f"{stem} (clean)")
+    if len(titles) != len(meshes):
+        raise ValueError(f"--titles gives {len(titles)} titles for {len(meshes)} panels")
+    view = dict(
+        titles=titles,
+        face_values=values,
+        value_range=None if args.range is None else tuple(args.range),
+        elev=args.elev,
+        azim=args.azim,
+        up=resolve_up(args.up, meshes),
+    )
+    if kind == ".html":
+        from dmd_jax.viewer import comparison_html
+
+        comparison_html(
+            meshes,
+            args.output,
+            overwrite=args.overwrite,
+            panel_px=round(130 * args.panel_size),
+            **view,
+        )
+    else:
+        crop = None
+        if not args.no_zoom:
+            # Zoom on the sharpest feature of the clean mesh (or of the first input).
+            ref_v, ref_f = meshes[-1]
+            if all(f.shape == ref_f.shape and (f == ref_f).all() for _, f in meshes):
+                crop = sharpest_face(ref_v, ref_f, elev=args.elev, azim=args.azim, up=view["up"])
+        render_meshes(
+            meshes,
+            args.output,
+            shaded_row=True,
+            crop_face=crop,
+            panel_size=args.panel_size,
+            overwrite=args.overwrite,
+            **view,
+        )
     print(f"wrote {args.output}")
     return 0
 
@@ -177,7 +315,8 @@ def _cmd_make_dataset(args: argparse.Namespace) -> int:
     from dmd_jax.data import DEFAULT_TEST_INTER, convert_folder, make_dataset
 
     def names(text):
-        return tuple(x.strip() for x in text.split(",") if x.strip()) if text else None
+        # None: the option was not given; "" gives (): e.g. --test-inter "" holds out nothing.
+        return None if text is None else tuple(x.strip() for x in text.split(",") if x.strip())
 
     start = time.perf_counter()
     common = dict(
@@ -208,7 +347,7 @@ def _cmd_make_dataset(args: argparse.Namespace) -> int:
         ds = make_dataset(
             args.out,
             per_category=args.per_category,
-            categories=names(args.categories),
+            categories=names(args.categories) or None,
             test_inter=DEFAULT_TEST_INTER if test_inter is None else test_inter,
             **common,
         )
@@ -308,6 +447,21 @@ def _cmd_train(args: argparse.Namespace) -> int:
     for split in ("test_intra", "test_inter"):
         records = data.split(split)[: args.eval_meshes]
         evals[split] = make_examples([r.load() for r in records])
+    eval_noise = None
+    if args.real_meshes:
+        from dmd_jax.data import real
+        from dmd_jax.pipeline import BENCHMARK_NOISE
+
+        train_ex += make_examples(
+            real.load_real_patches(args.real_meshes, "train", seed=cfg.train.seed)
+        )
+        # One patch per validation mesh, the benchmark's noise (Gaussian along normals).
+        evals["val"] = make_examples(
+            real.load_real_patches(
+                args.real_meshes, "val", max_faces=4000, max_patches=1, seed=cfg.train.seed
+            )
+        )
+        eval_noise = BENCHMARK_NOISE
     if primary:
         print(
             f"training {cfg.name} on {len(train_ex)} meshes from {args.data}; evaluating on "
@@ -330,6 +484,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         progress=primary and not args.no_progress,
         init_params=init,
         data_parallel=args.data_parallel,
+        eval_noise=eval_noise,
     )
     result.pop("state", None)
     result["wall_time_s"] = time.time() - t0
@@ -345,12 +500,28 @@ def _cmd_export_weights(args: argparse.Namespace) -> int:
     from dmd_jax.checkpoints import load_params, save_weights
 
     params, cfg = load_params(args.checkpoint)
+    step = _latest_step(args.checkpoint)
     meta = {"source": str(args.checkpoint), "platform": platform.platform()}
+    if step is not None:
+        meta["step"] = step
     if args.meta:
         meta.update(json.loads(args.meta))
     path = save_weights(args.output, params, cfg, meta, overwrite=args.overwrite)
-    print(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB)")
+    print(
+        f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB): "
+        + (f"step {step}" if step is not None else "the newest step")
+        + f" of {args.checkpoint}, preset {cfg.name}"
+    )
     return 0
+
+
+def _latest_step(checkpoint_dir) -> int | None:
+    """The step `load_params` reads: the newest checkpoint of an Orbax manager directory."""
+    from pathlib import Path
+
+    import orbax.checkpoint as ocp
+
+    return ocp.CheckpointManager(Path(checkpoint_dir).absolute()).latest_step()
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -395,28 +566,38 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--method",
         default="dmd",
-        help="'dmd' (the network) or a classic baseline: laplacian, taubin, bmd, "
-        "nifp, fefp, bnf, gnf, l0",
+        metavar="METHOD",
+        help="'dmd' (the network) or another denoiser of dmd_jax.baselines: "
+        + ", ".join(METHODS[1:])
+        + " (cnr is learned: it takes --weights too; the others are classic filters)",
     )
     p.add_argument("--iterations", type=int, default=1, help="passes of the denoiser")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.set_defaults(func=_cmd_denoise)
 
     p = sub.add_parser("add-noise", help="add synthetic noise to a mesh file")
-    p.add_argument("input")
-    p.add_argument("-o", "--output", required=True)
+    p.add_argument("input", help="clean mesh (.obj .off .ply .stl)")
+    p.add_argument("-o", "--output", required=True, help="where to write the noisy mesh")
     p.add_argument(
-        "--kind", default="gaussian", choices=["gaussian", "uniform", "gamma", "impulse"]
+        "--kind",
+        default="gaussian",
+        choices=["gaussian", "uniform", "gamma", "impulse"],
+        help="noise distribution per coordinate (dmd_jax.noise explains each)",
     )
-    p.add_argument("--level", type=float, required=True)
+    p.add_argument(
+        "--level",
+        type=float,
+        required=True,
+        help="noise level in --units: σ for gaussian, the amplitude for the other kinds",
+    )
     p.add_argument(
         "--units",
         default="canonical",
         choices=["canonical", "edge"],
         help="canonical: fraction of the longest bbox side; edge: × mean edge length",
     )
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--overwrite", action="store_true")
+    p.add_argument("--seed", type=int, default=0, help="random seed; same seed, same noise")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.set_defaults(func=_cmd_add_noise)
 
     p = sub.add_parser("evaluate", help="vertex / normal / chamfer metrics against a ground truth")
@@ -425,12 +606,43 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
     p.set_defaults(func=_cmd_evaluate)
 
-    p = sub.add_parser("render", help="shaded PNG of meshes side by side")
-    p.add_argument("inputs", nargs="+")
-    p.add_argument("-o", "--output", required=True, help="PNG path")
-    p.add_argument("--gt", default=None, help="colour faces by normal error against this mesh")
+    p = sub.add_parser(
+        "render", help="meshes side by side: a PNG picture or an interactive HTML page"
+    )
+    p.add_argument("inputs", nargs="+", help="meshes to show (.obj .off .ply .stl)")
+    p.add_argument(
+        "-o",
+        "--output",
+        required=True,
+        help=".png: shaded, zoomed and error rows; .html: one self-contained 3-D page",
+    )
+    p.add_argument(
+        "--gt",
+        default=None,
+        help="clean mesh: colour faces by normal error against it, shown as the last panel",
+    )
     p.add_argument("--titles", default=None, help="comma-separated panel titles")
-    p.add_argument("--overwrite", action="store_true")
+    p.add_argument("--elev", type=float, default=20.0, help="camera elevation, degrees")
+    p.add_argument("--azim", type=float, default=-60.0, help="camera azimuth, degrees")
+    p.add_argument(
+        "--up",
+        default="auto",
+        choices=["auto", "y", "z"],
+        help="the models' up axis; auto: the axis the first mesh stands on, else z",
+    )
+    p.add_argument(
+        "--panel-size", type=float, default=3.2, help="inches per panel (HTML: × 130 px)"
+    )
+    p.add_argument(
+        "--range",
+        type=float,
+        nargs=2,
+        metavar=("LOW", "HIGH"),
+        default=None,
+        help="error colour range in degrees (default: 0 to the 95th percentile, rounded up)",
+    )
+    p.add_argument("--no-zoom", action="store_true", help="PNG: no zoom on the sharpest edge")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.set_defaults(func=_cmd_render)
 
     p = sub.add_parser(
@@ -438,15 +650,15 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--out", required=True, help="output directory (must be empty)")
     p.add_argument("--per-category", type=int, default=None, help="shapes per category")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="shape and split seed")
     p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
-    p.add_argument("--min-vertices", type=int, default=1000)
-    p.add_argument("--max-vertices", type=int, default=6000)
+    p.add_argument("--min-vertices", type=int, default=1000, help="smallest vertex count")
+    p.add_argument("--max-vertices", type=int, default=6000, help="largest vertex count")
     p.add_argument(
         "--test-inter",
         default=None,
-        help="comma-separated categories held out whole (default: fastener,bottle,metaballs "
-        "for procedural data, none for folders)",
+        help='comma-separated categories held out whole; "" holds out none (default: '
+        "fastener,bottle,metaballs for procedural data, none for folders)",
     )
     p.add_argument("--categories", default=None, help="comma-separated subset of categories")
     p.add_argument("--intra-fraction", type=float, default=0.2, help="test-intra share")
@@ -479,7 +691,15 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="checkpoint directory to fine-tune from (same model config)",
     )
-    p.add_argument("--no-progress", action="store_true")
+    p.add_argument(
+        "--real-meshes",
+        default=None,
+        metavar="DIR",
+        help="folder of real meshes (e.g. ../shared/meshes/train): its training split is "
+        "added as connected patches, its fixed validation split (dmd_jax.data.real) is "
+        "evaluated as 'val' with the benchmark noise and picks the best checkpoint",
+    )
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument(
         "--data-parallel",
         action="store_true",
@@ -499,9 +719,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("export-weights", help="checkpoint directory -> one weights file")
     p.add_argument("checkpoint", help="an Orbax checkpoint directory (e.g. RUN/checkpoints/best)")
-    p.add_argument("-o", "--output", required=True)
+    p.add_argument("-o", "--output", required=True, help="weights file to write (.msgpack)")
     p.add_argument("--meta", default=None, help="JSON object of provenance to store")
-    p.add_argument("--overwrite", action="store_true")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.set_defaults(func=_cmd_export_weights)
 
     # Further subcommands are registered below, one block each.
@@ -523,21 +743,52 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--data", required=True, help="dataset directory (make-dataset output)")
     p.add_argument("--out", required=True, help="weights file to write (.msgpack)")
-    p.add_argument("--overwrite", action="store_true")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.add_argument("--max-meshes", type=int, default=None, help="first N train meshes only")
     p.add_argument("--draws", type=int, default=1, help="noisy copies per mesh")
     p.add_argument("--faces-per-mesh", type=int, default=512, help="faces sampled per copy")
     p.add_argument("--steps", type=int, default=2000, help="Adam steps per stage")
-    p.add_argument("--batch-size", type=int, default=1024)
-    p.add_argument("--lr", type=float, default=2e-3)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--batch-size", type=int, default=1024, help="faces per Adam step")
+    p.add_argument("--lr", type=float, default=2e-3, help="Adam learning rate")
+    p.add_argument("--seed", type=int, default=0, help="noise and sampling seed")
     p.add_argument("--stages", type=int, default=2, help="cascade length")
-    p.add_argument("--hidden", type=int, nargs="+", default=[128, 128, 64])
-    p.add_argument("--vertex-iterations", type=int, default=20)
+    p.add_argument(
+        "--hidden", type=int, nargs="+", default=[128, 128, 64], help="MLP hidden widths"
+    )
+    p.add_argument(
+        "--vertex-iterations", type=int, default=20, help="vertex update passes per stage"
+    )
     p.add_argument("--eval-meshes", type=int, default=8, help="test-intra meshes checked")
     p.set_defaults(func=_cmd_train_cnr)
 
+    # Every subcommand's help shows the defaults and an example (dmd-jax CMD --help).
+    parser.formatter_class = _HelpFormatter
+    parser.epilog = "examples: dmd-jax demo --out out/demo; dmd-jax COMMAND --help"
+    for name, p in sub.choices.items():
+        p.formatter_class = _HelpFormatter
+        p.epilog = "example:\n  " + "\n  ".join(EXAMPLES[name])
     return parser
+
+
+# One or two example command lines per subcommand, shown by `dmd-jax CMD --help`.
+EXAMPLES = {
+    "info": ["dmd-jax info --preset small"],
+    "denoise": [
+        "dmd-jax denoise scan.ply -o scan_dmd.ply",
+        "dmd-jax denoise scan.ply -o scan_bnf.ply --method bnf",
+    ],
+    "add-noise": ["dmd-jax add-noise part.obj -o part_noisy.obj --level 0.2 --units edge"],
+    "evaluate": ["dmd-jax evaluate --gt part.obj --mesh part_noisy.obj part_dmd.obj"],
+    "render": [
+        "dmd-jax render part_noisy.obj part_dmd.obj --gt part.obj -o cmp.png",
+        "dmd-jax render part_noisy.obj part_dmd.obj --gt part.obj -o cmp.html",
+    ],
+    "make-dataset": ["dmd-jax make-dataset --out data/procedural --per-category 40"],
+    "train": ["dmd-jax train --data data/procedural --workdir runs/small --preset small"],
+    "export-weights": ["dmd-jax export-weights runs/small/checkpoints/best -o mine.msgpack"],
+    "demo": ["dmd-jax demo --out out/demo"],
+    "train-cnr": ["dmd-jax train-cnr --data data/procedural --out cnr.msgpack"],
+}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -38,6 +38,7 @@ MESH_FILES = {
 }
 RENDER_FILE = "before_after.png"
 RENDER_ELEVATION = 30.0  # degrees; shows the top face and the bore of the nut
+RENDER_PANEL_SIZE = 2.6  # inches per panel: five columns, 1430 px wide at 110 dpi
 METRICS_FILE = "metrics.json"
 
 _LABELS = {
@@ -51,7 +52,7 @@ _LABELS = {
 class DemoResult(NamedTuple):
     """What `run_demo` measured and wrote."""
 
-    metrics: dict  # method -> {"vertex", "normal_deg", "chamfer", "seconds"}
+    metrics: dict  # method -> mesh_metrics(...) keys and "seconds"
     files: dict  # name -> Path
     table: str  # the markdown table printed to the terminal
     model: str  # one line describing the weights used
@@ -152,7 +153,14 @@ def run_demo(
     from dmd_jax.data import generate_shape
     from dmd_jax.evaluate import markdown_table, pymeshlab_filter
     from dmd_jax.io import save_mesh
-    from dmd_jax.metrics import face_normal_errors_deg, mesh_metrics
+    from dmd_jax.metrics import (
+        DEFAULT_METRICS,
+        face_normal_errors_deg,
+        mesh_metrics,
+        metric_cells,
+        metric_header,
+        metrics_legend,
+    )
 
     out = Path(out_dir)
     names = list(MESH_FILES.values()) + [METRICS_FILE] + ([RENDER_FILE] if render else [])
@@ -187,33 +195,18 @@ def run_demo(
 
     metrics = {}
     for name, (v, seconds) in results.items():
-        m = mesh_metrics(v, clean, faces)
-        metrics[name] = {
-            "vertex": m["vertex"],
-            "normal_deg": m["normal_deg"],
-            "chamfer": m["chamfer"],
-            "seconds": seconds,
-        }
+        metrics[name] = {**mesh_metrics(v, clean, faces), "seconds": seconds}
+    # Names, units and scaling of dmd_jax.metrics, as in `dmd-jax evaluate`.
     rows = [
-        [
-            _LABELS[name],
-            m["vertex"] * 1e4,
-            m["normal_deg"],
-            m["chamfer"] * 1e4,
-            "—" if name == "noisy" else f"{m['seconds']:.2f}",
-        ]
+        [_LABELS[name], *metric_cells(m), "—" if name == "noisy" else f"{m['seconds']:.2f}"]
         for name, m in metrics.items()
     ]
     table = markdown_table(
-        ["method", "vertex (×1e-4)", "normal (°)", "chamfer (×1e-4)", "time (s)"], rows
+        ["method", *(metric_header(s) for s in DEFAULT_METRICS), "time (s)"], rows
     )
     echo("")
     echo(table.rstrip())
-    echo(
-        "vertex: mean squared vertex distance; normal: mean face-normal angle; chamfer: "
-        "vertex-set chamfer distance; lengths in the clean mesh's frame (longest bounding-box "
-        "side 1). Times include JIT compilation (first call in this process)."
-    )
+    echo(metrics_legend() + " Times include JIT compilation (first call in this process).")
 
     files = {}
     meshes = {"clean": clean, "noisy": noisy} | {k: results[k][0] for k in results if k != "noisy"}
@@ -239,7 +232,7 @@ def run_demo(
         out / METRICS_FILE, lambda tmp: Path(tmp).write_text(text), overwrite=overwrite
     )
     if render:
-        from dmd_jax.render import render_meshes
+        from dmd_jax.render import render_meshes, sharpest_face
 
         panels = ["clean", "noisy", "dmd", "taubin", FEATURE_BASELINE]
         values = [None] + [face_normal_errors_deg(meshes[k], clean, faces) for k in panels[1:]]
@@ -252,6 +245,9 @@ def run_demo(
             titles=titles,
             face_values=values,
             elev=RENDER_ELEVATION,
+            shaded_row=True,
+            crop_face=sharpest_face(clean, faces, elev=RENDER_ELEVATION),
+            panel_size=RENDER_PANEL_SIZE,
             overwrite=overwrite,
         )
     echo("")

@@ -22,7 +22,7 @@ from dmd_jax.cli import main
 from dmd_jax.config import preset
 from dmd_jax.io import load_mesh, save_mesh
 from dmd_jax.mesh import mean_edge_length
-from dmd_jax.metrics import mesh_metrics
+from dmd_jax.metrics import mesh_metrics, metrics_legend
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
@@ -139,8 +139,15 @@ def test_evaluate_table(files, capsys):
         capsys, "evaluate", "--gt", files / "clean.obj", "--mesh", files / "noisy.obj"
     )
     assert code == 0
-    header, row = out.strip().splitlines()
-    assert "normal(deg)" in header and row.split()[0].endswith("noisy.obj")
+    header, row, blank, legend = out.strip().splitlines()
+    # The vocabulary of dmd_jax.metrics: the paper's per-coordinate vertex error first.
+    assert header.split()[:3] == ["mesh", "vertex", "(×1e-4)"]
+    assert "normal (°)" in header and "chamfer (×1e-4)" in header
+    assert row.split()[0].endswith("noisy.obj") and blank == ""
+    assert legend == metrics_legend()
+    gt_v, f = load_mesh(files / "clean.obj")
+    m = mesh_metrics(load_mesh(files / "noisy.obj")[0], gt_v, f)
+    assert float(row.split()[1]) == pytest.approx(m["vertex_per_coord"] * 1e4, abs=1e-3)
 
 
 def test_render_png(files, capsys, tmp_path):
@@ -432,3 +439,193 @@ def test_sota_lite_errors(tmp_path, capsys):
     assert "no mesh folder" in capsys.readouterr().err
     assert sota_lite.main(["--meshes", str(tmp_path), "--skip", "x.obj"]) == 2
     assert "x.obj" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------- rough edges (issue 16)
+
+
+def test_point_cloud_ply_is_named_a_point_cloud(capsys, tmp_path):
+    cloud = tmp_path / "scan.ply"
+    points = np.random.default_rng(0).random((50, 3))
+    cloud.write_text(
+        "ply\nformat ascii 1.0\nelement vertex 50\nproperty float x\nproperty float y\n"
+        "property float z\nend_header\n" + "".join(f"{x} {y} {z}\n" for x, y, z in points)
+    )
+    code, _, err = run(capsys, "denoise", cloud, "-o", tmp_path / "o.ply")
+    assert_one_line_error(code, err, "scan.ply", "point cloud", "50 vertices", "triangle mesh")
+    assert "holds 0" not in err
+
+
+def test_directory_as_input(capsys, tmp_path, files):
+    code, _, err = run(capsys, "denoise", files, "-o", tmp_path / "o.obj")
+    assert_one_line_error(code, err, "is a directory", "mesh file", "clean.obj")
+    assert "unknown mesh format" not in err
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    code, _, err = run(capsys, "evaluate", "--gt", empty, "--mesh", files / "noisy.obj")
+    assert_one_line_error(code, err, "is a directory")
+
+
+def _quad_grid(n: int = 4) -> str:
+    """An OBJ of an n × n grid of quads (a flat open patch)."""
+    lines = [f"v {i} {j} {0.1 * ((i * j) % 3)}" for j in range(n + 1) for i in range(n + 1)]
+    for j in range(n):
+        for i in range(n):
+            a = j * (n + 1) + i + 1
+            lines.append(f"f {a} {a + 1} {a + n + 2} {a + n + 1}")
+    return "\n".join(lines) + "\n"
+
+
+def test_quad_triangulation_is_one_note(capsys, tmp_path):
+    quads = tmp_path / "quads.obj"
+    quads.write_text(_quad_grid())
+    code, out, err = run(capsys, "add-noise", quads, "-o", tmp_path / "n.obj", "--level", "0.01")
+    assert code == 0 and "added" in out
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert lines[0].startswith("note: ") and "triangulated 16 polygon faces" in lines[0]
+    assert "Warning" not in err and "warn(" not in err
+
+
+def test_zero_area_faces_are_reported(capsys, tmp_path, files):
+    v, f = icosphere(1)
+    # One extra face on three collinear vertices: zero area, no repeated index.
+    v = np.concatenate([v, [[0.0, 0.0, 2.0], [0.0, 0.0, 3.0], [0.0, 0.0, 4.0]]])
+    f = np.concatenate([f, [[len(v) - 3, len(v) - 2, len(v) - 1]]])
+    save_mesh(tmp_path / "flat.obj", v, f)
+    code, _, err = run(
+        capsys, "evaluate", "--gt", tmp_path / "flat.obj", "--mesh", tmp_path / "flat.obj"
+    )
+    assert code == 0
+    notes = [line for line in err.splitlines() if "zero area" in line]
+    assert len(notes) == 2  # once per file read (the same file, twice)
+    assert notes[0].startswith("note: ") and f"1 of {len(f)} faces" in notes[0]
+    code, _, err = run(
+        capsys, "evaluate", "--gt", files / "clean.obj", "--mesh", files / "noisy.obj"
+    )
+    assert code == 0 and err == ""
+
+
+def test_method_help_and_error_list_every_method(capsys, files, tmp_path):
+    from dmd_jax.cli import METHODS, build_parser
+
+    assert set(METHODS) == {"dmd", *baselines.REGISTRY, *baselines.LEARNED}
+    assert len(METHODS) == len(set(METHODS))
+    help_text = _subparser(build_parser(), "denoise").format_help()
+    for name in METHODS:
+        assert name in help_text
+    code, _, err = run(
+        capsys, "denoise", files / "noisy.obj", "-o", tmp_path / "x.obj", "--method", "magic"
+    )
+    assert_one_line_error(code, err, "magic", ", ".join(METHODS))
+
+
+def test_weights_with_a_classic_method_is_an_error(capsys, files, tmp_path, weights):
+    code, _, err = run(
+        capsys,
+        "denoise",
+        files / "noisy.obj",
+        "-o",
+        tmp_path / "x.obj",
+        "--method",
+        "bnf",
+        "--weights",
+        weights,
+    )
+    assert_one_line_error(code, err, "--weights", "'bnf'", "no weights")
+    assert not (tmp_path / "x.obj").exists()
+
+
+def _subparser(parser, name):
+    import argparse
+
+    action = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return action.choices[name]
+
+
+def test_help_shows_defaults_and_an_example_per_subcommand():
+    import argparse
+
+    from dmd_jax.cli import EXAMPLES, build_parser
+
+    parser = build_parser()
+    action = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    assert set(action.choices) == set(EXAMPLES)
+    for name, sub in action.choices.items():
+        text = " ".join(sub.format_help().split())
+        assert "example: dmd-jax " + name in text, name
+        for opt in sub._actions:
+            if isinstance(opt, argparse._HelpAction):
+                continue
+            assert opt.help, f"{name} {opt.option_strings or opt.dest} has no help"
+            if opt.option_strings and opt.default not in (None, False):
+                shown = " ".join(sub._get_formatter()._expand_help(opt).split())
+                assert "default" in shown, f"{name} {opt.option_strings}: {shown}"
+    denoise = " ".join(_subparser(parser, "denoise").format_help().split())
+    assert "(default: dmd)" in denoise and "(default: 1)" in denoise
+    noise = " ".join(_subparser(parser, "add-noise").format_help().split())
+    assert "(default: gaussian)" in noise and "σ for gaussian" in noise
+
+
+def test_make_dataset_empty_test_inter_holds_out_nothing(capsys, tmp_path):
+    out = tmp_path / "data"
+    code, stdout, err = run(
+        capsys,
+        "make-dataset",
+        "--out",
+        out,
+        "--per-category",
+        "1",
+        "--categories",
+        "torus,superquadric",
+        "--test-inter",
+        "",
+        "--workers",
+        "1",
+        "--min-vertices",
+        "300",
+        "--max-vertices",
+        "800",
+        "--no-progress",
+    )
+    assert code == 0, err
+    assert "test_inter 0 (none)" in stdout
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["test_inter"] == []
+
+
+def test_readme_commands_write_distinct_outputs():
+    """Consecutive commands of a README code block never write the same output name."""
+    import re
+    import shlex
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    for block in re.findall(r"```bash\n(.*?)```", readme, flags=re.S):
+        text = block.replace("\\\n", " ")
+        outputs = []
+        for line in text.splitlines():
+            line = line.split("#")[0].strip()
+            if not line.startswith("dmd-jax "):
+                continue
+            words = shlex.split(line)
+            for flag in ("-o", "--output", "--out"):
+                if flag in words and words[1] not in ("train",):
+                    outputs.append(words[words.index(flag) + 1])
+        assert len(outputs) == len(set(outputs)), f"repeated outputs in:\n{block}"
+
+
+def test_export_weights_says_which_step(capsys, tmp_path):
+    import jax.numpy as jnp
+
+    from dmd_jax.checkpoints import checkpoint_managers, save_checkpoint
+    from dmd_jax.train import TrainState
+    from dmd_jax.train import split_params as split
+
+    latest, _ = checkpoint_managers(tmp_path / "run", 1)
+    state = TrainState(jnp.asarray(7, jnp.int32), split(tiny_params()), {"fe": {}, "rest": {}})
+    save_checkpoint(latest, state, preset("test"))
+    ckpt = tmp_path / "run" / "checkpoints" / "latest"
+    code, out, err = run(capsys, "export-weights", ckpt, "-o", tmp_path / "w.msgpack")
+    assert code == 0, err
+    assert "step 7" in out and str(ckpt) in out and "preset test" in out
+    assert checkpoints.load_weights(tmp_path / "w.msgpack").meta["step"] == 7
