@@ -22,12 +22,12 @@ test-slow: $(STAMP)
 	$(BIN)/python -m pytest -n $(PYTEST_WORKERS) --dist loadfile -q -m slow --durations=15
 
 lint: $(STAMP)
-	$(BIN)/ruff check dmd_jax tests experiments benchmarks
-	$(BIN)/ruff format --check dmd_jax tests experiments benchmarks
+	$(BIN)/ruff check dmd_jax tests experiments benchmarks notebooks
+	$(BIN)/ruff format --check dmd_jax tests experiments benchmarks notebooks
 
 format: $(STAMP)
-	$(BIN)/ruff format dmd_jax tests experiments benchmarks
-	$(BIN)/ruff check --fix dmd_jax tests experiments benchmarks
+	$(BIN)/ruff format dmd_jax tests experiments benchmarks notebooks
+	$(BIN)/ruff check --fix dmd_jax tests experiments benchmarks notebooks
 
 # Benchmarks are scripts, not tests; results go to benchmarks/results/ (see its README).
 # glibc.malloc.hugetlb=1 backs JAX's large buffers with transparent huge pages, as NumPy
@@ -65,7 +65,8 @@ demo: $(STAMP)
 sota-lite: $(STAMP)
 	$(BIN)/python benchmarks/sota_lite.py $(if $(WEIGHTS),--weights $(WEIGHTS))
 
-# Executes notebooks/*.ipynb; executed copies go to notebooks/executed/ (git-ignored).
+# Executes the notebook scripts notebooks/NN_*.py (percent format, the only source); the
+# executed notebooks go to notebooks/executed/ (git-ignored).
 # 05 and 06 need the bundled weights, or WEIGHTS=path/to/file.msgpack.
 .PHONY: notebooks
 notebooks: $(STAMP)

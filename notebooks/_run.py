@@ -1,13 +1,19 @@
-"""Executes the exploration notebooks with nbclient (`make notebooks`).
+"""Builds and executes the exploration notebooks from their percent scripts (`make notebooks`).
 
-Executed copies, outputs included, go to `notebooks/executed/` (git-ignored); the
-notebooks in `notebooks/` stay stripped. Notebooks 05 and 06 need trained weights: the
-bundled `dmd_jax/weights/dmd_small.msgpack`, or a weights file named by the environment
-variable `DMD_JAX_WEIGHTS`; without either they are skipped with a message.
+Each notebook has one source, `notebooks/NN_name.py`, a Python script in jupytext's
+percent format: `# %%` starts a code cell, `# %% [markdown]` a markdown cell whose lines
+are comments (`# text`). The scripts are linted like the rest of the code, run as plain
+Python, and open as notebooks in Jupyter with jupytext. This runner turns each into a
+notebook (`notebook`), executes it with nbclient in a fresh `python3` kernel and writes
+the executed copy, outputs included, to `notebooks/executed/` (git-ignored).
+
+Notebooks 05 and 06 need trained weights: the bundled
+`dmd_jax/weights/dmd_small.msgpack`, or a weights file named by the environment variable
+`DMD_JAX_WEIGHTS`; without either they are skipped with a message.
 
 Usage:
   python notebooks/_run.py [--only 03_geometry_and_features] [--out DIR] [--timeout S]
-  python notebooks/_run.py --strip    # remove outputs from the notebooks in place
+  python notebooks/_run.py --no-execute   # write the stripped .ipynb files only
 """
 
 from __future__ import annotations
@@ -20,14 +26,57 @@ from pathlib import Path
 
 import nbformat
 from nbclient import NotebookClient
+from nbformat.v4 import new_code_cell, new_markdown_cell, new_notebook
 
 HERE = Path(__file__).resolve().parent
 NEEDS_WEIGHTS = ("05_feature_guided_transformer", "06_denoise_walkthrough")
+CODE_MARK = "# %%"
+MARKDOWN_MARK = "# %% [markdown]"
 
 
 def notebooks() -> list[Path]:
-    """The numbered notebooks, in order."""
-    return sorted(HERE.glob("[0-9][0-9]_*.ipynb"))
+    """The numbered notebook scripts, in order."""
+    return sorted(HERE.glob("[0-9][0-9]_*.py"))
+
+
+def cells_of(text: str) -> list[tuple[str, str]]:
+    """`(kind, source)` of every cell of a percent script, `kind` `"code"` or `"markdown"`.
+
+    Blank lines around a cell are dropped; a markdown line `# text` becomes `text` and
+    a bare `#` an empty line. Text before the first marker is not a cell.
+    """
+    cells: list[tuple[str, list[str]]] = []
+    for line in text.splitlines():
+        if line.strip() == MARKDOWN_MARK:
+            cells.append(("markdown", []))
+        elif line.strip() == CODE_MARK:
+            cells.append(("code", []))
+        elif cells:
+            kind, lines = cells[-1]
+            if kind == "markdown" and line.strip():
+                if not line.startswith("#"):
+                    raise ValueError(f"markdown cell line is not a comment: {line!r}")
+                line = line[2:] if line.startswith("# ") else line[1:]
+            lines.append(line)
+    return [(kind, "\n".join(lines).strip("\n")) for kind, lines in cells]
+
+
+def notebook(path: Path):
+    """The notebook of a percent script: cell ids `NN-ii`, a `python3` kernelspec."""
+    out = []
+    for i, (kind, source) in enumerate(cells_of(Path(path).read_text())):
+        cell = new_markdown_cell(source) if kind == "markdown" else new_code_cell(source)
+        cell["id"] = f"{Path(path).stem[:2]}-{i:02d}"
+        out.append(cell)
+    nb = new_notebook(
+        cells=out,
+        metadata={
+            "kernelspec": {"name": "python3", "display_name": "Python 3", "language": "python"},
+            "language_info": {"name": "python"},
+        },
+    )
+    nbformat.validate(nb)
+    return nb
 
 
 def weights_available() -> str | None:
@@ -44,55 +93,46 @@ def weights_available() -> str | None:
 
 
 def execute(path: Path, *, timeout: int = 600, cwd: Path | None = None):
-    """Runs every cell of `path` in a fresh `python3` kernel; raises on any cell error."""
-    nb = nbformat.read(path, as_version=4)
+    """Runs every cell of the notebook of `path` in a fresh `python3` kernel.
+
+    Raises:
+      nbclient.exceptions.CellExecutionError: naming the cell, on any cell error.
+    """
+    nb = notebook(path)
     client = NotebookClient(
         nb,
         timeout=timeout,
         kernel_name="python3",
-        resources={"metadata": {"path": str(cwd or path.parent)}},
+        resources={"metadata": {"path": str(cwd or Path(path).parent)}},
     )
     client.execute()
     return nb
 
 
-def strip(nb) -> bool:
-    """Removes outputs and execution counts in place; True when something changed."""
-    changed = False
-    for cell in nb.cells:
-        if cell.cell_type != "code":
-            continue
-        if cell.outputs or cell.execution_count is not None:
-            changed = True
-        cell.outputs = []
-        cell.execution_count = None
-    return changed
-
-
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--only", nargs="*", help="notebook names (with or without .ipynb)")
+    parser.add_argument("--only", nargs="*", help="notebook names (with or without .py)")
     parser.add_argument("--out", type=Path, default=HERE / "executed")
     parser.add_argument("--timeout", type=int, default=600, help="seconds per cell")
-    parser.add_argument("--strip", action="store_true", help="strip outputs in place, run nothing")
+    parser.add_argument(
+        "--no-execute", action="store_true", help="write the notebooks without running them"
+    )
     args = parser.parse_args(argv)
 
     paths = notebooks()
     if args.only:
-        wanted = {name.removesuffix(".ipynb") for name in args.only}
+        wanted = {Path(name).stem for name in args.only}
         paths = [p for p in paths if p.stem in wanted]
         missing = wanted - {p.stem for p in paths}
         if missing:
             parser.error(f"no such notebook: {', '.join(sorted(missing))}")
-    if args.strip:
+    args.out.mkdir(parents=True, exist_ok=True)
+    if args.no_execute:
         for path in paths:
-            nb = nbformat.read(path, as_version=4)
-            if strip(nb):
-                nbformat.write(nb, path)
-                print(f"stripped {path.name}")
+            nbformat.write(notebook(path), args.out / f"{path.stem}.ipynb")
+            print(f"wrote {args.out / path.stem}.ipynb")
         return 0
 
-    args.out.mkdir(parents=True, exist_ok=True)
     failed = []
     for path in paths:
         if path.stem in NEEDS_WEIGHTS and (reason := weights_available()):
@@ -105,7 +145,7 @@ def main(argv=None) -> int:
             print(f"FAIL {path.name} ({time.perf_counter() - start:.1f} s): {exc}")
             failed.append(path.name)
             continue
-        nbformat.write(nb, args.out / path.name)
+        nbformat.write(nb, args.out / f"{path.stem}.ipynb")
         print(f"ok   {path.name} ({time.perf_counter() - start:.1f} s)")
     return 1 if failed else 0
 

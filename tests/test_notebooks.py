@@ -1,9 +1,10 @@
-"""The exploration notebooks: committed without outputs, and each runs top to bottom.
+"""The exploration notebooks: one percent script each, and each runs top to bottom.
 
-Each notebook executes in a fresh `python3` kernel (nbclient), with a temporary working
-directory; any cell error fails its test. Notebooks 05 and 06 need trained weights, the
-bundled `dmd_jax/weights/dmd_small.msgpack` or a file named by `DMD_JAX_WEIGHTS`, and
-are skipped when neither exists.
+Each script (`notebooks/NN_name.py`) becomes a notebook through `notebooks/_run.py`, as
+`make notebooks` builds it, and executes in a fresh `python3` kernel (nbclient), with a
+temporary working directory; any cell error fails its test. Notebooks 05 and 06 need
+trained weights, the bundled `dmd_jax/weights/dmd_small.msgpack` or a file named by
+`DMD_JAX_WEIGHTS`, and are skipped when neither exists.
 """
 
 from __future__ import annotations
@@ -36,32 +37,41 @@ CELL_TIMEOUT_S = 300
 
 
 def _path(name: str) -> Path:
-    return NOTEBOOK_DIR / f"{name}.ipynb"
+    return NOTEBOOK_DIR / f"{name}.py"
 
 
 def test_notebook_set_is_complete():
-    found = sorted(p.stem for p in NOTEBOOK_DIR.glob("[0-9][0-9]_*.ipynb"))
-    assert found == NOTEBOOKS
+    assert [p.stem for p in runner.notebooks()] == NOTEBOOKS
+    assert not list(NOTEBOOK_DIR.glob("*.ipynb")), "the scripts are the only source"
+
+
+def test_percent_cells_round_trip():
+    text = "# %% [markdown]\n# # Title\n#\n# text\n\n# %%\nx = 1\n\n\nx\n\n# %%\ny = 2\n"
+    assert runner.cells_of(text) == [
+        ("markdown", "# Title\n\ntext"),
+        ("code", "x = 1\n\n\nx"),
+        ("code", "y = 2"),
+    ]
+    with pytest.raises(ValueError, match="not a comment"):
+        runner.cells_of("# %% [markdown]\ntext\n")
 
 
 @pytest.mark.parametrize("name", NOTEBOOKS)
-def test_committed_notebook_is_valid_and_stripped(name):
-    nb = nbformat.read(_path(name), as_version=4)
+def test_script_builds_a_valid_notebook(name):
+    nb = runner.notebook(_path(name))
     nbformat.validate(nb)
     assert nb.metadata["kernelspec"]["name"] == "python3"
-    code_cells = [c for c in nb.cells if c.cell_type == "code"]
-    assert code_cells and any(c.cell_type == "markdown" for c in nb.cells)
-    for cell in code_cells:
-        assert cell.outputs == [], f"{name}: cell {cell.id} has outputs; strip them"
-        assert cell.execution_count is None, f"{name}: cell {cell.id} has an execution count"
-    assert not [c.id for c in nb.cells if "execution" in c.metadata], "execution timings left in"
+    assert [c.id for c in nb.cells] == [f"{name[:2]}-{i:02d}" for i in range(len(nb.cells))]
+    assert nb.cells[0].cell_type == "markdown" and nb.cells[0].source.startswith("# ")
+    assert any(c.cell_type == "code" and c.source for c in nb.cells)
 
 
 @pytest.mark.parametrize("name", NOTEBOOKS)
 def test_notebook_needs_no_shared_data(name):
     """Users do not have the project's ../shared folder: notebooks make their meshes."""
-    nb = nbformat.read(_path(name), as_version=4)
-    source = "\n".join(c.source for c in nb.cells if c.cell_type == "code")
+    source = "\n".join(
+        c.source for c in runner.notebook(_path(name)).cells if c.cell_type == "code"
+    )
     assert not re.search(r"shared/|SHARED_MESHES|shared_mesh", source)
 
 
