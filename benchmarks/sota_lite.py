@@ -203,6 +203,24 @@ def tables(rows: list[list]) -> tuple[str, str]:
     return markdown_table(headers, detail), markdown_table(mean_headers, means)
 
 
+def metric_means(rows: list[list]) -> str:
+    """All three metrics per method, means over meshes and levels, in the vocabulary of
+    `dmd-jax evaluate` (`dmd_jax.metrics.metrics_table`, legend line included)."""
+    from dmd_jax.metrics import metrics_table
+
+    by_method: dict[str, list[list]] = {}
+    for row in rows:
+        by_method.setdefault(row[5], []).append(row)
+    means = {}
+    for method, group in by_method.items():
+        m = {key: float(np.mean([r[CSV_HEADER.index(key)] for r in group])) for key in _KEYS}
+        means[_label(method)] = {**m, "vertex_per_coord": m["vertex"] / 3.0}
+    return metrics_table(means, label="method")
+
+
+_KEYS = ("normal_deg", "vertex", "chamfer")
+
+
 def _weights_description(bundle, weights) -> dict[str, str]:
     from dmd_jax.checkpoints import pretrained_path
     from dmd_jax.model import param_count
@@ -257,7 +275,7 @@ def run(
     out_dir = Path(out_dir)
     csv_path = write_csv(out_dir / f"{name}.csv", CSV_HEADER, rows)
     intro = (
-        "Mean angle between corresponding face normals (degrees, lower is better) after "
+        "normal (°): mean angle between corresponding face normals (lower is better) after "
         "Gaussian noise of σ × the mesh's mean edge length; `best` names the denoiser "
         f"with the lowest error. Meshes: every file of `{Path(mesh_dir).name}/`"
         + (f" except {', '.join(skip)}" if skip else "")
@@ -271,7 +289,11 @@ def run(
         + "Noise seeds: CRC32 of `<file>|<σ>` (column `seed` of the CSV, which also holds "
         "vertex and chamfer errors and run times)."
     )
-    sections = [("Means over meshes", means), ("Per mesh", detail)]
+    sections = [
+        ("Means over meshes", means),
+        ("All metrics, means over meshes and levels", metric_means(rows)),
+        ("Per mesh", detail),
+    ]
     if notes:
         sections.append(("Input notes", "\n".join(f"* {n}" for n in notes)))
     md_path = write_report(

@@ -37,6 +37,13 @@ _EXPORTS = {
     "build_mesh_graph": "dmd_jax.graph",
     "load_mesh": "dmd_jax.io",
     "save_mesh": "dmd_jax.io",
+    # The short path of the README: noise with an int seed, any denoiser, the metrics.
+    "add_noise": "dmd_jax.api",
+    "denoise_with": "dmd_jax.api",
+    "mesh_metrics": "dmd_jax.metrics",
+    "metrics_table": "dmd_jax.metrics",
+    "render_meshes": "dmd_jax.render",
+    "comparison_html": "dmd_jax.viewer",
 }
 
 __all__ = ["__version__", *sorted(_EXPORTS)]

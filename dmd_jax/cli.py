@@ -10,10 +10,10 @@ from __future__ import annotations
 import argparse
 import sys
 
-# Every denoiser `dmd-jax denoise --method` accepts: the network, the classic filters of
-# `dmd_jax.baselines.REGISTRY`, then its learned ones (`LEARNED`); a test keeps this in
-# step with the registry (listed here so `--help` does not have to import JAX).
-METHODS = ("dmd", "laplacian", "taubin", "bmd", "nifp", "fefp", "bnf", "gnf", "l0", "cnr")
+# METHODS: every denoiser `--method` accepts, the names of `dmd_jax.denoise_with`
+# (dmd_jax.api imports only NumPy, so `--help` stays quick).
+from dmd_jax.api import METHODS
+
 # The methods that read `--weights`: DMD-Net and the learned CNR baseline.
 WEIGHTED_METHODS = ("dmd", "cnr")
 MESH_SUFFIXES = (".obj", ".off", ".ply", ".stl")
@@ -129,19 +129,10 @@ def _cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
-def _load_model_or_method(args: argparse.Namespace):
-    """The denoiser the user asked for: a baseline name, a weights file, a checkpoint dir."""
-    from dmd_jax.checkpoints import load_model
-
-    if getattr(args, "method", "dmd") != "dmd":
-        return None
-    return load_model(args.weights)
-
-
 def _cmd_denoise(args: argparse.Namespace) -> int:
     import time
 
-    from dmd_jax import inference
+    from dmd_jax.api import denoise_with
     from dmd_jax.io import save_mesh
 
     if args.iterations < 1:
@@ -156,16 +147,10 @@ def _cmd_denoise(args: argparse.Namespace) -> int:
     vertices, faces = _load_input(args.input)
     _check_output(args.output, args.input, args.overwrite)
     t0 = time.perf_counter()
-    if args.method == "dmd":
-        bundle = _load_model_or_method(args)
-        out = inference.denoise(vertices, faces, bundle, iterations=args.iterations)
-    else:
-        from dmd_jax import baselines
-
-        params = {"weights": args.weights} if args.weights is not None else {}
-        out = vertices
-        for _ in range(args.iterations):
-            out = baselines.denoise_with(args.method, out, faces, **params)
+    # One call for the network and every baseline, as in Python (dmd_jax.denoise_with).
+    out = denoise_with(
+        args.method, vertices, faces, weights=args.weights, iterations=args.iterations
+    )
     elapsed = time.perf_counter() - t0
     save_mesh(args.output, out, faces, overwrite=args.overwrite, protect=[args.input])
     print(
@@ -192,24 +177,14 @@ def _check_output(output, inputs, overwrite: bool) -> None:
 
 
 def _cmd_add_noise(args: argparse.Namespace) -> int:
-    import jax
-    import numpy as np
-
+    from dmd_jax.api import add_noise
     from dmd_jax.io import save_mesh
-    from dmd_jax.noise import add_noise
 
     vertices, faces = _load_input(args.input)
     _check_output(args.output, args.input, args.overwrite)
-    noisy = add_noise(
-        jax.random.PRNGKey(args.seed), vertices, faces, args.kind, args.level, units=args.units
-    )
-    save_mesh(
-        args.output,
-        np.asarray(noisy, np.float64),
-        faces,
-        overwrite=args.overwrite,
-        protect=[args.input],
-    )
+    # The same noise as dmd_jax.add_noise(seed, ...) in Python, whatever JAX's x64 mode.
+    noisy = add_noise(args.seed, vertices, faces, args.kind, args.level, units=args.units)
+    save_mesh(args.output, noisy, faces, overwrite=args.overwrite, protect=[args.input])
     print(
         f"added {args.kind} noise, level {args.level} ({args.units} units, seed {args.seed}) "
         f"-> {args.output}"

@@ -61,9 +61,9 @@ class DemoResult(NamedTuple):
 def gaussian_edge_noise(vertices, faces, level: float, seed: int) -> np.ndarray:
     """`vertices` plus Gaussian noise of σ = `level` × mean edge length, in float64.
 
-    The unit normal draws are float32 from `jax.random`, so the same seed gives the same
-    noise whether or not JAX's float64 mode is on (same noise as
-    `dmd_jax.noise.add_noise(..., "gaussian", level, units="edge")` on float32 input).
+    `dmd_jax.add_noise(seed, vertices, faces, "gaussian", level, units="edge")` (and
+    `dmd-jax add-noise --units edge --seed SEED`): float32 unit draws from `jax.random`,
+    so the same seed gives the same noise whether or not JAX's float64 mode is on.
 
     Args:
       vertices: `[n_vertex, 3]`.
@@ -71,15 +71,9 @@ def gaussian_edge_noise(vertices, faces, level: float, seed: int) -> np.ndarray:
       level: σ in mean edge lengths.
       seed: PRNG seed.
     """
-    import jax
-    import jax.numpy as jnp
+    from dmd_jax.api import add_noise
 
-    from dmd_jax.mesh import mean_edge_length
-    from dmd_jax.noise import unit_noise
-
-    v = np.asarray(vertices, np.float64)
-    x = unit_noise(jax.random.PRNGKey(seed), v.shape, "gaussian", dtype=jnp.float32)
-    return v + float(level) * mean_edge_length(v, faces) * np.asarray(x, np.float64)
+    return add_noise(seed, np.asarray(vertices, np.float64), faces, "gaussian", level, units="edge")
 
 
 def load_bundle(weights=None):

@@ -1,0 +1,137 @@
+"""The short Python path: noise with an integer seed, and every denoiser through one call.
+
+These are exported at the package root (`dmd_jax.add_noise`, `dmd_jax.denoise_with`),
+so an experiment needs no submodule import::
+
+    import dmd_jax
+
+    clean, faces = dmd_jax.load_mesh("part.obj")
+    noisy = dmd_jax.add_noise(0, clean, faces, "gaussian", 0.2, units="edge")
+    rows = {m: dmd_jax.mesh_metrics(dmd_jax.denoise_with(m, noisy, faces), clean, faces)
+            for m in ("dmd", "taubin", "bnf")}
+    print(dmd_jax.metrics_table(rows, label="method"))
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+# Every method `denoise_with` accepts: DMD-Net, then `dmd_jax.baselines` (classic
+# filters, then the learned CNR). The CLI's `--method` takes the same names.
+METHODS = ("dmd", "laplacian", "taubin", "bmd", "nifp", "fefp", "bnf", "gnf", "l0", "cnr")
+
+
+def _float_dtype(vertices) -> np.dtype:
+    """float32 stays float32; every other input (float64, float16, integers) -> float64."""
+    dtype = np.asarray(vertices).dtype
+    return np.dtype(np.float32) if dtype == np.float32 else np.dtype(np.float64)
+
+
+def add_noise(
+    seed,
+    vertices,
+    faces,
+    kind: str,
+    level: float,
+    *,
+    units: str = "canonical",
+    impulse_p: float = 0.15,
+    impulse_q: float = 0.15,
+    impulse_mode: str = "coordinate",
+) -> np.ndarray:
+    """`dmd_jax.noise.add_noise` for NumPy users: an integer seed, NumPy out, dtype kept.
+
+    Args:
+      seed: an `int` (as `dmd-jax add-noise --seed`) or a `jax.random` key.
+      vertices: `[n_vertex, 3]` positions, in any frame.
+      faces: `[n_face, 3]` vertex indices (used by `units="edge"`).
+      kind: `gaussian`, `uniform`, `gamma` or `impulse` (`dmd_jax.noise`).
+      level: σ for Gaussian, the amplitude for the other kinds, in `units`.
+      units: `"canonical"` (fraction of the longest bounding-box side) or `"edge"`
+        (× mean edge length).
+      impulse_p, impulse_q, impulse_mode: see `dmd_jax.noise.add_noise`.
+
+    Returns:
+      `[n_vertex, 3]` NumPy array: float32 for float32 input, float64 otherwise (the
+      unit draws are float32 from `jax.random`, so a seed gives the same noise whether or
+      not JAX's float64 mode is on, and the same as `dmd-jax add-noise --seed`).
+    """
+    import math
+
+    import jax
+    import jax.numpy as jnp
+
+    from dmd_jax import noise
+
+    if isinstance(seed, (bool, np.bool_)):
+        raise ValueError(f"seed must be an integer or a jax.random key, got {seed!r}")
+    key = jax.random.PRNGKey(int(seed)) if isinstance(seed, (int, np.integer)) else seed
+    try:
+        level = float(level)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"noise level must be a number, got {level!r}") from err
+    if not math.isfinite(level) or level < 0:
+        raise ValueError(f"noise level must be finite and >= 0, got {level!r}")
+    dtype = _float_dtype(vertices)
+    v = np.asarray(vertices, np.float64)
+    if v.ndim != 2 or v.shape[-1] != 3 or v.shape[0] == 0:
+        raise ValueError(f"vertices must have shape [n_vertex, 3], got {v.shape}")
+    # noise.add_noise's unit draws (float32) and noise unit, combined in float64.
+    x = noise.unit_noise(
+        key,
+        v.shape,
+        kind,
+        dtype=jnp.float32,
+        impulse_p=impulse_p,
+        impulse_q=impulse_q,
+        impulse_mode=impulse_mode,
+    )
+    unit = float(noise.noise_unit_length(v, faces, units))
+    return (v + level * unit * np.asarray(x, np.float64)).astype(dtype)
+
+
+def denoise_with(
+    method: str, vertices, faces, *, weights=None, iterations: int = 1, **params
+) -> np.ndarray:
+    """Denoises with DMD-Net or any baseline of `dmd_jax.baselines`, one call for all.
+
+    Args:
+      method: `"dmd"` (the network) or a name of `METHODS` (`taubin`, `bnf`, `cnr`, ...).
+      vertices: `[n_vertex, 3]` noisy positions, in any frame.
+      faces: `[n_face, 3]` vertex indices.
+      weights: DMD-Net or CNR weights: None for the bundled ones, a weights file, a
+        checkpoint directory (DMD-Net), or a loaded `ModelBundle`. Classic filters have
+        none, and refuse it.
+      iterations: passes of the denoiser, each starting from the last one's output.
+      **params: parameters of a baseline (`dmd_jax.baselines.DEFAULTS[method]`), or
+        `aggregation` for DMD-Net (`dmd_jax.inference.denoise`).
+
+    Returns:
+      `[n_vertex, 3]` NumPy array in the input frame and vertex order: float32 for
+      float32 input, float64 otherwise.
+
+    Raises:
+      ValueError: unknown method or parameter, weights for a classic filter, bad mesh.
+    """
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r}; choose one of: {', '.join(METHODS)}")
+    if isinstance(iterations, bool) or int(iterations) != iterations or iterations < 1:
+        raise ValueError(f"iterations must be a positive integer, got {iterations!r}")
+    dtype = _float_dtype(vertices)
+    if method == "dmd":
+        from dmd_jax.checkpoints import ModelBundle, load_model
+        from dmd_jax.inference import denoise
+
+        bundle = weights if isinstance(weights, ModelBundle) else load_model(weights)
+        out = denoise(vertices, faces, bundle, iterations=int(iterations), **params)
+        return np.asarray(out).astype(dtype, copy=False)
+    from dmd_jax import baselines
+
+    if weights is not None:
+        if method not in baselines.LEARNED:
+            raise ValueError(f"{method!r} is a classic filter and takes no weights")
+        params = {**params, "weights": weights}
+    out = vertices
+    for _ in range(int(iterations)):
+        out = baselines.denoise_with(method, out, faces, **params)
+    return np.asarray(out).astype(dtype, copy=False)
