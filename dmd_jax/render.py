@@ -429,19 +429,11 @@ def _colour_bar(fig, cax, cm, value_range, value_label, vals) -> None:
     sm = plt.cm.ScalarMappable(cmap=cm, norm=plt.Normalize(*value_range))
     cb = fig.colorbar(sm, cax=cax, orientation="horizontal")
     cb.ax.tick_params(labelsize=7, length=2, pad=1)
-    cb.set_label(value_label, fontsize=8, labelpad=2)
-    cb.ax.xaxis.set_label_position("top")
+    label = value_label
     if value_range[1] < max(float(np.nanmax(x)) for x in vals):
-        cb.ax.text(
-            1.0,
-            -2.2,
-            "brighter = larger; the top colour includes all above",
-            transform=cb.ax.transAxes,
-            ha="right",
-            va="top",
-            fontsize=6.5,
-            color="0.3",
-        )
+        label += f"; top colour: {value_range[1]:g} and above"
+    cb.set_label(label, fontsize=8, labelpad=2)
+    cb.ax.xaxis.set_label_position("top")
 
 
 def white_fraction(png_path, *, threshold: int = 250) -> float:
