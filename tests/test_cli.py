@@ -683,3 +683,51 @@ def test_add_noise_and_denoise_with_at_the_root(files):
         dmd_jax.denoise_with("magic", noisy, f)
     with pytest.raises(ValueError, match="no weights"):
         dmd_jax.denoise_with("bnf", noisy, f, weights="w.msgpack")
+
+
+def test_render_flags_png_and_html(files, capsys, tmp_path):
+    from PIL import Image
+
+    from dmd_jax.render import white_fraction
+
+    common = [files / "noisy.obj", files / "dmd.obj", "--gt", files / "clean.obj"]
+    png = tmp_path / "cmp.png"
+    code, _, err = run(
+        capsys,
+        "render",
+        *common,
+        "-o",
+        png,
+        "--elev",
+        "35",
+        "--azim",
+        "-30",
+        "--up",
+        "z",
+        "--panel-size",
+        "2",
+        "--range",
+        "0",
+        "30",
+    )
+    assert code == 0, err
+    with Image.open(png) as image:
+        # Three columns (noisy, dmd, the clean --gt), the longer side of a panel 2 inches
+        # at 110 dpi (a sphere: about square), and three rows.
+        assert 3 * 200 < image.width <= 3 * 220 and image.height > 3 * 200
+    assert white_fraction(png) < 0.5
+    small = tmp_path / "small.png"
+    assert run(capsys, "render", *common, "-o", small, "--no-zoom", "--panel-size", "1")[0] == 0
+    with Image.open(small) as image:
+        assert 300 < image.width <= 330 and image.height < 2 * 110 + 40  # no zoom row
+    page = tmp_path / "cmp.html"
+    code, out, _ = run(capsys, "render", *common, "-o", page, "--titles", "noisy,DMD-Net")
+    assert code == 0 and str(page) in out
+    html = page.read_text(encoding="utf-8")
+    assert "DMD-Net" in html and "clean" in html and '<script src="http' not in html
+    code, _, err = run(capsys, "render", *common, "-o", tmp_path / "cmp.jpg")
+    assert_one_line_error(code, err, ".png", ".html")
+    code, _, err = run(capsys, "render", *common, "-o", tmp_path / "r.png", "--range", "5", "1")
+    assert_one_line_error(code, err, "--range")
+    code, _, err = run(capsys, "render", *common, "-o", tmp_path / "t.png", "--titles", "a,b,c,d")
+    assert_one_line_error(code, err, "4 titles for 3 panels")
