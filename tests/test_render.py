@@ -33,11 +33,11 @@ from dmd_jax.render import (
 )
 
 
-def box(n: int = 6) -> tuple[np.ndarray, np.ndarray]:
-    """A closed box 1 × 0.6 × 0.4 (Z up), each side an n × n grid: sharp 90° edges."""
+def box() -> tuple[np.ndarray, np.ndarray]:
+    """A closed box 1 × 0.8 × 0.3 (Z up), each side subdivided: sharp 90° edges."""
     import trimesh
 
-    mesh = trimesh.creation.box(extents=(1.0, 0.6, 0.4))
+    mesh = trimesh.creation.box(extents=(1.0, 0.8, 0.3))
     for _ in range(2):
         mesh = mesh.subdivide()
     return np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int32)
@@ -74,11 +74,19 @@ def test_sharpest_face_lies_on_a_sharp_edge(noisy_box):
 
 
 def test_up_axis_guess_and_vote():
+    from conftest import shared_mesh_path
+
+    from dmd_jax.data import generate_shape
+    from dmd_jax.io import load_mesh
+
     v, f = box()
-    assert guess_up_axis(v, f) == "z"
-    # The same box turned Y-up (its 0.4 side along Y) stands on Y.
+    assert guess_up_axis(v, f) == "z"  # a clear flat base under Z
+    # The same box turned Y-up (its 0.3 side along Y): no clear base under Z, so Y.
     y_up = np.stack([v[:, 0], v[:, 2], -v[:, 1]], axis=1)
     assert guess_up_axis(y_up, f) == "y"
+    # A generated nut stands on Z; the Stanford bunny (a scan) is Y-up.
+    assert guess_up_axis(*generate_shape("fastener", 2024, 2)) == "z"
+    assert guess_up_axis(*load_mesh(shared_mesh_path("bunny.off"))) == "y"
     assert resolve_up("auto", [(y_up, f), (y_up, f), (v, f)]) == "y"
     assert resolve_up("z", [(y_up, f)]) == "z"
     with pytest.raises(ValueError, match="up must be"):
