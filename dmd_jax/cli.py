@@ -603,7 +603,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--up",
         default="auto",
         choices=["auto", "y", "z"],
-        help="the models' up axis; auto: the axis the first mesh stands on, else z",
+        help="the models' up axis; auto: z if the meshes stand on a flat base under z, "
+        "else y (the convention of scans; dmd_jax.render.guess_up_axis)",
     )
     p.add_argument(
         "--panel-size", type=float, default=3.2, help="inches per panel (HTML: × 130 px)"
@@ -614,7 +615,8 @@ def build_parser() -> argparse.ArgumentParser:
         nargs=2,
         metavar=("LOW", "HIGH"),
         default=None,
-        help="error colour range in degrees (default: 0 to the 95th percentile, rounded up)",
+        help="error colour range in degrees (default: 0 to the best panel's 95th "
+        "percentile, rounded up)",
     )
     p.add_argument("--no-zoom", action="store_true", help="PNG: no zoom on the sharpest edge")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
