@@ -337,6 +337,15 @@ def test_demo_writes_meshes_metrics_and_png(demo_dir):
         demo.RENDER_FILE,
     }
     assert_png(demo_dir / demo.RENDER_FILE)
+    from PIL import Image
+
+    from dmd_jax.render import white_fraction
+
+    # Shaded, zoom and error rows that fill the figure (the old picture: 1760 × 385 px,
+    # 82 % white); five columns of 2.6 inches at 110 dpi.
+    with Image.open(demo_dir / demo.RENDER_FILE) as image:
+        assert image.width > 1300 and image.height > 550
+    assert white_fraction(demo_dir / demo.RENDER_FILE) < 0.45
     report = json.loads((demo_dir / demo.METRICS_FILE).read_text())
     clean, f = load_mesh(demo_dir / "clean.obj")
     assert report["mesh"]["n_vertex"] == len(clean) and report["mesh"]["n_face"] == len(f)
