@@ -246,6 +246,17 @@ def _cmd_render(args: argparse.Namespace) -> int:
             titles.append(stem if stem == "clean" else f"{stem} (clean)")
     if len(titles) != len(meshes):
         raise ValueError(f"--titles gives {len(titles)} titles for {len(meshes)} panels")
+    if args.gt:
+        # Each title gets its mesh's mean normal error: `evaluate`'s normal (°) column.
+        import math
+
+        import numpy as np
+
+        from dmd_jax.metrics import NORMAL, face_normal_errors_deg, format_metric
+
+        for i, (v, _) in enumerate(meshes[: len(args.inputs)]):
+            mean = np.nanmean(face_normal_errors_deg(v, gt_v, gt_f, undefined=math.nan))
+            titles[i] += f"\n{NORMAL.name} {format_metric(NORMAL, mean)}{NORMAL.unit}"
     view = dict(
         titles=titles,
         face_values=values,
