@@ -153,6 +153,9 @@ def comparison_figure(
             col=i + 1,
         )
     if vals:
+        bar_label = value_label
+        if value_range[1] < max(float(np.nanmax(x)) for x in vals):
+            bar_label += f"; top colour: {value_range[1]:g} and above"
         # The colour bar: an invisible 2-D marker carrying the colour scale.
         fig.add_trace(
             go.Scatter(
@@ -167,7 +170,7 @@ def comparison_figure(
                     color=[value_range[0]],
                     showscale=True,
                     colorbar=dict(
-                        title=dict(text=value_label, side="top"),
+                        title=dict(text=bar_label, side="top"),
                         orientation="h",
                         x=0.5,
                         y=-0.02,
@@ -198,6 +201,7 @@ def comparison_figure(
         paper_bgcolor="white",
         plot_bgcolor="white",
         showlegend=False,
+        modebar=dict(orientation="v"),  # at the right edge, clear of the panel titles
     )
     return fig
 
