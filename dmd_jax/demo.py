@@ -149,7 +149,9 @@ def run_demo(
     from dmd_jax.io import save_mesh
     from dmd_jax.metrics import (
         DEFAULT_METRICS,
+        NORMAL,
         face_normal_errors_deg,
+        format_metric,
         mesh_metrics,
         metric_cells,
         metric_header,
@@ -231,7 +233,9 @@ def run_demo(
         panels = ["clean", "noisy", "dmd", "taubin", FEATURE_BASELINE]
         values = [None] + [face_normal_errors_deg(meshes[k], clean, faces) for k in panels[1:]]
         titles = ["clean"] + [
-            f"{_LABELS[k]}\n{metrics[k]['normal_deg']:.2f}° mean" for k in panels[1:]
+            f"{_LABELS[k]}\n{NORMAL.name} {format_metric(NORMAL, metrics[k][NORMAL.key])}"
+            f"{NORMAL.unit}"
+            for k in panels[1:]
         ]
         files["render"] = render_meshes(
             [(meshes[k], faces) for k in panels],

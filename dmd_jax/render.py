@@ -435,7 +435,7 @@ def _colour_bar(fig, cax, cm, value_range, value_label, vals) -> None:
     cb.ax.tick_params(labelsize=7, length=2, pad=1)
     label = value_label
     if value_range[1] < max(float(np.nanmax(x)) for x in vals):
-        label += f"; top colour: {value_range[1]:g} and above"
+        label += f"\ntop colour: {value_range[1]:g} and above"
     cb.set_label(label, fontsize=8, labelpad=2)
     cb.ax.xaxis.set_label_position("top")
 

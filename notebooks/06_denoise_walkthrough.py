@@ -16,16 +16,22 @@ from pathlib import Path
 import jax
 import matplotlib
 import numpy as np
-from IPython.display import Image, Markdown, display
+from IPython.display import HTML, Image, Markdown, display
 
 from dmd_jax import denoise, load_pretrained, load_weights, noise
 from dmd_jax.baselines import DEFAULTS, denoise_with
 from dmd_jax.data import generate_shape
-from dmd_jax.evaluate import markdown_table
 from dmd_jax.io import load_mesh, save_mesh
 from dmd_jax.mesh import mean_edge_length
-from dmd_jax.metrics import face_normal_errors_deg, mesh_metrics
-from dmd_jax.render import render_meshes
+from dmd_jax.metrics import (
+    DEFAULT_METRICS,
+    face_normal_errors_deg,
+    format_metric,
+    mesh_metrics,
+    metrics_table,
+)
+from dmd_jax.render import render_meshes, sharpest_face
+from dmd_jax.viewer import comparison_figure
 
 TMP = tempfile.TemporaryDirectory(prefix="dmd_nb06_")
 WORK = Path(TMP.name)
@@ -114,23 +120,16 @@ for name, out in results.items():
 # %% [markdown]
 # ## 4. Metrics
 #
-# All three in the clean mesh's canonical frame (`metrics.mesh_metrics`): the
-# per-coordinate mean squared vertex error, the mean angle between corresponding face
-# normals, and the chamfer distance between the vertex sets. Lower is better.
+# All three in the clean mesh's canonical frame (`metrics.mesh_metrics`), printed by
+# `metrics.metrics_table` with the names, units, scaling and legend of `dmd-jax evaluate`,
+# the demo and `make sota-lite`: the per-coordinate mean squared vertex error (the
+# paper's), the mean angle between corresponding face normals, and the chamfer distance
+# between the vertex sets. Lower is better.
 
 # %%
 scores = {name: mesh_metrics(out, clean, faces) for name, out in results.items()}
-rows = [
-    [name, m["vertex_per_coord"], m["normal_deg"], m["chamfer"], f"{seconds[name]:.2f}"]
-    for name, m in scores.items()
-]
-display(
-    Markdown(
-        markdown_table(
-            ["method", "vertex (per coord)", "normal (deg)", "chamfer", "time (s)"], rows
-        )
-    )
-)
+display(Markdown(metrics_table(scores, label="method")))
+print("seconds:", ", ".join(f"{name} {s:.2f}" for name, s in seconds.items()))
 
 # %% [markdown]
 # The table is one mesh and one noise draw, a sanity check rather than a benchmark; the
@@ -138,17 +137,33 @@ display(
 #
 # ## 5. Side by side
 #
-# Plain shading first, then every face coloured by the angle between its normal and
-# the clean mesh's (one colour scale for all panels).
+# One picture (`render.render_meshes`, as the demo's `before_after.png`): a shaded row,
+# a row zoomed on a sharp edge of the clean part (`render.sharpest_face`), and every
+# face coloured by the angle between its normal and the clean mesh's, on one colour
+# scale from 0 to the best result's 95th percentile, rounded up. Then the same meshes
+# in the interactive viewer of `dmd-jax render -o page.html` (`viewer.comparison_figure`;
+# drag one panel and the others turn with it).
 
 # %%
 panels = [(clean, faces)] + [(out, faces) for out in results.values()]
 titles = ["clean"] + list(results)
-show_render("shaded", panels, titles=titles, panel_size=2.2)
 errors = [None] + [face_normal_errors_deg(out, clean, faces) for out in results.values()]
 show_render(
-    "normal_error", panels, titles=titles, face_values=errors, value_range=(0, 40), panel_size=2.2
+    "comparison",
+    panels,
+    titles=titles,
+    face_values=errors,
+    shaded_row=True,
+    crop_face=sharpest_face(clean, faces),
+    panel_size=2.2,
 )
+viewer = comparison_figure(
+    panels[1:] + panels[:1],
+    titles=titles[1:] + titles[:1],
+    face_values=errors[1:] + errors[:1],
+    panel_px=260,
+)
+display(HTML(viewer.to_html(include_plotlyjs=True, full_html=False)))
 
 # %% [markdown]
 # Taubin smoothing settles the flat faces and the shaft, but the hex head's edges stay
@@ -166,8 +181,8 @@ show_render(
 for k in (1, 2, 3):
     m = mesh_metrics(denoise(noisy, faces, bundle, iterations=k), clean, faces)
     print(
-        f"iterations={k}: vertex {m['vertex_per_coord']:.3e}  "
-        f"normal {m['normal_deg']:6.2f}°  chamfer {m['chamfer']:.3e}"
+        f"iterations={k}: "
+        + "  ".join(f"{s.name} {format_metric(s, m[s.key])} ({s.unit})" for s in DEFAULT_METRICS)
     )
 
 # %% [markdown]
