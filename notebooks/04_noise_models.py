@@ -35,7 +35,15 @@ from IPython.display import Image, display
 from dmd_jax import noise
 from dmd_jax.data import generate_shape
 from dmd_jax.mesh import mean_edge_length
-from dmd_jax.metrics import face_normal_errors_deg, mesh_metrics
+from dmd_jax.metrics import (
+    DEFAULT_METRICS,
+    NORMAL,
+    VERTEX,
+    face_normal_errors_deg,
+    format_metric,
+    mesh_metrics,
+    metric_header,
+)
 from dmd_jax.render import render_meshes
 
 np.set_printoptions(precision=4, suppress=True, linewidth=100)
@@ -84,7 +92,8 @@ plt.show()
 # A procedural blob with about a thousand vertices (`generate_shape` returns it in its
 # canonical frame already). For each kind at the five training levels of
 # `noise.PAPER_LEVELS`, the per-coordinate mean squared error of the noisy mesh (the
-# `vertex_per_coord` metric) against $\text{level}^2E[X^2]$:
+# `vertex (×1e-4)` metric of `dmd-jax evaluate`, the paper's scale) against
+# $\text{level}^2E[X^2]$:
 
 # %%
 blob_v, blob_f = generate_shape("blob", seed=0, instance=0, min_vertices=800, max_vertices=1200)
@@ -94,7 +103,7 @@ print(
 )
 
 rows = []
-print(f"{'kind':8s} {'level':>6s} {'measured MSE':>13s} {'level²·E[X²]':>13s}")
+print(f"{'kind':8s} {'level':>6s} {metric_header(VERTEX):>15s} {'level²·E[X²] (×1e-4)':>21s}")
 for kind in KINDS:
     for level in noise.PAPER_LEVELS[kind]:
         noisy = np.asarray(
@@ -102,9 +111,10 @@ for kind in KINDS:
         )
         m = mesh_metrics(noisy, blob_v, blob_f)
         rows.append((kind, level, m))
+        predicted = level**2 * SECOND_MOMENT[kind]
         print(
             f"{kind:8s} {level:6.3f} "
-            f"{m['vertex_per_coord']:13.3e} {level**2 * SECOND_MOMENT[kind]:13.3e}"
+            f"{format_metric(VERTEX, m[VERTEX.key]):>15s} {format_metric(VERTEX, predicted):>21s}"
         )
 
 # %% [markdown]
@@ -222,18 +232,20 @@ for kind in KINDS:
         )
         response[kind].append(mesh_metrics(noisy, blob_v, blob_f))
 
-print("normal error (deg) at RMS " + " ".join(f"{x:7.4f}" for x in rms_grid))
+print(f"{metric_header(NORMAL)} at RMS   " + " ".join(f"{x:7.4f}" for x in rms_grid))
 for kind in KINDS:
-    print(f"{kind:25s}" + " ".join(f"{m['normal_deg']:7.1f}" for m in response[kind]))
+    print(f"{kind:25s}" + " ".join(f"{m[NORMAL.key]:7.1f}" for m in response[kind]))
 
 fig, axes = plt.subplots(1, 3, figsize=(10, 2.9))
 for kind in KINDS:
-    for ax, metric in zip(axes, ("vertex_per_coord", "normal_deg", "chamfer"), strict=True):
-        ax.plot(rms_grid, [m[metric] for m in response[kind]], "o-", ms=3, label=kind)
-axes[0].plot(rms_grid, rms_grid**2, "k--", lw=1, label="RMS²")
-axes[2].plot(rms_grid, 6 * rms_grid**2, "k--", lw=1, label="6 RMS²")
+    for ax, spec in zip(axes, DEFAULT_METRICS, strict=True):
+        values = [m[spec.key] * spec.scale for m in response[kind]]
+        ax.plot(rms_grid, values, "o-", ms=3, label=kind)
+axes[0].plot(rms_grid, rms_grid**2 * VERTEX.scale, "k--", lw=1, label="RMS²")
+axes[2].plot(rms_grid, 6 * rms_grid**2 * DEFAULT_METRICS[2].scale, "k--", lw=1, label="6 RMS²")
 axes[2].legend(fontsize=7)
-for ax, title in zip(axes, ("vertex (per coordinate)", "normal (degrees)", "chamfer"), strict=True):
+# Titles, units and scaling of `dmd-jax evaluate` (dmd_jax.metrics).
+for ax, title in zip(axes, [metric_header(s) for s in DEFAULT_METRICS], strict=True):
     ax.set_xscale("log")
     ax.set_xlabel("RMS displacement per coordinate")
     ax.set_title(title, fontsize=10)
