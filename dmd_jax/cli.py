@@ -76,7 +76,7 @@ def _load_input(path):
         found = sorted(q.name for q in p.iterdir() if q.suffix.lower() in MESH_SUFFIXES)
         hint = f"; it holds {len(found)} mesh files, e.g. {found[0]}" if found else ""
         raise ValueError(
-            f"{path}: is a directory; give one mesh file ({', '.join(MESH_SUFFIXES)}){hint}"
+            f"{path}: is a directory, not a mesh file ({', '.join(MESH_SUFFIXES)}){hint}"
         )
     if p.suffix.lower() == ".ply" and p.is_file():
         counts = _ply_element_counts(p)

@@ -472,7 +472,7 @@ def test_point_cloud_ply_is_named_a_point_cloud(capsys, tmp_path):
 
 def test_directory_as_input(capsys, tmp_path, files):
     code, _, err = run(capsys, "denoise", files, "-o", tmp_path / "o.obj")
-    assert_one_line_error(code, err, "is a directory", "mesh file", "clean.obj")
+    assert_one_line_error(code, err, "is a directory, not a mesh file", "e.g. clean.obj")
     assert "unknown mesh format" not in err
     empty = tmp_path / "empty"
     empty.mkdir()
