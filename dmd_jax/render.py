@@ -427,16 +427,28 @@ def render_meshes(
         plt.close(fig)
 
 
+def saturation_note(value_range, vals) -> str:
+    """Says where values leave the colour range (they take its end colours), or `""`."""
+    lo, hi = value_range
+    above = any(float(np.nanmax(x)) > hi for x in vals)
+    below = any(float(np.nanmin(x)) < lo for x in vals)
+    if above and below:
+        return f"end colours: below {lo:.3g} and above {hi:.3g}"
+    if above:
+        return f"top colour: {hi:.3g} and above"
+    if below:
+        return f"bottom colour: {lo:.3g} and below"
+    return ""
+
+
 def _colour_bar(fig, cax, cm, value_range, value_label, vals) -> None:
     import matplotlib.pyplot as plt
 
     sm = plt.cm.ScalarMappable(cmap=cm, norm=plt.Normalize(*value_range))
     cb = fig.colorbar(sm, cax=cax, orientation="horizontal")
     cb.ax.tick_params(labelsize=7, length=2, pad=1)
-    label = value_label
-    if value_range[1] < max(float(np.nanmax(x)) for x in vals):
-        label += f"\ntop colour: {value_range[1]:g} and above"
-    cb.set_label(label, fontsize=8, labelpad=2)
+    note = saturation_note(value_range, vals)
+    cb.set_label(value_label + (f"\n{note}" if note else ""), fontsize=8, labelpad=2)
     cb.ax.xaxis.set_label_position("top")
 
 

@@ -26,6 +26,7 @@ from dmd_jax.render import (
     _to_z_up,
     nice_range,
     resolve_up,
+    saturation_note,
 )
 
 # Links the cameras of every 3-D scene of the page: a turn or zoom in one is copied to
@@ -153,9 +154,8 @@ def comparison_figure(
             col=i + 1,
         )
     if vals:
-        bar_label = value_label
-        if value_range[1] < max(float(np.nanmax(x)) for x in vals):
-            bar_label += f"; top colour: {value_range[1]:g} and above"
+        note = saturation_note(value_range, vals)
+        bar_label = value_label + (f"; {note}" if note else "")
         # The colour bar: an invisible 2-D marker carrying the colour scale.
         fig.add_trace(
             go.Scatter(

@@ -304,3 +304,13 @@ def test_comparison_html_links_the_cameras_in_a_browser(noisy_box, tmp_path):
     assert found, proc.stdout[-2000:]
     eyes = json.loads(found.group(1).replace("&quot;", '"'))
     assert eyes == [{"x": 0.1, "y": 2.2, "z": 0.3}] * 2
+
+
+def test_saturation_note():
+    from dmd_jax.render import saturation_note
+
+    assert saturation_note((0.0, 10.0), [np.array([1.0, 5.0])]) == ""
+    assert saturation_note((0.0, 10.0), [np.array([1.0, 50.0])]) == "top colour: 10 and above"
+    assert saturation_note((-3.39187, 3.39187), [np.array([-9.0, 9.0])]) == (
+        "end colours: below -3.39 and above 3.39"
+    )
