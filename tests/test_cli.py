@@ -357,7 +357,7 @@ def test_demo_writes_meshes_metrics_and_png(demo_dir):
         v, f2 = load_mesh(demo_dir / filename)
         np.testing.assert_array_equal(f, f2)
         expected = mesh_metrics(v, clean, f)
-        for key in ("vertex", "normal_deg", "chamfer"):
+        for key in ("vertex", "vertex_per_coord", "normal_deg", "chamfer"):
             assert report["metrics"][name][key] == pytest.approx(expected[key], rel=1e-9)
     # The two classic filters clean up a 0.2-edge-length Gaussian noise on this part.
     m = report["metrics"]
