@@ -19,11 +19,11 @@ Presets (`preset(name)`):
   is not in the text), so the gap must lie in what the text leaves out: hidden fully
   connected layers in the heads and the transformer, the widths inside the densely
   connected aggregators, wider projections. We do not invent layers to reach 30 M.
-* `small`: width 48, 116,312 parameters, sized for a 2-core CPU. One jitted float32
-  forward + backward pass of FGT-8 on `fertility.off` (4,494 vertices, padded to 5,120)
-  costs 0.32-0.34 s of CPU time (process time over both cores, median of 7 after
-  compilation); widths 32 / 40 / 64 cost 0.21 / 0.27 / 0.45 s. Measured while other jobs
-  kept the load average at 8-11, so wall time then was about 1 s.
+* `small`: the recipe of the bundled weights, sized for a 2-core CPU: width 32, FGT-8,
+  the resolution-free `"local"` encoding and the normal-first head (`dmd_jax.encoding`,
+  `docs/design-decisions.md`), edge-unit noise mostly along normals with clean draws,
+  losses in edge units. (Before 2026-11-30 `small` was width 48 on absolute
+  bounding-box coordinates; those weights still load, their config travels with them.)
 * `test`: width 8, for unit tests.
 """
 
@@ -38,12 +38,14 @@ from typing import Any
 
 from flax import struct
 
+from dmd_jax.encoding import ENCODINGS, LOCAL_VERTEX_DIM
 from dmd_jax.noise import NOISE_KINDS
 
 VARIANT_NAMES = ("fgt8", "fgt3", "wo_t", "mt", "do_2s", "do_1s", "fgt_1s")
 SCHEMES = ("joint", "alter", "two_phase", "u_fe")
 SCHEDULES = ("constant", "cosine")
 DTYPES = ("float32", "float64")
+HEADS = ("offset", "normal")
 # How the feature extractor's curvature targets are expressed: the paper's raw values, or
 # asinh(κ), which keeps the heavy tail of κ at sharp edges (1e3–1e5 in the canonical
 # frame) from swamping the loss while staying monotone and exact near zero.
@@ -226,6 +228,17 @@ class ModelConfig(_ConfigMixin):
         and paper presets; a random head would start with offsets larger than the
         shape).
       dtype: parameter and computation dtype, `"float32"` or `"float64"`.
+      encoding: how the network sees a mesh (`dmd_jax.encoding`): `"xyz"` (the paper's
+        reading: bounding-box frame, absolute coordinates) or `"local"` (edge-unit
+        frame, Laplacian coordinates, normals and pre-filtered normals, face normals on
+        the dual stream).
+      head: `"offset"` (the denoiser predicts a per-vertex offset, or positions when
+        `predict_offset=False`) or `"normal"` (normal-first: the dual stream of the
+        denoiser's last two-stream network predicts face normals, and
+        `vertex_iterations` of Sun et al.'s normal-driven update move the noisy
+        vertices onto them; trained end to end). `"normal"` needs `encoding="local"`.
+      vertex_iterations: iterations of the normal-driven vertex update (`head="normal"`).
+      filter_iterations: passes of each bilateral pre-filter of the `"local"` encoding.
     """
 
     width: int = _static(64)
@@ -245,6 +258,10 @@ class ModelConfig(_ConfigMixin):
     normalize_fe_normals: bool = _static(True)
     head_init_scale: float = _static(0.0)
     dtype: str = _static("float32")
+    encoding: str = _static("xyz")
+    head: str = _static("offset")
+    vertex_iterations: int = _static(10)
+    filter_iterations: int = _static(8)
 
     def __post_init__(self):
         _check_positive_int("width", self.width)
@@ -266,6 +283,14 @@ class ModelConfig(_ConfigMixin):
             f"head_init_scale must be >= 0, got {self.head_init_scale!r}",
         )
         _check_choice("dtype", self.dtype, DTYPES)
+        _check_choice("encoding", self.encoding, ENCODINGS)
+        _check_choice("head", self.head, HEADS)
+        _check(
+            self.head == "offset" or self.encoding == "local",
+            "head='normal' needs encoding='local' (it mixes the pre-filtered face normals)",
+        )
+        _check_positive_int("vertex_iterations", self.vertex_iterations)
+        _check_positive_int("filter_iterations", self.filter_iterations)
 
     # Derived structure, one place for every variant's switches.
     @property
@@ -285,9 +310,15 @@ class ModelConfig(_ConfigMixin):
         return self.variant not in ("do_1s", "fgt_1s")
 
     @property
+    def vertex_in_dim(self) -> int:
+        """Columns of the primal input: 3 (xyz) or `encoding.LOCAL_VERTEX_DIM` (local)."""
+        return 3 if self.encoding == "xyz" else LOCAL_VERTEX_DIM
+
+    @property
     def transform_in_dim(self) -> int:
-        """Rows of `W_tf`: 8 for `[xyz ‖ features]`, 3 for xyz alone (FGT-3)."""
-        return 3 if self.variant == "fgt3" else 8
+        """Rows of `W_tf`: the primal input plus the 5 features (8 for the paper's
+        `[xyz ‖ features]`), or the primal input alone (FGT-3)."""
+        return self.vertex_in_dim + (0 if self.variant == "fgt3" else 5)
 
     @property
     def n_transforms(self) -> int:
@@ -313,6 +344,8 @@ class LossConfig(_ConfigMixin):
       chamfer_block: rows per block of the blockwise chamfer distance.
       feature_curvature: `raw` (paper) or `asinh`: the feature extractor learns
         `asinh(κ_H)`, `asinh(κ_G)` instead of the raw curvatures.
+      face_normal: weight of the normal-first head's own face-normal error (radians,
+        `losses.predicted_normal_loss`); read only by models with `head="normal"`.
     """
 
     vertex: float = _static(1.0)
@@ -324,10 +357,11 @@ class LossConfig(_ConfigMixin):
     gamma_g: float = _static(1.0)
     chamfer_block: int = _static(1024)
     feature_curvature: str = _static("raw")
+    face_normal: float = _static(0.0)
 
     def __post_init__(self):
         _check_choice("feature_curvature", self.feature_curvature, FEATURE_CURVATURES)
-        for name in ("vertex", "normal", "curvature", "chamfer", "feature"):
+        for name in ("vertex", "normal", "curvature", "chamfer", "feature", "face_normal"):
             value = getattr(self, name)
             _check(
                 isinstance(value, int | float) and 0.0 <= value < float("inf"),
@@ -439,12 +473,17 @@ class NoiseConfig(_ConfigMixin):
         `dmd_jax.noise`.
       p_edge: probability that a mesh gets an edge-relative level instead of a
         canonical-frame one.
+      p_normal: probability that an edge-relative draw is along the vertex normals (the
+        benchmark protocol) instead of per coordinate.
+      p_clean: probability of a clean input (level 0).
     """
 
     kinds: tuple[str, ...] = _static(NOISE_KINDS)
     canonical_levels: tuple[tuple[str, tuple[float, ...]], ...] | None = _static(None)
     edge_levels: tuple[float, ...] | None = _static(None)
     p_edge: float = _static(0.5)
+    p_normal: float = _static(0.0)
+    p_clean: float = _static(0.0)
 
     def __post_init__(self):
         _check(len(self.kinds) > 0, "noise kinds must not be empty")
@@ -456,12 +495,19 @@ class NoiseConfig(_ConfigMixin):
                 _check(len(levels) > 0 and all(x > 0 for x in levels), "levels must be > 0")
         if self.edge_levels is not None:
             _check(all(x > 0 for x in self.edge_levels), "edge levels must be > 0")
-        _check(0.0 <= self.p_edge <= 1.0, f"p_edge must lie in [0, 1], got {self.p_edge}")
+        for name in ("p_edge", "p_normal", "p_clean"):
+            value = getattr(self, name)
+            _check(0.0 <= value <= 1.0, f"{name} must lie in [0, 1], got {value}")
 
     def settings(self) -> dict[str, Any]:
         """Keyword arguments of `dmd_jax.pipeline.NoiseSettings` (unset fields left out,
         so the sampler's defaults apply)."""
-        out: dict[str, Any] = {"kinds": self.kinds, "p_edge": self.p_edge}
+        out: dict[str, Any] = {
+            "kinds": self.kinds,
+            "p_edge": self.p_edge,
+            "p_normal": self.p_normal,
+            "p_clean": self.p_clean,
+        }
         if self.canonical_levels is not None:
             out["canonical_levels"] = dict(self.canonical_levels)
         if self.edge_levels is not None:
@@ -522,6 +568,16 @@ class ExperimentConfig(_ConfigMixin):
 # --------------------------------------------------------------------------------------
 
 
+# The paper's canonical-frame levels with the heaviest cut, so a draw stays within about
+# one mean edge on the 1k-6k-vertex training meshes and patches (model-audit, item B).
+CAPPED_CANONICAL_LEVELS = (
+    ("gaussian", (0.005, 0.01, 0.02)),
+    ("uniform", (0.01, 0.02, 0.035)),
+    ("gamma", (0.005, 0.01, 0.015)),
+    ("impulse", (0.01, 0.02, 0.05)),
+)
+
+
 def _paper() -> ExperimentConfig:
     return ExperimentConfig(
         name="paper",
@@ -532,11 +588,44 @@ def _paper() -> ExperimentConfig:
 
 
 def _small() -> ExperimentConfig:
+    # The recipe of the bundled weights (README, "Bundled weights"): resolution-free
+    # inputs, normal-first head, edge-unit noise mostly along normals with clean draws.
     return ExperimentConfig(
         name="small",
-        model=ModelConfig(width=48, fe_two_streams=2, depth=2, variant="fgt8", stn_width=32),
-        loss=LossConfig(),
-        train=TrainConfig(steps=20_000, batch_size=4),
+        model=ModelConfig(
+            width=32,
+            fe_two_streams=2,
+            depth=2,
+            variant="fgt8",
+            stn_width=32,
+            encoding="local",
+            head="normal",
+        ),
+        loss=LossConfig(
+            vertex=1.0,
+            normal=1.0,
+            curvature=0.0,
+            chamfer=0.0,
+            feature=0.02,
+            feature_curvature="asinh",
+            face_normal=1.0,
+        ),
+        train=TrainConfig(
+            steps=4000,
+            batch_size=2,
+            lr=1e-3,
+            schedule="cosine",
+            warmup_steps=100,
+            eval_every=500,
+            ckpt_every=100,
+        ),
+        noise=NoiseConfig(
+            canonical_levels=CAPPED_CANONICAL_LEVELS,
+            edge_levels=(0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.4, 0.5),
+            p_edge=0.85,
+            p_normal=0.6,
+            p_clean=0.1,
+        ),
         data=DataConfig(target_vertices=2000),
     )
 

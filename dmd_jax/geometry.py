@@ -211,3 +211,45 @@ def vertex_features(vertices, faces):
         ],
         axis=-1,
     )
+
+
+def face_centroids(vertices, faces):
+    """Face centroids `[n_face, 3]`."""
+    return vertices[faces].mean(axis=1)
+
+
+def fit_vertices_to_normals(vertices, faces, normals, corner_vertex, corner_face, free, iterations):
+    """Sun et al. (2007) vertex update, repeated: moves vertices onto the face planes.
+
+    `x_i ← x_i + (1/|F_i|) Σ_{j∈F_i} n_j (n_j · (c_j − x_i))` with the current face
+    centroids `c_j` and fixed target normals `n_j` (Jacobi: all vertices at once). Zheng
+    et al. (2011) and Zhang et al. (2015) use the same update, and so does DMD-Net's
+    normal-first head (`ModelConfig.head="normal"`), which differentiates through it.
+
+    Args:
+      vertices: `[n_vertex, 3]`.
+      faces: `[n_face, 3]` int32.
+      normals: `[n_face, 3]` unit target normals.
+      corner_vertex, corner_face: `[3 n_face]` int32 corner arrays (`faces.ravel()` and
+        each corner's face).
+      free: `[n_vertex]` float, 1 where a vertex may move, 0 where it is held fixed.
+      iterations: int (may be traced).
+
+    Returns:
+      `[n_vertex, 3]` updated positions.
+    """
+    n_vertex = vertices.shape[0]
+    degree = jax.ops.segment_sum(
+        jnp.ones(corner_vertex.shape[0], vertices.dtype), corner_vertex, num_segments=n_vertex
+    )
+    scale = (free / jnp.maximum(degree, 1.0)).astype(vertices.dtype)
+    nc = normals[corner_face].astype(vertices.dtype)
+
+    def body(_, x):
+        c = face_centroids(x, faces)
+        d = c[corner_face] - x[corner_vertex]
+        move = nc * jnp.sum(nc * d, axis=-1, keepdims=True)
+        step = jax.ops.segment_sum(move, corner_vertex, num_segments=n_vertex)
+        return x + scale[:, None] * step
+
+    return jax.lax.fori_loop(0, iterations, body, vertices)

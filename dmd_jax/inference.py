@@ -14,6 +14,7 @@ import numpy as np
 
 from dmd_jax.checkpoints import as_bundle
 from dmd_jax.config import ExperimentConfig
+from dmd_jax.encoding import mesh_frame
 from dmd_jax.graph import (
     build_mesh_graph,
     pad_mesh_graph,
@@ -21,7 +22,7 @@ from dmd_jax.graph import (
     padded_sizes_for,
     with_ell_layout,
 )
-from dmd_jax.mesh import canonical_frame, validate_mesh
+from dmd_jax.mesh import validate_mesh
 
 AGGREGATIONS = ("auto", "ell", "segment_sum")
 # `auto` keeps a graph's ELL table while it holds at most this many slots per distinct
@@ -57,8 +58,9 @@ def denoise(
 ) -> np.ndarray:
     """Denoises a triangle mesh with a trained DMD-Net.
 
-    The mesh is mapped to its canonical frame (bounding box centred, longest side 1),
-    denoised, and mapped back, so the result is translation- and scale-equivariant.
+    The mesh is mapped to the frame of the model's encoding (`encoding.mesh_frame`:
+    bounding box centred, and longest side 1 or mean edge length 1), denoised, and
+    mapped back, so the result is translation- and scale-equivariant.
 
     Args:
       vertices: `[n_vertex, 3]` in any frame; float16/32/64 or integer.
@@ -93,7 +95,7 @@ def denoise(
     v, f = validate_mesh(vertices, faces)
     in_dtype = np.asarray(vertices).dtype
     bundle = as_bundle(params, config)
-    frame = canonical_frame(v)
+    frame = mesh_frame(bundle.config.model.encoding, v, f)
     x = frame.apply(v)
     # The padded graph does not change between passes: build it (edge lists, ELL
     # tables) and move it to the device once, not once per pass.

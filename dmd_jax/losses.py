@@ -161,6 +161,38 @@ def normal_loss(pred, target, faces, *, face_mask=None, degrees=False):
     return loss * (180.0 / math.pi) if degrees else loss
 
 
+def predicted_normal_loss(pred_normals, target, faces, *, face_mask=None):
+    """Mean angle between predicted unit face normals and the target mesh's.
+
+    The loss of the normal-first head's own output (before its vertex update), in
+    radians like `normal_loss`.
+
+    Args:
+      pred_normals: `[n_face, 3]` unit normals.
+      target: `[n_vertex, 3]` ground-truth positions.
+      faces: `[n_face, 3]` int vertex indices.
+      face_mask: optional `[n_face]` bool, `False` on padding.
+
+    Returns:
+      Scalar mean over selected faces whose target (and prediction) is non-degenerate.
+    """
+    pred_normals, target, faces = map(jnp.asarray, (pred_normals, target, faces))
+    _check_points("target", target)
+    _check_faces(faces)
+    if pred_normals.shape != faces.shape:
+        raise ValueError(
+            f"pred_normals must have shape [n_face, 3] = {faces.shape}, got {pred_normals.shape}"
+        )
+    n_t = geometry.face_normals(target, faces)
+    ok = (jnp.sum(n_t * n_t, axis=-1) > 0.5) & (jnp.sum(pred_normals**2, axis=-1) > 0.5)
+    sin = geometry.safe_norm(jnp.cross(pred_normals, n_t))
+    cos = jnp.sum(pred_normals * n_t, axis=-1)
+    angle = jnp.arctan2(jnp.where(ok, sin, 0.0), jnp.where(ok, cos, 1.0))
+    mask = _check_mask("face_mask", face_mask, faces.shape[0])
+    mask = ok if mask is None else mask & ok
+    return _masked_mean(angle, mask)
+
+
 # --------------------------------------------------------------------------------------
 # Curvature loss
 # --------------------------------------------------------------------------------------

@@ -59,7 +59,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import linen as nn
 
-from dmd_jax import ops
+from dmd_jax import encoding, geometry, ops
 from dmd_jax.config import ModelConfig
 from dmd_jax.geometry import safe_normalize
 from dmd_jax.graph import MeshGraph, build_mesh_graph
@@ -225,15 +225,28 @@ class TwoStream(nn.Module):
     param_dtype: Dtype = jnp.float32
 
     @nn.compact
-    def __call__(self, x, graph: MeshGraph, *, deterministic: bool = True):
+    def __call__(
+        self,
+        x,
+        graph: MeshGraph,
+        *,
+        face_x=None,
+        deterministic: bool = True,
+        return_dual: bool = False,
+    ):
         """Runs both streams and fuses them.
 
         Args:
           x: `[n_vertex, d_in]` primal features.
           graph: the mesh graph.
+          face_x: optional `[n_face, d_face]` face features, concatenated to `P2D(x)` as
+            the dual stream's input (the `"local"` encoding's face normals).
+          return_dual: also return face features: the dual stream's output and its DAP
+            fusion with the primal stream, `[d ‖ DAP(p, d)]`.
 
         Returns:
-          `[n_vertex, width]` primal features.
+          `[n_vertex, width]` primal features; with `return_dual`, also
+          `[n_face, 2 width]` face features.
         """
         agg = dict(
             dropout_rate=self.dropout_rate, attention=self.attention, param_dtype=self.param_dtype
@@ -249,10 +262,13 @@ class TwoStream(nn.Module):
                 ell=graph.vertex_ell,
             )
         if not self.two_stream:
+            if return_dual:
+                raise ValueError("a single-stream network has no dual features")
             return p
-        d = nn.Dense(self.width, param_dtype=self.param_dtype, name="dual_in")(
-            ops.primal_to_dual(x, graph.faces)
-        )
+        d_in = ops.primal_to_dual(x, graph.faces)
+        if face_x is not None:
+            d_in = jnp.concatenate([d_in, face_x.astype(d_in.dtype)], axis=-1)
+        d = nn.Dense(self.width, param_dtype=self.param_dtype, name="dual_in")(d_in)
         for i in range(self.n_agg):
             d = Aggregator(self.width, name=f"dual_agg{i}", **agg)(
                 d,
@@ -265,11 +281,20 @@ class TwoStream(nn.Module):
         fused = ops.dual_to_primal(
             ops.dual_average_pool(p, d, graph.faces), graph.faces, graph.vertex_face_degree
         )
-        return fused + p if self.pdf_residual else fused
+        out = fused + p if self.pdf_residual else fused
+        if return_dual:
+            # The face-level fusion (before D2P) carries the primal stream too.
+            return out, jnp.concatenate([d, ops.dual_average_pool(p, d, graph.faces)], -1)
+        return out
 
 
 class _Stack(nn.Module):
-    """`n` two-stream networks followed by a linear head (FE and denoiser share it)."""
+    """`n` two-stream networks followed by a linear head (FE and denoiser share it).
+
+    With `out_dim=0` there is no head and the call returns `(primal [n_vertex, width],
+    faces [n_face, 2 width] or None)`, the last two-stream network's outputs (see
+    `TwoStream`'s `return_dual`).
+    """
 
     config: ModelConfig
     n: int
@@ -278,9 +303,11 @@ class _Stack(nn.Module):
     head_init: nn.initializers.Initializer = nn.initializers.lecun_normal()
 
     @nn.compact
-    def __call__(self, x, graph: MeshGraph, *, deterministic: bool = True):
+    def __call__(self, x, graph: MeshGraph, *, face_x=None, deterministic: bool = True):
         cfg = self.config
+        d = None
         for i in range(self.n):
+            last = self.out_dim == 0 and self.two_stream and i == self.n - 1
             x = TwoStream(
                 cfg.width,
                 two_stream=self.two_stream,
@@ -290,7 +317,11 @@ class _Stack(nn.Module):
                 pdf_residual=cfg.pdf_residual,
                 param_dtype=_param_dtype(cfg),
                 name=f"two_stream{i}",
-            )(x, graph, deterministic=deterministic)
+            )(x, graph, face_x=face_x, deterministic=deterministic, return_dual=last)
+            if last:
+                x, d = x
+        if self.out_dim == 0:
+            return x, d
         return nn.Dense(
             self.out_dim, kernel_init=self.head_init, param_dtype=_param_dtype(cfg), name="head"
         )(x)
@@ -306,10 +337,10 @@ class FeatureExtractor(nn.Module):
     config: ModelConfig
 
     @nn.compact
-    def __call__(self, x, graph: MeshGraph, *, deterministic: bool = True):
+    def __call__(self, x, graph: MeshGraph, *, face_x=None, deterministic: bool = True):
         cfg = self.config
         out = _Stack(cfg, cfg.fe_two_streams, cfg.fe_two_stream, 5, name="stack")(
-            x, graph, deterministic=deterministic
+            x, graph, face_x=face_x, deterministic=deterministic
         )
         if cfg.normalize_fe_normals:
             out = jnp.concatenate([safe_normalize(out[:, :3]), out[:, 3:]], axis=-1)
@@ -438,20 +469,48 @@ class SpatialTransformer(nn.Module):
 
 
 class Denoiser(nn.Module):
-    """`depth` two-stream networks and a head to `[n, 3]` (offset or positions)."""
+    """`depth` two-stream networks and a head.
+
+    `head="offset"`: a linear head to `[n_vertex, 3]` (offset or positions).
+    `head="normal"`: a linear head on the last dual stream to `[n_face, K + 3]`: mixing
+    logits over the `K` candidate normals (the noisy face normal and the pre-filtered
+    ones) and a correction `δ`; the face normal is `normalize(Σ_k softmax_k n_k + δ)`.
+    Starting from zeros, an untrained head is the plain average of the candidates.
+    (A single-stream denoiser has no dual stream: its face features are then a Dense
+    of `[P2D(primal) ‖ face_x]`.)
+    """
 
     config: ModelConfig
 
     @nn.compact
-    def __call__(self, x, graph: MeshGraph, *, deterministic: bool = True):
+    def __call__(
+        self, x, graph: MeshGraph, *, face_x=None, candidates=None, deterministic: bool = True
+    ):
         cfg = self.config
-        if cfg.head_init_scale == 0:
-            head_init = nn.initializers.zeros
-        else:
-            head_init = nn.initializers.variance_scaling(cfg.head_init_scale, "fan_in", "normal")
-        return _Stack(
-            cfg, cfg.depth, cfg.denoiser_two_stream, 3, head_init=head_init, name="stack"
-        )(x, graph, deterministic=deterministic)
+        pd = _param_dtype(cfg)
+        if cfg.head == "offset":
+            if cfg.head_init_scale == 0:
+                head_init = nn.initializers.zeros
+            else:
+                head_init = nn.initializers.variance_scaling(
+                    cfg.head_init_scale, "fan_in", "normal"
+                )
+            return _Stack(
+                cfg, cfg.depth, cfg.denoiser_two_stream, 3, head_init=head_init, name="stack"
+            )(x, graph, face_x=face_x, deterministic=deterministic)
+        p, d = _Stack(cfg, cfg.depth, cfg.denoiser_two_stream, 0, name="stack")(
+            x, graph, face_x=face_x, deterministic=deterministic
+        )
+        if d is None:
+            d_in = ops.primal_to_dual(p, graph.faces)
+            if face_x is not None:
+                d_in = jnp.concatenate([d_in, face_x.astype(d_in.dtype)], axis=-1)
+            d = nn.relu(nn.Dense(cfg.width, param_dtype=pd, name="dual_out")(d_in))
+        k = candidates.shape[1]
+        out = nn.Dense(k + 3, kernel_init=nn.initializers.zeros, param_dtype=pd, name="head")(d)
+        weights = jax.nn.softmax(out[:, :k], axis=-1)
+        mixed = jnp.einsum("fk,fkc->fc", weights, candidates.astype(out.dtype))
+        return safe_normalize(mixed + out[:, k:])
 
 
 class DMDNet(nn.Module):
@@ -475,20 +534,33 @@ class DMDNet(nn.Module):
             )
         xyz = jnp.asarray(vertices).astype(_param_dtype(cfg))
         aux = {}
-        x_in = xyz
+        face_x = candidates = None
+        if cfg.encoding == "local":
+            x_in, face_x, candidates = encoding.local_features(
+                xyz, graph, filter_iterations=cfg.filter_iterations
+            )
+        else:
+            x_in = xyz
         if cfg.stn:
-            mats = SpatialTransformer(cfg, name="stn")(xyz, graph, deterministic=deterministic)
+            # The STN acts on the three coordinate-like columns (xyz, or the Laplacian
+            # coordinates of the local encoding); the offset is added to the untransformed
+            # positions.
+            mats = SpatialTransformer(cfg, name="stn")(
+                x_in[:, :3], graph, deterministic=deterministic
+            )
             aux["stn"] = mats
-            x_in = apply_transform(xyz, mats, graph.vertex_graph)
+            x_in = jnp.concatenate(
+                [apply_transform(x_in[:, :3], mats, graph.vertex_graph), x_in[:, 3:]], axis=-1
+            )
 
         features = None
         if cfg.uses_feature_extractor:
             features = FeatureExtractor(cfg, name="feature_extractor")(
-                x_in, graph, deterministic=deterministic
+                x_in, graph, face_x=face_x, deterministic=deterministic
             )
 
         if cfg.uses_transformer:
-            t_in = x_in if cfg.transform_in_dim == 3 else jnp.concatenate([x_in, features], -1)
+            t_in = x_in if cfg.variant == "fgt3" else jnp.concatenate([x_in, features], -1)
             t, mats = Transformer(cfg, name="transformer")(
                 features, t_in, graph, deterministic=deterministic
             )
@@ -499,8 +571,19 @@ class DMDNet(nn.Module):
         else:
             den_in = x_in
 
-        out = Denoiser(cfg, name="denoiser")(den_in, graph, deterministic=deterministic)
-        denoised = xyz + out if cfg.predict_offset else out
+        out = Denoiser(cfg, name="denoiser")(
+            den_in, graph, face_x=face_x, candidates=candidates, deterministic=deterministic
+        )
+        if cfg.head == "normal":
+            aux["face_normals"] = out
+            faces = graph.faces
+            corner_face = jnp.repeat(jnp.arange(faces.shape[0], dtype=faces.dtype), 3)
+            free = jnp.ones(xyz.shape[0], xyz.dtype)
+            denoised = geometry.fit_vertices_to_normals(
+                xyz, faces, out, faces.reshape(-1), corner_face, free, cfg.vertex_iterations
+            )
+        else:
+            denoised = xyz + out if cfg.predict_offset else out
         return denoised, features, aux
 
 

@@ -133,7 +133,10 @@ def test_presets():
     paper_train = preset("paper").train
     assert (paper_train.lr, paper_train.b1, paper_train.b2) == (1e-4, 0.9, 0.999)
     assert preset("test").model.width == 8
-    assert 48 <= preset("small").model.width <= 64
+    assert preset("small").model.width == 32
+    # The paper preset keeps the paper's reading; small is the resolution-free recipe.
+    assert (preset("paper").model.encoding, preset("paper").model.head) == ("xyz", "offset")
+    assert (preset("small").model.encoding, preset("small").model.head) == ("local", "normal")
     with pytest.raises(ValueError, match="unknown preset"):
         preset("huge")
 
@@ -155,7 +158,12 @@ def test_train_config_derived_values():
 
 
 def test_noise_settings_leave_unset_fields_to_the_sampler():
-    assert NoiseConfig().settings() == {"kinds": NoiseConfig().kinds, "p_edge": 0.5}
+    assert NoiseConfig().settings() == {
+        "kinds": NoiseConfig().kinds,
+        "p_edge": 0.5,
+        "p_normal": 0.0,
+        "p_clean": 0.0,
+    }
     cfg = NoiseConfig(canonical_levels=(("gamma", (0.01,)),), edge_levels=(0.3,))
     assert cfg.settings()["canonical_levels"] == {"gamma": (0.01,)}
     assert cfg.settings()["edge_levels"] == (0.3,)

@@ -19,7 +19,11 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
 
-from dmd_jax.geometry import safe_norm
+from dmd_jax.geometry import (  # noqa: F401  (re-exported for the baselines)
+    face_centroids,
+    fit_vertices_to_normals,
+    safe_norm,
+)
 from dmd_jax.graph import face_adjacency
 from dmd_jax.mesh import canonical_frame, validate_mesh
 
@@ -193,11 +197,6 @@ def boundary_vertex_mask(faces: np.ndarray, n_vertex: int) -> np.ndarray:
 # --------------------------------------------------------------------------------------
 
 
-def face_centroids(vertices, faces):
-    """Face centroids `[n_face, 3]`."""
-    return vertices[faces].mean(axis=1)
-
-
 def gaussian(dist_sq, sigma):
     """`exp(-d² / (2σ²))` from squared distances."""
     return jnp.exp(-0.5 * dist_sq / (sigma * sigma))
@@ -230,35 +229,3 @@ def weighted_normal_average(weights, normals, receivers, senders, n_face):
     norm = jnp.sqrt(jnp.sum(acc * acc, axis=-1, keepdims=True))
     ok = norm > 0
     return jnp.where(ok, acc / jnp.where(ok, norm, 1.0), normals)
-
-
-def fit_vertices_to_normals(vertices, faces, normals, corner_vertex, corner_face, free, iterations):
-    """Sun et al. (2007) vertex update, repeated: moves vertices onto the face planes.
-
-    `x_i ← x_i + (1/|F_i|) Σ_{j∈F_i} n_j (n_j · (c_j − x_i))` with the current face
-    centroids `c_j` and fixed target normals `n_j` (Jacobi: all vertices at once). Zheng
-    et al. (2011) and Zhang et al. (2015) use the same update.
-
-    Args:
-      vertices: `[n_vertex, 3]`.
-      faces: `[n_face, 3]` int32.
-      normals: `[n_face, 3]` unit target normals.
-      corner_vertex, corner_face: `[3 n_face]` int32 corner arrays.
-      free: `[n_vertex]` float, 1 where a vertex may move, 0 where it is held fixed.
-      iterations: int (may be traced).
-    """
-    n_vertex = vertices.shape[0]
-    degree = jax.ops.segment_sum(
-        jnp.ones(corner_vertex.shape[0], vertices.dtype), corner_vertex, num_segments=n_vertex
-    )
-    scale = free / jnp.maximum(degree, 1.0)
-    nc = normals[corner_face]
-
-    def body(_, x):
-        c = face_centroids(x, faces)
-        d = c[corner_face] - x[corner_vertex]
-        move = nc * jnp.sum(nc * d, axis=-1, keepdims=True)
-        step = jax.ops.segment_sum(move, corner_vertex, num_segments=n_vertex)
-        return x + scale[:, None] * step
-
-    return jax.lax.fori_loop(0, iterations, body, vertices)

@@ -1,0 +1,157 @@
+"""How DMD-Net sees a mesh: the frame it works in and the features it is given.
+
+Two encodings, chosen by `ModelConfig.encoding`:
+
+* `"xyz"`, the paper's reading: the canonical frame (bounding box centred, longest side
+  1) and the absolute canonical coordinates as the only input. An offset the network
+  learnt on 2k-vertex meshes is then the same length in bounding-box units on a
+  40k-vertex scan, i.e. several times too long in edge lengths (`shared/model-audit.md`,
+  item A), and ReLUs on absolute coordinates make it orientation dependent (item C).
+* `"local"`, resolution-free: the frame is centred on the bounding box and scaled by
+  the mean edge length, so one unit is one mean edge whatever the resolution: noise
+  levels, offsets, the vertex and chamfer losses and the curvature targets are all in
+  edge units. The inputs are translation-invariant and oriented:
+
+  - per vertex (`LOCAL_VERTEX_DIM` columns): the uniform Laplacian coordinate
+    `x_i − mean_{j∈N(i)} x_j` (3), the area-weighted vertex normal (3), and the vertex
+    average of every pre-filtered face normal field below (3 each);
+  - per face (`LOCAL_FACE_DIM` columns, concatenated to the dual stream's input): the
+    face normal (3) and the pre-filtered face normals (3 each), which also makes the
+    winding of every face visible to the network (P2D alone is blind to it, audit D).
+
+The pre-filters are bilateral normal filters (Zheng et al. 2011) over the dual graph
+(faces sharing an edge) with a spatial σ of one edge and the range σs of
+`FILTER_RANGE_SIGMAS`, `ModelConfig.filter_iterations` passes each: the same kind of
+multi-scale filtered-normal descriptor CNR regresses from. They have no parameters, so
+the model stays one function of the noisy mesh, the same in training and inference.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dmd_jax import geometry, ops
+from dmd_jax.mesh import CanonicalFrame, canonical_frame, mean_edge_length
+
+ENCODINGS = ("xyz", "local")
+# Range σ of the bilateral pre-filters on |n_i − n_j| (unit normals): from edge
+# preserving (0.2: neighbours more than ~25° apart barely mix) to smoothing.
+FILTER_RANGE_SIGMAS = (0.2, 0.35, 0.6)
+# Spatial σ of the pre-filters, in mean edge lengths (the frame's unit).
+FILTER_SPATIAL_SIGMA = 1.0
+LOCAL_FACE_DIM = 3 * (1 + len(FILTER_RANGE_SIGMAS))
+LOCAL_VERTEX_DIM = 6 + 3 * len(FILTER_RANGE_SIGMAS)
+
+
+def mesh_frame(encoding: str, vertices, faces) -> CanonicalFrame:
+    """The frame the network of `encoding` works in, for one (noisy) mesh.
+
+    Args:
+      encoding: one of `ENCODINGS`.
+      vertices: `[n_vertex, 3]` positions in any frame.
+      faces: `[n_face, 3]` vertex indices (used by `"local"`).
+
+    Returns:
+      A `CanonicalFrame`: `"xyz"` the bounding-box frame, `"local"` centred on the
+      bounding box with the mean edge length as unit.
+
+    Raises:
+      ValueError: an unknown encoding, non-finite coordinates, or a mesh whose edges
+        all have zero length.
+    """
+    if encoding not in ENCODINGS:
+        raise ValueError(f"unknown encoding {encoding!r}; choose one of {ENCODINGS}")
+    box = canonical_frame(vertices)  # validates finiteness and extent
+    if encoding == "xyz":
+        return box
+    h = mean_edge_length(vertices, faces)
+    if not (np.isfinite(h) and h > 0):
+        raise ValueError("the mesh's mean edge length is zero: no edge-unit frame exists")
+    return CanonicalFrame(centre=box.centre, scale=h)
+
+
+def laplacian_coordinates(x, graph):
+    """`x_i − mean_{j∈N(i)} x_j` over the primal edges of `graph` (self loops excluded).
+
+    Args:
+      x: `[n_vertex, d]`.
+      graph: a `MeshGraph`; padding edges (weight 0) are ignored.
+
+    Returns:
+      `[n_vertex, d]`; 0 on isolated (and padding) vertices.
+    """
+    s, r = graph.vertex_senders, graph.vertex_receivers
+    keep = ((s != r) & (graph.vertex_edge_weight > 0)).astype(x.dtype)
+    n = x.shape[0]
+    total = jax.ops.segment_sum(x[s] * keep[:, None], r, num_segments=n, indices_are_sorted=True)
+    count = jax.ops.segment_sum(keep, r, num_segments=n, indices_are_sorted=True)
+    mean = total / jnp.maximum(count, 1.0)[:, None]
+    return jnp.where(count[:, None] > 0, x - mean, 0.0)
+
+
+def bilateral_face_normals(x, graph, normals, *, sigma_r: float, iterations: int):
+    """Bilateral normal filtering over the dual graph (faces sharing an edge, and self).
+
+    `n_i ← normalize(Σ_j A_j W_c(|c_i − c_j|) W_r(|n_i − n_j|) n_j)` with Gaussian
+    weights, `W_c`'s σ `FILTER_SPATIAL_SIGMA` (frame units) and `W_r`'s `sigma_r`.
+
+    Args:
+      x: `[n_vertex, 3]` positions in the frame of `mesh_frame`.
+      graph: a `MeshGraph` (padding edges, weight 0, are left out).
+      normals: `[n_face, 3]` the unit face normals to start from.
+      sigma_r: range σ.
+      iterations: filtering passes (static).
+
+    Returns:
+      `[n_face, 3]` unit normals (0 where the start normal is 0, e.g. padding faces).
+    """
+    s, r = graph.face_senders, graph.face_receivers
+    n_face = normals.shape[0]
+    c = geometry.face_centroids(x, graph.faces)
+    area = geometry.face_areas(x, graph.faces)
+    d2 = jnp.sum((c[s] - c[r]) ** 2, axis=-1)
+    spatial = (
+        (graph.face_edge_weight > 0)
+        * area[s]
+        * jnp.exp(-0.5 * d2 / (FILTER_SPATIAL_SIGMA * FILTER_SPATIAL_SIGMA))
+    )
+
+    def step(_, n):
+        w = spatial * jnp.exp(-0.5 * jnp.sum((n[s] - n[r]) ** 2, axis=-1) / (sigma_r * sigma_r))
+        acc = jax.ops.segment_sum(
+            w[:, None] * n[s], r, num_segments=n_face, indices_are_sorted=True
+        )
+        return geometry.safe_normalize(acc)
+
+    return jax.lax.fori_loop(0, iterations, step, normals)
+
+
+def local_features(x, graph, *, filter_iterations: int):
+    """The `"local"` encoding's inputs (see the module docstring).
+
+    Args:
+      x: `[n_vertex, 3]` noisy positions in the edge-unit frame.
+      graph: the `MeshGraph`.
+      filter_iterations: passes of each bilateral pre-filter.
+
+    Returns:
+      `(vertex [n_vertex, LOCAL_VERTEX_DIM], face [n_face, LOCAL_FACE_DIM],
+      candidates [n_face, 1 + len(FILTER_RANGE_SIGMAS), 3])`: the last holds the noisy
+      face normal and each pre-filtered one, the normals the normal-first head mixes.
+    """
+    faces = graph.faces
+    n0 = geometry.face_normals(x, faces)
+    fields = [n0] + [
+        bilateral_face_normals(x, graph, n0, sigma_r=sr, iterations=filter_iterations)
+        for sr in FILTER_RANGE_SIGMAS
+    ]
+    candidates = jnp.stack(fields, axis=1)
+    face = candidates.reshape(candidates.shape[0], -1)
+    vertex = [laplacian_coordinates(x, graph), geometry.vertex_normals(x, faces)]
+    vertex += [
+        geometry.safe_normalize(ops.dual_to_primal(n, faces, graph.vertex_face_degree))
+        for n in fields[1:]
+    ]
+    return jnp.concatenate(vertex, axis=-1), face, candidates
