@@ -38,6 +38,7 @@ def add_noise(
     impulse_p: float = 0.15,
     impulse_q: float = 0.15,
     impulse_mode: str = "coordinate",
+    direction: str = "isotropic",
 ) -> np.ndarray:
     """`dmd_jax.noise.add_noise` for NumPy users: an integer seed, NumPy out, dtype kept.
 
@@ -50,6 +51,8 @@ def add_noise(
       units: `"canonical"` (fraction of the longest bounding-box side) or `"edge"`
         (× mean edge length).
       impulse_p, impulse_q, impulse_mode: see `dmd_jax.noise.add_noise`.
+      direction: `"isotropic"` (per coordinate) or `"normal"` (one draw per vertex along
+        its vertex normal: the mesh-denoising benchmark protocol).
 
     Returns:
       `[n_vertex, 3]` NumPy array: float32 for float32 input, float64 otherwise (the
@@ -76,10 +79,14 @@ def add_noise(
     v = np.asarray(vertices, np.float64)
     if v.ndim != 2 or v.shape[-1] != 3 or v.shape[0] == 0:
         raise ValueError(f"vertices must have shape [n_vertex, 3], got {v.shape}")
+    noise.check_direction(direction)
+    along_normal = direction == "normal"
+    if along_normal and faces is None:
+        raise ValueError("direction='normal' needs the faces of the mesh")
     # noise.add_noise's unit draws (float32) and noise unit, combined in float64.
     x = noise.unit_noise(
         key,
-        v.shape,
+        (v.shape[0], 1) if along_normal else v.shape,
         kind,
         dtype=jnp.float32,
         impulse_p=impulse_p,
@@ -87,7 +94,10 @@ def add_noise(
         impulse_mode=impulse_mode,
     )
     unit = float(noise.noise_unit_length(v, faces, units))
-    return (v + level * unit * np.asarray(x, np.float64)).astype(dtype)
+    x = np.asarray(x, np.float64)
+    if along_normal:
+        x = x * noise.vertex_normals_np(v, faces)
+    return (v + level * unit * x).astype(dtype)
 
 
 def denoise_with(

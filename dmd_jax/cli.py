@@ -183,7 +183,15 @@ def _cmd_add_noise(args: argparse.Namespace) -> int:
     vertices, faces = _load_input(args.input)
     _check_output(args.output, args.input, args.overwrite)
     # The same noise as dmd_jax.add_noise(seed, ...) in Python, whatever JAX's x64 mode.
-    noisy = add_noise(args.seed, vertices, faces, args.kind, args.level, units=args.units)
+    noisy = add_noise(
+        args.seed,
+        vertices,
+        faces,
+        args.kind,
+        args.level,
+        units=args.units,
+        direction=args.direction,
+    )
     save_mesh(args.output, noisy, faces, overwrite=args.overwrite, protect=[args.input])
     print(
         f"added {args.kind} noise, level {args.level} ({args.units} units, seed {args.seed}) "
@@ -581,6 +589,13 @@ def build_parser() -> argparse.ArgumentParser:
         default="canonical",
         choices=["canonical", "edge"],
         help="canonical: fraction of the longest bbox side; edge: × mean edge length",
+    )
+    p.add_argument(
+        "--direction",
+        choices=("isotropic", "normal"),
+        default="isotropic",
+        help="isotropic: per coordinate; normal: one draw per vertex along its normal "
+        "(the benchmark protocol)",
     )
     p.add_argument("--seed", type=int, default=0, help="random seed; same seed, same noise")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")

@@ -58,22 +58,35 @@ class DemoResult(NamedTuple):
     model: str  # one line describing the weights used
 
 
-def gaussian_edge_noise(vertices, faces, level: float, seed: int) -> np.ndarray:
+def gaussian_edge_noise(
+    vertices, faces, level: float, seed: int, direction: str = "normal"
+) -> np.ndarray:
     """`vertices` plus Gaussian noise of σ = `level` × mean edge length, in float64.
 
-    `dmd_jax.add_noise(seed, vertices, faces, "gaussian", level, units="edge")` (and
-    `dmd-jax add-noise --units edge --seed SEED`): float32 unit draws from `jax.random`,
-    so the same seed gives the same noise whether or not JAX's float64 mode is on.
+    The mesh-denoising benchmark protocol (CNR, GCN-Denoiser): by default one draw per
+    vertex along its vertex normal. `dmd_jax.add_noise(seed, vertices, faces, "gaussian",
+    level, units="edge", direction=direction)` (and `dmd-jax add-noise --units edge
+    --direction normal --seed SEED`): float32 unit draws from `jax.random`, so the same
+    seed gives the same noise whether or not JAX's float64 mode is on.
 
     Args:
       vertices: `[n_vertex, 3]`.
       faces: `[n_face, 3]`.
       level: σ in mean edge lengths.
       seed: PRNG seed.
+      direction: `"normal"` (default) or `"isotropic"` (per coordinate).
     """
     from dmd_jax.api import add_noise
 
-    return add_noise(seed, np.asarray(vertices, np.float64), faces, "gaussian", level, units="edge")
+    return add_noise(
+        seed,
+        np.asarray(vertices, np.float64),
+        faces,
+        "gaussian",
+        level,
+        units="edge",
+        direction=direction,
+    )
 
 
 def load_bundle(weights=None):

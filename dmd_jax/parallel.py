@@ -213,6 +213,7 @@ def device_batches(
     noise: NoiseSettings,
     rotate: bool = True,
     groups: Sequence[int] | None = None,
+    encoding: str = "xyz",
 ) -> dict[int, Batch]:
     """The global batch of `step`, as per-device groups padded to common sizes.
 
@@ -243,7 +244,12 @@ def device_batches(
         for j in slots[g]:
             ex = examples[int(idx[j])]
             n, c, _ = corrupt(
-                jax.random.fold_in(key, int(j)), ex.vertices, ex.faces, rotate=rotate, noise=noise
+                jax.random.fold_in(key, int(j)),
+                ex.vertices,
+                ex.faces,
+                rotate=rotate,
+                noise=noise,
+                encoding=encoding,
             )
             noisy.append(n)
             clean.append(c)

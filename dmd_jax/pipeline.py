@@ -15,6 +15,7 @@ import jax
 import numpy as np
 
 from dmd_jax import noise as noise_lib
+from dmd_jax.encoding import mesh_frame
 from dmd_jax.graph import (
     MeshGraph,
     PaddedSizes,
@@ -56,6 +57,16 @@ class NoiseSettings(NamedTuple):
     canonical_levels: dict | None = None  # kind -> levels; None: the paper's levels
     edge_levels: tuple[float, ...] = noise_lib.EDGE_LEVELS
     p_edge: float = 0.5
+    p_normal: float = 0.0
+    p_clean: float = 0.0
+
+
+# The mesh-denoising benchmark protocol: Gaussian noise along the vertex normals of
+# 0.1, 0.2 or 0.3 mean edge lengths (CNR, GCN-Denoiser). Used to evaluate and to pick
+# checkpoints.
+BENCHMARK_NOISE = NoiseSettings(
+    kinds=("gaussian",), edge_levels=(0.1, 0.2, 0.3), p_edge=1.0, p_normal=1.0
+)
 
 
 def make_examples(meshes: Sequence[tuple[np.ndarray, np.ndarray]]) -> list[MeshExample]:
@@ -119,12 +130,19 @@ def random_rotation(key) -> np.ndarray:
 
 
 def corrupt(
-    key, vertices: np.ndarray, faces: np.ndarray, *, rotate: bool, noise: NoiseSettings
+    key,
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    *,
+    rotate: bool,
+    noise: NoiseSettings,
+    encoding: str = "xyz",
 ) -> tuple[np.ndarray, np.ndarray, noise_lib.NoiseSpec]:
     """Rotates (optionally) and noises one clean mesh.
 
-    Both outputs are expressed in the canonical frame of the *noisy* mesh, the frame that
-    `denoise` will use at inference time, so training sees what inference sees.
+    Both outputs are expressed in the frame of the *noisy* mesh that the model's
+    `encoding` works in (`dmd_jax.encoding.mesh_frame`), the frame that `denoise` will
+    use at inference time, so training sees what inference sees.
 
     Returns:
       `(noisy [n, 3], clean [n, 3], spec)`.
@@ -142,9 +160,11 @@ def corrupt(
         canonical_levels=noise.canonical_levels,
         edge_levels=noise.edge_levels,
         p_edge=noise.p_edge,
+        p_normal=noise.p_normal,
+        p_clean=noise.p_clean,
     )
     noisy = np.asarray(noisy, np.float64)
-    frame = canonical_frame(noisy)
+    frame = mesh_frame(encoding, noisy, faces)
     return frame.apply(noisy), frame.apply(v), spec
 
 
@@ -175,6 +195,7 @@ def training_batch(
     seed: int,
     noise: NoiseSettings,
     rotate: bool = True,
+    encoding: str = "xyz",
 ) -> Batch:
     """The batch of `step`: a pure function of `(seed, step)` and the examples."""
     idx = batch_indices(step, len(examples), batch_size, seed)
@@ -183,7 +204,12 @@ def training_batch(
     for slot, i in enumerate(idx):
         ex = examples[int(i)]
         n, c, _ = corrupt(
-            jax.random.fold_in(key, slot), ex.vertices, ex.faces, rotate=rotate, noise=noise
+            jax.random.fold_in(key, slot),
+            ex.vertices,
+            ex.faces,
+            rotate=rotate,
+            noise=noise,
+            encoding=encoding,
         )
         noisy.append(n)
         clean.append(c)
@@ -192,14 +218,24 @@ def training_batch(
 
 
 def evaluation_batches(
-    examples: Sequence[MeshExample], *, seed: int, noise: NoiseSettings, rotate: bool = True
+    examples: Sequence[MeshExample],
+    *,
+    seed: int,
+    noise: NoiseSettings,
+    rotate: bool = True,
+    encoding: str = "xyz",
 ) -> list[tuple[Batch, noise_lib.NoiseSpec]]:
     """One single-mesh batch per example with fixed noise (the same for every evaluation)."""
     out = []
     base = jax.random.PRNGKey(seed)
     for i, ex in enumerate(examples):
         n, c, spec = corrupt(
-            jax.random.fold_in(base, i), ex.vertices, ex.faces, rotate=rotate, noise=noise
+            jax.random.fold_in(base, i),
+            ex.vertices,
+            ex.faces,
+            rotate=rotate,
+            noise=noise,
+            encoding=encoding,
         )
         out.append((collate([n], [c], [ex.graph]), spec))
     return out

@@ -130,7 +130,7 @@ def compute_loss(
 ):
     """Total loss and its components for one padded batch (all in canonical frames)."""
     deterministic = rng is None
-    out, feats, _ = model.apply(
+    out, feats, aux = model.apply(
         {"params": params},
         noisy,
         graph,
@@ -157,6 +157,13 @@ def compute_loss(
         n_graph=graph.n_graph,
         chamfer_block=cfg.loss.chamfer_block,
     )
+    if cfg.loss.face_normal and "face_normals" in aux and weights.vertex + weights.normal > 0:
+        # The normal-first head's own prediction, before the vertex update.
+        term = losses.predicted_normal_loss(
+            aux["face_normals"], clean, graph.faces, face_mask=graph.face_mask
+        )
+        parts = {**parts, "face_normal": term}
+        total = total + cfg.loss.face_normal * term
     return total, parts
 
 
@@ -416,7 +423,13 @@ def _single_device_steps(cfg: ExperimentConfig, examples, noise: NoiseSettings) 
 
     def make_batch(step: int) -> Batch:
         return training_batch(
-            examples, step, batch_size=t.batch_size, seed=t.seed, noise=noise, rotate=t.rotate
+            examples,
+            step,
+            batch_size=t.batch_size,
+            seed=t.seed,
+            noise=noise,
+            rotate=t.rotate,
+            encoding=cfg.model.encoding,
         )
 
     def run(state: TrainState, step: int, nan: bool):
@@ -454,6 +467,7 @@ def _data_parallel_steps(cfg: ExperimentConfig, examples, noise: NoiseSettings) 
             noise=noise,
             rotate=t.rotate,
             groups=mine,
+            encoding=cfg.model.encoding,
         )
 
     def run(state: TrainState, step: int, nan: bool):
@@ -483,6 +497,7 @@ def train(
     inject_nan_at: int | None = None,
     init_params: dict | None = None,
     data_parallel: bool = False,
+    eval_noise: NoiseSettings | None = None,
 ) -> dict:
     """Trains (or resumes) a run in `workdir`; returns the final evaluation.
 
@@ -496,6 +511,9 @@ def train(
       inject_nan_at: replace the batch of this step with NaNs (fault-injection tests).
       init_params: start from these params (fine-tuning) instead of a fresh init; the
         optimizer starts fresh. Ignored when the workdir already holds a checkpoint.
+      eval_noise: the noise of the evaluation sets (default: the training noise).
+        With an eval set named `val`, the best checkpoint is chosen on its normal
+        error; otherwise on `test_intra`'s.
       data_parallel: split each step's global batch over every device of every process
         (`parallel.ParallelTrainer` on `parallel.batch_mesh()`); the same steps as on one
         device up to the order of float sums, dropout masks aside. With several
@@ -542,7 +560,13 @@ def train(
         state = restore_checkpoint(latest, state)
     state = steps.place(state)
     eval_batches = {
-        name: evaluation_batches(ex, seed=t.seed + 12345, noise=noise, rotate=t.rotate)
+        name: evaluation_batches(
+            ex,
+            seed=t.seed + 12345,
+            noise=noise if eval_noise is None else eval_noise,
+            rotate=t.rotate,
+            encoding=cfg.model.encoding,
+        )
         for name, ex in (eval_sets or {}).items()
         if ex
     }
@@ -588,7 +612,7 @@ def train(
                         last_eval[f"{name}/{k}"] = v
                 log.write(json.dumps(last_eval) + "\n")
                 log.flush()
-                key = "test_intra/normal_deg"
+                key = "val/normal_deg" if "val/normal_deg" in last_eval else "test_intra/normal_deg"
                 if key in last_eval:
                     save_checkpoint(best, state, cfg, {"normal_deg": last_eval[key]})
             if (t.ckpt_every and done % t.ckpt_every == 0) or done == end:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from conftest import icosphere
@@ -269,3 +270,66 @@ def test_bad_arguments_raise_value_error():
         sample_noise_spec(key, canonical_levels={"gaussian": ()}, kinds=["gaussian"], p_edge=0)
     with pytest.raises(ValueError, match=">= 0"):
         sample_noise_spec(key, edge_levels=(0.1, -0.2), p_edge=1.0)
+
+
+# --------------------------------------------------------------------------------------
+# Noise along vertex normals (the benchmark protocol), clean draws
+# --------------------------------------------------------------------------------------
+
+
+def test_normal_noise_moves_each_vertex_along_its_normal():
+    from dmd_jax.noise import vertex_normals_np
+
+    v, f = icosphere(2)
+    noisy = np.asarray(
+        add_noise(jax.random.PRNGKey(3), v, f, "gaussian", 0.2, units="edge", direction="normal")
+    )
+    d = noisy - v
+    n = vertex_normals_np(v, f)
+    # Parallel to the normal: no tangential part.
+    tangential = d - np.sum(d * n, axis=1, keepdims=True) * n
+    assert np.abs(tangential).max() < 1e-12
+    # sigma = 0.2 mean edges along the normal.
+    h = mean_edge_length(v, f)
+    assert np.std(np.sum(d * n, axis=1)) == pytest.approx(0.2 * h, rel=0.15)
+
+
+def test_vertex_normals_np_matches_geometry():
+    from dmd_jax.geometry import vertex_normals
+    from dmd_jax.noise import vertex_normals_np
+
+    v, f = icosphere(1)
+    v = v + 0.05 * np.random.default_rng(0).normal(size=v.shape)
+    np.testing.assert_allclose(
+        vertex_normals_np(v, f),
+        np.asarray(vertex_normals(jnp.asarray(v), jnp.asarray(f))),
+        atol=1e-10,
+    )
+
+
+def test_normal_direction_errors():
+    v, f = icosphere(1)
+    with pytest.raises(ValueError, match="unknown noise direction"):
+        add_noise(jax.random.PRNGKey(0), v, f, "gaussian", 0.1, direction="tangent")
+    with pytest.raises(ValueError, match="needs concrete vertices and the faces"):
+        add_noise(jax.random.PRNGKey(0), v, None, "gaussian", 0.1, direction="normal")
+
+
+def test_sampler_draws_normal_direction_and_clean_inputs():
+    specs = [
+        sample_noise_spec(jax.random.PRNGKey(i), p_edge=1.0, p_normal=0.5, p_clean=0.25)
+        for i in range(200)
+    ]
+    normal = np.mean([s.direction == "normal" for s in specs])
+    clean = np.mean([s.level == 0.0 for s in specs])
+    assert 0.35 < normal < 0.65 and 0.15 < clean < 0.35
+    # Canonical-unit draws are never along normals.
+    specs = [sample_noise_spec(jax.random.PRNGKey(i), p_edge=0.0, p_normal=1.0) for i in range(20)]
+    assert all(s.direction == "isotropic" for s in specs)
+
+
+def test_sampler_without_new_options_is_unchanged():
+    # Old configs (p_normal = p_clean = 0) draw exactly the specs they always drew.
+    for i in range(20):
+        s = sample_noise_spec(jax.random.PRNGKey(i))
+        assert s.direction == "isotropic" and s.level > 0
