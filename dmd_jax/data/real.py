@@ -1,0 +1,158 @@
+"""Real training meshes: a fixed validation split and connected training patches.
+
+`shared/meshes/train/` (or any folder of meshes) holds real CAD parts and scans of
+1k-60k vertices. Whole 40k-vertex meshes make a CPU training step slow and a batch
+lopsided, so training sees *connected patches* of a few thousand faces: a breadth-first
+region grown over the face adjacency from a random seed face. Patches are cut once, on
+the host, from a seeded generator (the set is a pure function of the files and the
+seed); rotation and noise are drawn per step by the input pipeline as for any mesh.
+
+The validation split is fixed by file name, not by a random draw: a file is held out
+when the first 8 hex digits of the SHA-1 of its name, read as a fraction, fall below
+`VALIDATION_FRACTION`. Adding or removing other files never moves a file between
+splits, and anyone can recompute the list (`validation_names`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import breadth_first_order
+
+from dmd_jax.graph import face_adjacency
+from dmd_jax.io import load_mesh
+
+VALIDATION_FRACTION = 0.15
+MESH_SUFFIXES = (".ply", ".obj", ".off", ".stl")
+
+
+def is_validation(name: str, fraction: float = VALIDATION_FRACTION) -> bool:
+    """Whether the file `name` (base name, e.g. `"cgal_bull.ply"`) is held out."""
+    digest = hashlib.sha1(Path(name).name.encode()).hexdigest()
+    return int(digest[:8], 16) / 16**8 < fraction
+
+
+def mesh_files(folder, split: str) -> list[Path]:
+    """The mesh files of `folder` in `split` (`"train"`, `"val"` or `"all"`), sorted."""
+    if split not in ("train", "val", "all"):
+        raise ValueError(f"unknown split {split!r}; use 'train', 'val' or 'all'")
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise FileNotFoundError(f"{folder}: no such mesh folder")
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in MESH_SUFFIXES)
+    if split == "all":
+        return files
+    return [p for p in files if is_validation(p.name) == (split == "val")]
+
+
+def validation_names(folder) -> list[str]:
+    """File names of the validation split of `folder`."""
+    return [p.name for p in mesh_files(folder, "val")]
+
+
+def connected_patch(
+    faces: np.ndarray, n_vertex: int, seed_face: int, max_faces: int, adjacency=None
+) -> tuple[np.ndarray, np.ndarray]:
+    """A connected region of at most `max_faces` faces grown breadth-first from a face.
+
+    Args:
+      faces: `[n_face, 3]` vertex indices.
+      n_vertex: number of vertices.
+      seed_face: the face to grow from.
+      max_faces: patch size limit.
+      adjacency: optional precomputed sparse `[n_face, n_face]` face adjacency.
+
+    Returns:
+      `(face_ids [k], vertex_ids [m])`: the patch's faces (BFS order) and the sorted
+      vertices they use.
+    """
+    if adjacency is None:
+        adjacency = face_adjacency_matrix(faces, n_vertex)
+    order = breadth_first_order(adjacency, seed_face, directed=False, return_predecessors=False)
+    face_ids = np.asarray(order[:max_faces])
+    vertex_ids = np.unique(faces[face_ids].ravel())
+    return face_ids, vertex_ids
+
+
+def face_adjacency_matrix(faces: np.ndarray, n_vertex: int) -> sp.csr_matrix:
+    """Sparse symmetric `[n_face, n_face]` adjacency of faces sharing an edge."""
+    a, b = face_adjacency(np.asarray(faces), n_vertex)
+    n = faces.shape[0]
+    data = np.ones(2 * len(a), np.int8)
+    return sp.csr_matrix((data, (np.concatenate([a, b]), np.concatenate([b, a]))), shape=(n, n))
+
+
+def mesh_patches(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    *,
+    max_faces: int,
+    n_patches: int,
+    rng: np.random.Generator,
+    min_faces: int = 200,
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Up to `n_patches` connected patches of a mesh (the whole mesh if it is small).
+
+    Seeds are drawn uniformly among faces; a patch smaller than `min_faces` (a seed in
+    a tiny component) is dropped.
+
+    Returns:
+      `[(vertices [m, 3], faces [k, 3])]`, each re-indexed.
+    """
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64)
+    if f.shape[0] <= max_faces:
+        return [(v, f.astype(np.int32))]
+    adjacency = face_adjacency_matrix(f, v.shape[0])
+    out = []
+    for seed_face in rng.choice(f.shape[0], size=n_patches, replace=False):
+        face_ids, vertex_ids = connected_patch(f, v.shape[0], int(seed_face), max_faces, adjacency)
+        if face_ids.shape[0] < min_faces:
+            continue
+        remap = np.full(v.shape[0], -1, np.int64)
+        remap[vertex_ids] = np.arange(vertex_ids.shape[0])
+        out.append((v[vertex_ids], remap[f[face_ids]].astype(np.int32)))
+    return out
+
+
+def load_real_patches(
+    folder,
+    split: str = "train",
+    *,
+    max_faces: int = 6000,
+    faces_per_patch: int = 12000,
+    max_patches: int = 8,
+    seed: int = 0,
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Connected patches of every mesh of `split` in `folder`.
+
+    A mesh of `F` faces gives `clip(F // faces_per_patch + 1, 1, max_patches)` patches
+    of at most `max_faces` faces (a mesh under `max_faces` faces is kept whole).
+
+    Args:
+      folder: a folder of mesh files.
+      split: `"train"`, `"val"` or `"all"` (see `is_validation`).
+      max_faces: faces per patch.
+      faces_per_patch: how many of a mesh's faces one patch stands for.
+      max_patches: patches per mesh at most.
+      seed: seed of the patch centres.
+
+    Returns:
+      `[(vertices, faces)]` in the files' own coordinates.
+    """
+    rng = np.random.default_rng(seed)
+    out = []
+    for path in mesh_files(folder, split):
+        v, f = load_mesh(path)
+        n = int(np.clip(f.shape[0] // faces_per_patch + 1, 1, max_patches))
+        out.extend(mesh_patches(v, f, max_faces=max_faces, n_patches=n, rng=rng))
+    return out
+
+
+def load_meshes(paths: Sequence) -> list[tuple[np.ndarray, np.ndarray]]:
+    """`(vertices, faces)` of every path."""
+    return [load_mesh(p) for p in paths]
