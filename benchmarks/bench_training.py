@@ -73,18 +73,18 @@ class Run:
     def __init__(self, preset: str, batch_size: int, examples, *, timed_steps: int, edits=None):
         import jax
 
-        from dmd_jax import config, pipeline, train
+        from dmd_jax import config, train
 
         self.preset, self.batch_size, self.examples = preset, batch_size, examples
         cfg = config.preset(preset).with_edits(edits or {})
         cfg = cfg.with_edits({"train": {"batch_size": batch_size}})
         self.cfg = cfg
-        self.noise = pipeline.NoiseSettings(**cfg.noise.settings())
+        self.noise = cfg.noise
         self.trainer = train.Trainer(cfg)
         self.steps_per_epoch = math.ceil(len(examples) / batch_size)
         first = [self.batch(s) for s in range(self.steps_per_epoch)]
         self.state = self.trainer.init(first[0])
-        self.epoch_sizes = {b.graph.n_vertex for b in first}
+        self.epoch_sizes = {b.noisy.shape[-2] for b in first}
         start = time.perf_counter()
         for b in first:
             self.state, out = self.trainer.train_step(self.state, b)
@@ -94,9 +94,9 @@ class Run:
         # Timed steps start at epoch 2, so they are not the batches that compiled.
         start_step = self.steps_per_epoch
         self.timed = [self.batch(s) for s in range(start_step, start_step + timed_steps)]
-        self.timed_sizes = {b.graph.n_vertex for b in self.timed}
+        self.timed_sizes = {b.noisy.shape[-2] for b in self.timed}
         for n in sorted(self.timed_sizes - self.epoch_sizes):
-            b = next(b for b in self.timed if b.graph.n_vertex == n)
+            b = next(b for b in self.timed if b.noisy.shape[-2] == n)
             self.state, out = self.trainer.train_step(self.state, b)
             jax.block_until_ready(out)
         self.total_compiles = self.trainer.compiles
@@ -114,6 +114,7 @@ class Run:
             seed=t.seed,
             noise=self.noise,
             rotate=t.rotate,
+            encoding=self.cfg.model.encoding,
         )
 
     def step(self):
@@ -337,7 +338,7 @@ def main(argv=None) -> int:
         "batch size of a preset (step and input alternate), no timed step compiles.",
         "- `serial meshes/s` = batch / (step + input): `train.train` builds each batch "
         "in the same thread before its step.",
-        "- Compilations: `Trainer.compiles` (incremented when the step is traced) after "
+        "- Compilations: `Trainer.compiles` (programs in the jit caches of its steps) after "
         "the first epoch, against the distinct padded vertex counts among that epoch's "
         "batches (all padded sizes derive from the vertex bucket and the batch size).",
         "- `load`: the 1-minute load average before the timed steps. Above `nproc` other "

@@ -1,4 +1,4 @@
-"""Experiment configuration: frozen pytree dataclasses, presets and the ablation tables.
+"""Experiment configuration: frozen pytree dataclasses, presets and structure variants.
 
 Every config is a `flax.struct.dataclass`, so it is immutable, hashable and a pytree.
 Every field is static metadata (`pytree_node=False`): configs decide shapes, code paths
@@ -13,7 +13,7 @@ Presets (`preset(name)`):
 
 * `paper`: the paper's width 512, FGT-8, feature extractor of 2 two-stream networks,
   denoiser depth 2. Our reading of the architecture has 12,881,416 parameters
-  (`param_count(preset("paper").model)`, computed with `jax.eval_shape`): feature
+  (`dmd_jax.model.param_count(preset("paper").model)`, with `jax.eval_shape`): feature
   extractor 3,683,845, transformer 4,990,464, denoiser 4,207,107. The paper says
   "around 30 million" but gives no per-layer sizes (its figure is the only source and
   is not in the text), so the gap must lie in what the text leaves out: hidden fully
@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import re
 import types
 import typing
 from typing import Any
@@ -375,18 +374,6 @@ class LossConfig(_ConfigMixin):
         """The weights the paper's ablation studies use: every λ = 1."""
         return cls(vertex=1.0, normal=1.0, curvature=1.0, chamfer=1.0, feature=1.0, **kwargs)
 
-    def weights(self):
-        """The weights as a `dmd_jax.losses.LossWeights`."""
-        from dmd_jax.losses import LossWeights
-
-        return LossWeights(
-            vertex=self.vertex,
-            normal=self.normal,
-            curvature=self.curvature,
-            chamfer=self.chamfer,
-            feature=self.feature,
-        )
-
 
 @struct.dataclass
 class TrainConfig(_ConfigMixin):
@@ -499,21 +486,6 @@ class NoiseConfig(_ConfigMixin):
             value = getattr(self, name)
             _check(0.0 <= value <= 1.0, f"{name} must lie in [0, 1], got {value}")
 
-    def settings(self) -> dict[str, Any]:
-        """Keyword arguments of `dmd_jax.pipeline.NoiseSettings` (unset fields left out,
-        so the sampler's defaults apply)."""
-        out: dict[str, Any] = {
-            "kinds": self.kinds,
-            "p_edge": self.p_edge,
-            "p_normal": self.p_normal,
-            "p_clean": self.p_clean,
-        }
-        if self.canonical_levels is not None:
-            out["canonical_levels"] = dict(self.canonical_levels)
-        if self.edge_levels is not None:
-            out["edge_levels"] = self.edge_levels
-        return out
-
 
 @struct.dataclass
 class DataConfig(_ConfigMixin):
@@ -564,7 +536,7 @@ class ExperimentConfig(_ConfigMixin):
 
 
 # --------------------------------------------------------------------------------------
-# Presets and ablations
+# Presets and structure variants
 # --------------------------------------------------------------------------------------
 
 
@@ -661,60 +633,6 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "FGT-1S": {"variant": "fgt_1s"},
 }
 
-_ALL_ONES = {"vertex": 1.0, "normal": 1.0, "curvature": 1.0, "chamfer": 1.0, "feature": 1.0}
-
-
-def _loss_row(vertex, normal, curvature, chamfer) -> dict[str, Any]:
-    return {
-        "loss": {
-            "vertex": vertex,
-            "normal": normal,
-            "curvature": curvature,
-            "chamfer": chamfer,
-            "feature": 1.0,
-        }
-    }
-
-
-# Every ablation study of appendix D: study -> row name -> ExperimentConfig edits. All
-# studies except "loss" and "scheme" use all-ones loss weights (paper, appendix D).
-ABLATIONS: dict[str, dict[str, dict[str, Any]]] = {
-    "structure": {
-        name: {"model": edit, "loss": dict(_ALL_ONES)} for name, edit in VARIANTS.items()
-    },
-    "depth": {
-        f"DMD-Net {d}": {"model": {"depth": d}, "loss": dict(_ALL_ONES)} for d in (1, 2, 3, 4)
-    },
-    "dropout": {
-        f"Dr={r}": {"model": {"dropout": r}, "loss": dict(_ALL_ONES)} for r in (0.0, 0.2, 0.35, 0.5)
-    },
-    "attention": {
-        "With Attention": {"model": {"attention": True}, "loss": dict(_ALL_ONES)},
-        "Without Attention": {"model": {"attention": False}, "loss": dict(_ALL_ONES)},
-    },
-    "stn": {
-        "With STN": {"model": {"stn": True}, "loss": dict(_ALL_ONES)},
-        "Without STN": {"model": {"stn": False}, "loss": dict(_ALL_ONES)},
-    },
-    # Scheme rows: the paper states all weights 1 for Joint; Alter, 2-Phase and U-FE
-    # switch the feature-extractor term on and off inside the training loop.
-    "scheme": {
-        "Joint": {"train": {"scheme": "joint"}, "loss": dict(_ALL_ONES)},
-        "Alter": {"train": {"scheme": "alter"}, "loss": dict(_ALL_ONES)},
-        "2-Phase": {"train": {"scheme": "two_phase"}, "loss": dict(_ALL_ONES)},
-        "U-FE": {"train": {"scheme": "u_fe"}, "loss": dict(_ALL_ONES)},
-    },
-    # Loss table columns λ_V, λ_N, λ_κ, λ_C; λ_FE stays 1.
-    "loss": {
-        "With All": _loss_row(1.0, 1.0, 1.0, 1.0),
-        "Without Vertex": _loss_row(0.0, 1.0, 1.0, 1.0),
-        "Without Normal": _loss_row(1.0, 0.0, 1.0, 1.0),
-        "Without Curvature": _loss_row(1.0, 1.0, 0.0, 1.0),
-        "Without Chamfer": _loss_row(1.0, 1.0, 1.0, 0.0),
-        "Without Vertex and Chamfer": _loss_row(0.0, 1.0, 1.0, 0.0),
-    },
-}
-
 
 def variant_config(model: ModelConfig, name: str) -> ModelConfig:
     """`model` with the structure-ablation edits of `name` (a key of `VARIANTS`, or a
@@ -726,21 +644,3 @@ def variant_config(model: ModelConfig, name: str) -> ModelConfig:
     raise ValueError(
         f"unknown variant {name!r}; choose one of {list(VARIANTS)} or {list(VARIANT_NAMES)}"
     )
-
-
-def ablation_config(base: ExperimentConfig, study: str, row: str) -> ExperimentConfig:
-    """`base` with the edits of one row of one ablation study of `ABLATIONS`."""
-    if study not in ABLATIONS:
-        raise ValueError(f"unknown ablation study {study!r}; choose one of {list(ABLATIONS)}")
-    rows = ABLATIONS[study]
-    if row not in rows:
-        raise ValueError(f"unknown row {row!r} of study {study!r}; choose one of {list(rows)}")
-    slug = re.sub(r"[^a-z0-9.]+", "_", row.lower()).strip("_")
-    return base.with_edits(rows[row]).with_edits({"name": f"{base.name}-{study}-{slug}"})
-
-
-def param_count(model: ModelConfig) -> int:
-    """Number of learnable parameters of `DMDNet(model)` (shapes only, no compute)."""
-    from dmd_jax.model import param_count as _count
-
-    return _count(model)

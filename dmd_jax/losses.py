@@ -15,6 +15,11 @@ static, so the checks also run under `jax.jit`).
 * `feature_extractor_loss`  squared error of the feature extractor's `[n, 5]` output;
 * `total_loss`        the weighted sum, skipping every term whose weight is 0.
 
+Each mean is a `Term` (a sum and the count it is over) divided at the end: the `*_term`
+functions return the `Term`, `loss_terms` every weighted `Term` of a batch, and
+`reduce_terms` is the one place that divides and weighs them. Data-parallel training adds
+the `Term`s of every device's group first, so it is the same loss as on one device.
+
 Degenerate faces (zero area, or corners at the same position, as the padding faces
 `(p, p, p)` are) give finite values and finite gradients everywhere.
 """
@@ -30,6 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dmd_jax import geometry
+from dmd_jax.config import LossConfig
 
 # --------------------------------------------------------------------------------------
 # Validation and masked reductions
@@ -65,13 +71,26 @@ def _check_mask(name: str, mask, n: int):
     return mask.astype(bool)
 
 
-def _masked_mean(values, mask):
-    """Mean of `values [n]` over `mask [n]` (all if `None`); 0 when nothing is selected."""
+class Term(NamedTuple):
+    """A loss term before its mean: `total` summed over `count` items.
+
+    The items are valid vertices, faces or meshes, depending on the term. Sums and
+    counts add across the groups of a data-parallel batch; the mean is taken once, by
+    `mean` (0 when there is no item).
+    """
+
+    total: jax.Array
+    count: jax.Array
+
+    def mean(self):
+        return self.total / jnp.maximum(self.count, 1).astype(self.total.dtype)
+
+
+def _masked_term(values, mask) -> Term:
+    """Sum of `values [n]` over `mask [n]` (all if `None`) and how many were selected."""
     if mask is None:
-        return jnp.mean(values)
-    total = jnp.sum(jnp.where(mask, values, 0.0))
-    count = jnp.sum(mask)
-    return total / jnp.maximum(count, 1).astype(values.dtype)
+        return Term(jnp.sum(values), jnp.asarray(values.shape[0], jnp.int32))
+    return Term(jnp.sum(jnp.where(mask, values, 0.0)), jnp.sum(mask, dtype=jnp.int32))
 
 
 # --------------------------------------------------------------------------------------
@@ -91,11 +110,25 @@ def vertex_loss(pred, target, *, vertex_mask=None):
       Scalar `mean_v |pred_v − target_v|²`. (This is three times the per-coordinate mean
       squared error, `torch.nn.MSELoss` on `[n, 3]`.)
     """
+    return vertex_term(pred, target, vertex_mask=vertex_mask).mean()
+
+
+def vertex_term(pred, target, *, vertex_mask=None) -> Term:
+    """`vertex_loss` as a `Term`: squared distances summed over the valid vertices.
+
+    Args:
+      pred: `[n_vertex, 3]` predicted positions.
+      target: `[n_vertex, 3]` ground-truth positions.
+      vertex_mask: optional `[n_vertex]` bool, `False` on padding.
+
+    Returns:
+      `Term` over the vertices selected by `vertex_mask` (all without it).
+    """
     pred, target = jnp.asarray(pred), jnp.asarray(target)
     _check_points("pred", pred)
     _check_same("pred", pred, "target", target)
     mask = _check_mask("vertex_mask", vertex_mask, pred.shape[0])
-    return _masked_mean(jnp.sum((pred - target) ** 2, axis=-1), mask)
+    return _masked_term(jnp.sum((pred - target) ** 2, axis=-1), mask)
 
 
 # --------------------------------------------------------------------------------------
@@ -153,16 +186,29 @@ def normal_loss(pred, target, faces, *, face_mask=None, degrees=False):
       Scalar mean angle over the faces that are selected by `face_mask` and have
       non-zero area in `target`; see `face_normal_angles` for degenerate `pred` faces.
     """
+    loss = normal_term(pred, target, faces, face_mask=face_mask).mean()
+    return loss * (180.0 / math.pi) if degrees else loss
+
+
+def normal_term(pred, target, faces, *, face_mask=None) -> Term:
+    """`normal_loss` (radians) as a `Term` over the selected faces with a target normal."""
     faces = jnp.asarray(faces)
     angles, target_ok = face_normal_angles(pred, target, faces)
     mask = _check_mask("face_mask", face_mask, faces.shape[0])
     mask = target_ok if mask is None else mask & target_ok
-    loss = _masked_mean(angles, mask)
-    return loss * (180.0 / math.pi) if degrees else loss
+    return _masked_term(angles, mask)
 
 
 def predicted_normal_loss(pred_normals, target, faces, *, face_mask=None):
     """Mean angle between predicted unit face normals and the target mesh's.
+
+    See `predicted_normal_term`; this is its mean.
+    """
+    return predicted_normal_term(pred_normals, target, faces, face_mask=face_mask).mean()
+
+
+def predicted_normal_term(pred_normals, target, faces, *, face_mask=None) -> Term:
+    """Angles between predicted unit face normals and the target mesh's, as a `Term`.
 
     The loss of the normal-first head's own output (before its vertex update), in
     radians like `normal_loss`.
@@ -174,7 +220,7 @@ def predicted_normal_loss(pred_normals, target, faces, *, face_mask=None):
       face_mask: optional `[n_face]` bool, `False` on padding.
 
     Returns:
-      Scalar mean over selected faces whose target (and prediction) is non-degenerate.
+      `Term` over the selected faces whose target (and prediction) is non-degenerate.
     """
     pred_normals, target, faces = map(jnp.asarray, (pred_normals, target, faces))
     _check_points("target", target)
@@ -190,7 +236,7 @@ def predicted_normal_loss(pred_normals, target, faces, *, face_mask=None):
     angle = jnp.arctan2(jnp.where(ok, sin, 0.0), jnp.where(ok, cos, 1.0))
     mask = _check_mask("face_mask", face_mask, faces.shape[0])
     mask = ok if mask is None else mask & ok
-    return _masked_mean(angle, mask)
+    return _masked_term(angle, mask)
 
 
 # --------------------------------------------------------------------------------------
@@ -253,12 +299,21 @@ def curvature_terms(pred, target, faces, *, vertex_mask=None):
     _check_points("pred", pred)
     _check_same("pred", pred, "target", target)
     _check_faces(faces)
+    term_h, term_g = _curvature_terms(pred, target, faces, vertex_mask=vertex_mask)
+    return term_h.mean(), term_g.mean()
+
+
+def _curvature_terms(pred, target, faces, *, vertex_mask=None) -> tuple[Term, Term]:
+    pred, target, faces = jnp.asarray(pred), jnp.asarray(target), jnp.asarray(faces)
+    _check_points("pred", pred)
+    _check_same("pred", pred, "target", target)
+    _check_faces(faces)
     mask = _check_mask("vertex_mask", vertex_mask, pred.shape[0])
     kh_out, kg_out = _curvatures(pred, faces)
     kh_gt, kg_gt = _curvatures(target, faces)
-    loss_h = _masked_mean(jnp.abs(kh_out - kh_gt) * kh_gt**2, mask)
-    loss_g = _masked_mean(jnp.abs(kg_out - kg_gt) * kg_gt**2, mask)
-    return loss_h, loss_g
+    term_h = _masked_term(jnp.abs(kh_out - kh_gt) * kh_gt**2, mask)
+    term_g = _masked_term(jnp.abs(kg_out - kg_gt) * kg_gt**2, mask)
+    return term_h, term_g
 
 
 def curvature_loss(pred, target, faces, *, gamma_h=1e-6, gamma_g=1.0, vertex_mask=None):
@@ -275,8 +330,15 @@ def curvature_loss(pred, target, faces, *, gamma_h=1e-6, gamma_g=1.0, vertex_mas
     Returns:
       Scalar.
     """
-    loss_h, loss_g = curvature_terms(pred, target, faces, vertex_mask=vertex_mask)
-    return gamma_h * loss_h + gamma_g * loss_g
+    return curvature_term(
+        pred, target, faces, gamma_h=gamma_h, gamma_g=gamma_g, vertex_mask=vertex_mask
+    ).mean()
+
+
+def curvature_term(pred, target, faces, *, gamma_h=1e-6, gamma_g=1.0, vertex_mask=None) -> Term:
+    """`curvature_loss` as a `Term`: `γ_H L_H + γ_G L_G` summed over the valid vertices."""
+    term_h, term_g = _curvature_terms(pred, target, faces, vertex_mask=vertex_mask)
+    return Term(gamma_h * term_h.total + gamma_g * term_g.total, term_h.count)
 
 
 # --------------------------------------------------------------------------------------
@@ -359,6 +421,23 @@ def chamfer_distance_batched(
     Returns:
       Scalar mean over graphs of the chamfer distance (eq. chamfer_loss).
     """
+    return chamfer_term(
+        a,
+        b,
+        a_graph,
+        n_graph,
+        b_graph=b_graph,
+        a_mask=a_mask,
+        b_mask=b_mask,
+        block_size=block_size,
+    ).mean()
+
+
+def chamfer_term(
+    a, b, a_graph, n_graph, *, b_graph=None, a_mask=None, b_mask=None, block_size=1024
+) -> Term:
+    """`chamfer_distance_batched` as a `Term`: per-graph distances summed over the graphs
+    with a valid point on both sides, and how many there are."""
     a, b = jnp.asarray(a), jnp.asarray(b)
     _check_points("a", a)
     _check_points("b", b)
@@ -376,20 +455,19 @@ def chamfer_distance_batched(
     b_valid = _check_mask("b_mask", b_mask, b.shape[0])
     a_valid = jnp.ones(a.shape[0], bool) if a_valid is None else a_valid
     b_valid = jnp.ones(b.shape[0], bool) if b_valid is None else b_valid
-    return _chamfer_per_graph_mean(
+    return _chamfer_per_graph_term(
         a, a_graph, a_valid, b, b_graph, b_valid, n_graph=n_graph, block_size=block_size
     )
 
 
 # Jitted so that eager calls (metrics) compile the blockwise search once per shape.
 @functools.partial(jax.jit, static_argnames=("n_graph", "block_size"))
-def _chamfer_per_graph_mean(a, a_graph, a_valid, b, b_graph, b_valid, *, n_graph, block_size):
+def _chamfer_per_graph_term(a, a_graph, a_valid, b, b_graph, b_valid, *, n_graph, block_size):
     sum_ab, count_a = _one_sided(a, a_graph, a_valid, b, b_graph, b_valid, n_graph, block_size)
     sum_ba, count_b = _one_sided(b, b_graph, b_valid, a, a_graph, a_valid, n_graph, block_size)
     present = (count_a > 0) & (count_b > 0)
     per_graph = sum_ab / jnp.maximum(count_a, 1.0) + sum_ba / jnp.maximum(count_b, 1.0)
-    n_present = jnp.sum(present).astype(per_graph.dtype)
-    return jnp.sum(jnp.where(present, per_graph, 0.0)) / jnp.maximum(n_present, 1.0)
+    return Term(jnp.sum(jnp.where(present, per_graph, 0.0)), jnp.sum(present, dtype=jnp.int32))
 
 
 def chamfer_distance(a, b, *, a_mask=None, b_mask=None, block_size=1024):
@@ -442,37 +520,24 @@ def feature_extractor_loss(pred_features, target_features, *, vertex_mask=None):
     Returns:
       Scalar.
     """
+    return feature_term(pred_features, target_features, vertex_mask=vertex_mask).mean()
+
+
+def feature_term(pred_features, target_features, *, vertex_mask=None) -> Term:
+    """`feature_extractor_loss` as a `Term` over the valid vertices."""
     pred, target = jnp.asarray(pred_features), jnp.asarray(target_features)
     _check_points("pred_features", pred, width=5)
     _check_same("pred_features", pred, "target_features", target)
     mask = _check_mask("vertex_mask", vertex_mask, pred.shape[0])
-    return _masked_mean(jnp.sum((pred - target) ** 2, axis=-1), mask)
+    return _masked_term(jnp.sum((pred - target) ** 2, axis=-1), mask)
 
 
 # --------------------------------------------------------------------------------------
 # Weighted total
 # --------------------------------------------------------------------------------------
 
-
-class LossWeights(NamedTuple):
-    """Weights λ of the loss terms. The defaults are the paper's final weights.
-
-    They are static Python floats: a term with weight 0 is not computed at all.
-    """
-
-    vertex: float = 1.0
-    normal: float = 0.2
-    curvature: float = 0.01
-    chamfer: float = 0.05
-    feature: float = 1.0
-
-    @classmethod
-    def all_ones(cls) -> LossWeights:
-        """All weights 1, as in the paper's ablations (Joint scheme)."""
-        return cls(1.0, 1.0, 1.0, 1.0, 1.0)
-
-
-PAPER_WEIGHTS = LossWeights()
+# Every term `loss_terms` can compute, in the order they are reported.
+TERMS = ("vertex", "normal", "curvature", "chamfer", "feature", "face_normal")
 
 
 def _static_weight(name: str, value) -> float:
@@ -489,27 +554,30 @@ def _static_weight(name: str, value) -> float:
     return w
 
 
-def total_loss(
+def _weights(weights: LossConfig) -> dict[str, float]:
+    return {name: _static_weight(name, getattr(weights, name)) for name in TERMS}
+
+
+def loss_terms(
     pred,
     target,
     faces,
     pred_features=None,
     target_features=None,
     *,
-    weights: LossWeights = PAPER_WEIGHTS,
-    gamma_h=1e-6,
-    gamma_g=1.0,
+    weights: LossConfig | None = None,
+    pred_face_normals=None,
     vertex_mask=None,
     face_mask=None,
     vertex_graph=None,
     n_graph=None,
-    chamfer_block=1024,
-):
-    """Weighted sum of the DMD-Net losses; terms with weight 0 are skipped entirely.
+) -> dict[str, Term]:
+    """Every loss term with a non-zero weight, as a `Term` (not yet divided or weighted).
 
-    Vertex, normal, curvature and feature terms are means over all valid vertices (faces)
-    of the batch; the chamfer term is matched within each mesh and averaged over meshes
-    when `vertex_graph` is given (a batch that is a disjoint union of meshes).
+    Vertex, curvature and feature terms are over the valid vertices of the batch, the
+    normal terms over its valid faces; the chamfer term is matched within each mesh and
+    counts meshes when `vertex_graph` is given (a batch that is a disjoint union of
+    meshes), otherwise the batch is one point set.
 
     Args:
       pred: `[n_vertex, 3]` predicted positions (canonical frame).
@@ -519,57 +587,93 @@ def total_loss(
         `weights.feature > 0`.
       target_features: `[n_vertex, 5]`; computed from `target` with
         `geometry.vertex_features` if omitted.
-      weights: static `LossWeights`.
-      gamma_h, gamma_g: curvature term weights (`curvature_loss`).
+      weights: the static weights and curvature and chamfer settings (`LossConfig`;
+        default: the paper's final weights).
+      pred_face_normals: `[n_face, 3]` unit normals of a normal-first head; the
+        `face_normal` term is computed when they are given and weighted.
       vertex_mask: optional `[n_vertex]` bool, `False` on padding.
       face_mask: optional `[n_face]` bool, `False` on padding.
       vertex_graph: optional `[n_vertex]` int graph id per vertex (`MeshGraph.vertex_graph`).
       n_graph: static number of graphs; required with `vertex_graph`.
-      chamfer_block: `block_size` of the chamfer search.
 
     Returns:
-      `(total, components)`: scalar weighted sum, and a dict of the unweighted terms
-      that were computed, keyed `vertex`, `normal`, `curvature`, `chamfer`, `feature`.
+      `{name: Term}` for the computed terms, named as in `TERMS`.
     """
+    weights = LossConfig() if weights is None else weights
     pred, target, faces = jnp.asarray(pred), jnp.asarray(target), jnp.asarray(faces)
     _check_points("pred", pred)
     _check_same("pred", pred, "target", target)
     _check_faces(faces)
-    w = {name: _static_weight(name, value) for name, value in weights._asdict().items()}
+    w = _weights(weights)
     if (vertex_graph is None) != (n_graph is None):
         raise ValueError("vertex_graph and n_graph must be given together")
 
     terms = {}
     if w["vertex"]:
-        terms["vertex"] = vertex_loss(pred, target, vertex_mask=vertex_mask)
+        terms["vertex"] = vertex_term(pred, target, vertex_mask=vertex_mask)
     if w["normal"]:
-        terms["normal"] = normal_loss(pred, target, faces, face_mask=face_mask)
+        terms["normal"] = normal_term(pred, target, faces, face_mask=face_mask)
     if w["curvature"]:
-        terms["curvature"] = curvature_loss(
-            pred, target, faces, gamma_h=gamma_h, gamma_g=gamma_g, vertex_mask=vertex_mask
+        terms["curvature"] = curvature_term(
+            pred,
+            target,
+            faces,
+            gamma_h=weights.gamma_h,
+            gamma_g=weights.gamma_g,
+            vertex_mask=vertex_mask,
         )
     if w["chamfer"]:
-        if vertex_graph is None:
-            terms["chamfer"] = chamfer_distance(
-                pred, target, a_mask=vertex_mask, b_mask=vertex_mask, block_size=chamfer_block
-            )
-        else:
-            terms["chamfer"] = chamfer_distance_batched(
-                pred,
-                target,
-                vertex_graph,
-                n_graph,
-                a_mask=vertex_mask,
-                b_mask=vertex_mask,
-                block_size=chamfer_block,
-            )
+        single = vertex_graph is None
+        terms["chamfer"] = chamfer_term(
+            pred,
+            target,
+            jnp.zeros(pred.shape[0], jnp.int32) if single else vertex_graph,
+            1 if single else n_graph,
+            a_mask=vertex_mask,
+            b_mask=vertex_mask,
+            block_size=weights.chamfer_block,
+        )
     if w["feature"]:
         if pred_features is None:
             raise ValueError("weights.feature > 0 needs pred_features (the extractor output)")
         if target_features is None:
             target_features = _vertex_features(target, faces)
-        terms["feature"] = feature_extractor_loss(
-            pred_features, target_features, vertex_mask=vertex_mask
+        terms["feature"] = feature_term(pred_features, target_features, vertex_mask=vertex_mask)
+    if w["face_normal"] and pred_face_normals is not None:
+        terms["face_normal"] = predicted_normal_term(
+            pred_face_normals, target, faces, face_mask=face_mask
         )
-    total = sum((w[name] * value for name, value in terms.items()), jnp.zeros((), pred.dtype))
-    return total, terms
+    return terms
+
+
+def reduce_terms(terms: dict[str, Term], weights: LossConfig | None = None):
+    """The loss from its terms: each `Term`'s mean, weighted and summed.
+
+    The one place where terms are divided, so a data-parallel step that adds the
+    `Term`s of its groups first gives the loss of the whole batch.
+
+    Args:
+      terms: `{name: Term}` from `loss_terms` (or their sums over groups).
+      weights: the `LossConfig` the terms were computed with.
+
+    Returns:
+      `(total, means)`: the scalar weighted sum, and `{name: mean}` unweighted.
+    """
+    w = _weights(LossConfig() if weights is None else weights)
+    means = {name: term.mean() for name, term in terms.items()}
+    dtype = next(iter(means.values())).dtype if means else jnp.float32
+    total = sum((w[name] * value for name, value in means.items()), jnp.zeros((), dtype))
+    return total, means
+
+
+def total_loss(pred, target, faces, pred_features=None, target_features=None, **kwargs):
+    """Weighted sum of the DMD-Net losses; terms with weight 0 are skipped entirely.
+
+    `reduce_terms(loss_terms(...))`; the arguments are those of `loss_terms`.
+
+    Returns:
+      `(total, components)`: scalar weighted sum, and a dict of the unweighted means
+      of the terms that were computed, keyed as in `TERMS`.
+    """
+    terms = loss_terms(pred, target, faces, pred_features, target_features, **kwargs)
+    return reduce_terms(terms, kwargs.get("weights"))

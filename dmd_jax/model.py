@@ -62,7 +62,7 @@ from flax import linen as nn
 from dmd_jax import encoding, geometry, ops
 from dmd_jax.config import ModelConfig
 from dmd_jax.geometry import safe_normalize
-from dmd_jax.graph import MeshGraph, build_mesh_graph
+from dmd_jax.graph import EllLayout, MeshGraph, build_mesh_graph
 
 Dtype = jnp.dtype
 
@@ -109,7 +109,7 @@ class Aggregator(nn.Module):
     loops included); edges of weight 0 (padding) are left out of the softmax.
 
     Without attention, an `ell` layout of the same edges (`MeshGraph.vertex_ell` or
-    `face_ell`, from `mesh.with_ell_layout`) replaces the segment sum by
+    `face_ell`, from `graph.with_ell_layout`) replaces the segment sum by
     `ops.gcn_aggregate_ell`: the same operator, faster on CPU (inference uses it). The
     attention path ignores `ell`; its softmax needs the edge lists.
 
@@ -136,7 +136,7 @@ class Aggregator(nn.Module):
         edge_weight,
         *,
         deterministic: bool = True,
-        ell: ops.EllLayout | None = None,
+        ell: EllLayout | None = None,
     ):
         """Aggregates, transforms and activates node features.
 
@@ -145,7 +145,7 @@ class Aggregator(nn.Module):
           senders, receivers: `[n_edge]` int32 edges of `A + I` (receivers sorted).
           edge_weight: `[n_edge]` GCN weights; 0 marks padding edges.
           deterministic: turn dropout off.
-          ell: optional `ops.EllLayout` of the same edges (`[n_node, width]` tables);
+          ell: optional `EllLayout` of the same edges (`[n_node, width]` tables);
             used instead of the edge lists when attention is off.
 
         Returns:

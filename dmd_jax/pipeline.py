@@ -1,9 +1,11 @@
 """Input pipeline: shuffling, rotation augmentation, mixed noise and bucketed padding.
 
 Every batch is a pure function of `(seed, step)` and the dataset, so any step of any run
-can be rebuilt exactly (that is what makes resume bit-identical). Batches are padded
-disjoint unions of meshes; all padded sizes derive from one vertex bucket, so an epoch
-compiles one program per bucket it touches.
+can be rebuilt exactly (that is what makes resume bit-identical). A training batch is
+one group of meshes per device, each group a padded disjoint union, all padded to the
+same sizes and stacked on a leading axis (one group on one device); the sizes come from
+one vertex bucket (`graph.sizes_for_vertices`), so an epoch compiles one program per
+bucket it touches.
 """
 
 from __future__ import annotations
@@ -15,23 +17,19 @@ import jax
 import numpy as np
 
 from dmd_jax import noise as noise_lib
+from dmd_jax.config import NoiseConfig
 from dmd_jax.encoding import mesh_frame
 from dmd_jax.graph import (
     MeshGraph,
     PaddedSizes,
     batch_mesh_graphs,
-    bucket_size,
     build_mesh_graph,
     pad_mesh_graph,
     pad_vertex_array,
+    padded_sizes_for,
+    sizes_for_vertices,
 )
 from dmd_jax.mesh import canonical_frame
-
-# Upper bounds of padded sizes per padded vertex: a closed triangle mesh has f ≈ 2v,
-# 2e + v ≈ 7v primal edges with self loops and 4f dual edges with self loops.
-_FACE_RATIO = 2.25
-_VERTEX_EDGE_RATIO = 7.5
-_FACE_EDGE_RATIO = 4.0 * _FACE_RATIO
 
 
 class MeshExample(NamedTuple):
@@ -43,28 +41,22 @@ class MeshExample(NamedTuple):
 
 
 class Batch(NamedTuple):
-    """A padded batch: noisy input, clean target and the graph, all in canonical frames."""
+    """A padded batch: noisy input, clean target and the graph, in the model's frames.
 
-    noisy: np.ndarray  # [n_vertex, 3] float32
-    clean: np.ndarray  # [n_vertex, 3] float32
+    One padded disjoint union (`collate`: `noisy [n_vertex, 3]`), or in training the
+    groups of a step stacked on a leading axis (`training_batch`: `noisy [n_group,
+    n_vertex, 3]`, every `graph` array `[n_group, ...]`).
+    """
+
+    noisy: np.ndarray  # [(n_group,) n_vertex, 3] float32
+    clean: np.ndarray  # [(n_group,) n_vertex, 3] float32
     graph: MeshGraph
-
-
-class NoiseSettings(NamedTuple):
-    """What the mixed-noise sampler may draw (see `dmd_jax.noise.sample_noise_spec`)."""
-
-    kinds: tuple[str, ...] = noise_lib.NOISE_KINDS
-    canonical_levels: dict | None = None  # kind -> levels; None: the paper's levels
-    edge_levels: tuple[float, ...] = noise_lib.EDGE_LEVELS
-    p_edge: float = 0.5
-    p_normal: float = 0.0
-    p_clean: float = 0.0
 
 
 # The mesh-denoising benchmark protocol: Gaussian noise along the vertex normals of
 # 0.1, 0.2 or 0.3 mean edge lengths (CNR, GCN-Denoiser). Used to evaluate and to pick
 # checkpoints.
-BENCHMARK_NOISE = NoiseSettings(
+BENCHMARK_NOISE = NoiseConfig(
     kinds=("gaussian",), edge_levels=(0.1, 0.2, 0.3), p_edge=1.0, p_normal=1.0
 )
 
@@ -79,38 +71,22 @@ def make_examples(meshes: Sequence[tuple[np.ndarray, np.ndarray]]) -> list[MeshE
     return out
 
 
-def sizes_for_vertices(
-    n_vertex: int, n_face: int, n_vertex_edge: int, n_face_edge: int, n_graph: int
-) -> PaddedSizes:
-    """Padded sizes from a single vertex bucket (one compiled program per bucket)."""
-    nv = bucket_size(n_vertex + 1)
-    while (
-        int(_FACE_RATIO * nv) < n_face
-        or int(_VERTEX_EDGE_RATIO * nv) < n_vertex_edge
-        or int(_FACE_EDGE_RATIO * nv) < n_face_edge
-    ):
-        nv = bucket_size(nv + 1)
-    return PaddedSizes(
-        n_vertex=nv,
-        n_face=int(_FACE_RATIO * nv),
-        n_vertex_edge=int(_VERTEX_EDGE_RATIO * nv),
-        n_face_edge=int(_FACE_EDGE_RATIO * nv),
-        n_graph=n_graph + 1,
-    )
-
-
 def collate(
-    noisy: Sequence[np.ndarray], clean: Sequence[np.ndarray], graphs: Sequence[MeshGraph]
+    noisy: Sequence[np.ndarray],
+    clean: Sequence[np.ndarray],
+    graphs: Sequence[MeshGraph],
+    sizes: PaddedSizes | None = None,
 ) -> Batch:
-    """Joins meshes into one padded disjoint union (sizes bucketed)."""
+    """Joins meshes into one padded disjoint union.
+
+    Args:
+      noisy, clean: per mesh, `[n_i, 3]` positions.
+      graphs: per mesh, its `MeshGraph`.
+      sizes: the padded sizes (default: the group's own bucket, `graph.padded_sizes_for`).
+    """
     graph = batch_mesh_graphs(list(graphs))
-    sizes = sizes_for_vertices(
-        graph.n_vertex,
-        graph.n_face,
-        graph.vertex_senders.shape[0],
-        graph.face_senders.shape[0],
-        len(graphs),
-    )
+    if sizes is None:
+        sizes = padded_sizes_for(graph)
     padded = pad_mesh_graph(graph, sizes)
     return Batch(
         noisy=pad_vertex_array(np.concatenate(noisy).astype(np.float32), sizes.n_vertex),
@@ -135,7 +111,7 @@ def corrupt(
     faces: np.ndarray,
     *,
     rotate: bool,
-    noise: NoiseSettings,
+    noise: NoiseConfig,
     encoding: str = "xyz",
 ) -> tuple[np.ndarray, np.ndarray, noise_lib.NoiseSpec]:
     """Rotates (optionally) and noises one clean mesh.
@@ -157,8 +133,9 @@ def corrupt(
         v,
         faces,
         kinds=noise.kinds,
-        canonical_levels=noise.canonical_levels,
-        edge_levels=noise.edge_levels,
+        # Unset levels (None) are the sampler's defaults: the paper's.
+        canonical_levels=None if noise.canonical_levels is None else dict(noise.canonical_levels),
+        edge_levels=noise_lib.EDGE_LEVELS if noise.edge_levels is None else noise.edge_levels,
         p_edge=noise.p_edge,
         p_normal=noise.p_normal,
         p_clean=noise.p_clean,
@@ -187,41 +164,107 @@ def batch_indices(step: int, n_examples: int, batch_size: int, seed: int) -> np.
     return out
 
 
+def split_slots(batch_size: int, n_group: int) -> list[np.ndarray]:
+    """Slots `0..batch_size-1` of a global batch, cut into `n_group` contiguous groups
+    whose sizes differ by at most one."""
+    if n_group < 1 or batch_size < n_group:
+        raise ValueError(
+            f"a global batch of {batch_size} meshes cannot feed {n_group} devices "
+            "(every device needs at least one mesh)"
+        )
+    return np.array_split(np.arange(batch_size), n_group)
+
+
+def common_sizes(groups: Sequence[Sequence[MeshGraph]]) -> PaddedSizes:
+    """Padded sizes that hold the disjoint union of every group (one vertex bucket).
+
+    They depend only on which meshes a step draws, not on the noise, so every process
+    of a multi-host run computes them alike without building the others' groups.
+
+    Args:
+      groups: per device, the graphs of its meshes.
+    """
+    if not groups or any(len(g) == 0 for g in groups):
+        raise ValueError("every device needs at least one mesh")
+
+    def most(fn):
+        return max(sum(fn(g) for g in group) for group in groups)
+
+    return sizes_for_vertices(
+        most(lambda g: g.n_vertex),
+        most(lambda g: g.n_face),
+        most(lambda g: g.vertex_senders.shape[0]),
+        most(lambda g: g.face_senders.shape[0]),
+        max(len(group) for group in groups),
+    )
+
+
+def stack(batches: Sequence[Batch]) -> Batch:
+    """Batches of equal padded sizes stacked on a new leading axis."""
+    return jax.tree.map(lambda *xs: np.stack(xs), *batches)
+
+
 def training_batch(
     examples: Sequence[MeshExample],
     step: int,
     *,
     batch_size: int,
     seed: int,
-    noise: NoiseSettings,
+    noise: NoiseConfig,
     rotate: bool = True,
     encoding: str = "xyz",
+    n_group: int = 1,
+    groups: Sequence[int] | None = None,
 ) -> Batch:
-    """The batch of `step`: a pure function of `(seed, step)` and the examples."""
+    """The batch of `step`: a pure function of `(seed, step)` and the examples.
+
+    Slot `j` of the global batch always gets the same mesh and noise, however the batch
+    is split, so one device and several train on the same meshes.
+
+    Args:
+      examples: the training meshes.
+      step: the step number.
+      batch_size: meshes per step (the global batch, at least `n_group`).
+      seed: the run's seed (shuffling, rotation, noise).
+      noise: what the noise sampler may draw.
+      rotate: random rotation augmentation.
+      encoding: the model's encoding, which decides the frame (`encoding.mesh_frame`).
+      n_group: groups the batch is split into (devices along the batch axis).
+      groups: the groups to build (default all; pass `parallel.local_groups(mesh)` on
+        several hosts). The padded sizes always account for every group.
+
+    Returns:
+      A `Batch` of the requested groups stacked on a leading axis, in order.
+    """
     idx = batch_indices(step, len(examples), batch_size, seed)
+    slots = split_slots(batch_size, n_group)
+    sizes = common_sizes([[examples[int(idx[j])].graph for j in s] for s in slots])
     key = step_key(seed, step)
-    noisy, clean, graphs = [], [], []
-    for slot, i in enumerate(idx):
-        ex = examples[int(i)]
-        n, c, _ = corrupt(
-            jax.random.fold_in(key, slot),
-            ex.vertices,
-            ex.faces,
-            rotate=rotate,
-            noise=noise,
-            encoding=encoding,
-        )
-        noisy.append(n)
-        clean.append(c)
-        graphs.append(ex.graph)
-    return collate(noisy, clean, graphs)
+    out = []
+    for g in range(n_group) if groups is None else groups:
+        noisy, clean, graphs = [], [], []
+        for j in slots[g]:
+            ex = examples[int(idx[j])]
+            n, c, _ = corrupt(
+                jax.random.fold_in(key, int(j)),
+                ex.vertices,
+                ex.faces,
+                rotate=rotate,
+                noise=noise,
+                encoding=encoding,
+            )
+            noisy.append(n)
+            clean.append(c)
+            graphs.append(ex.graph)
+        out.append(collate(noisy, clean, graphs, sizes))
+    return stack(out)
 
 
 def evaluation_batches(
     examples: Sequence[MeshExample],
     *,
     seed: int,
-    noise: NoiseSettings,
+    noise: NoiseConfig,
     rotate: bool = True,
     encoding: str = "xyz",
 ) -> list[tuple[Batch, noise_lib.NoiseSpec]]:

@@ -1,4 +1,4 @@
-"""Training: the jitted train step, the paper's training schemes, evaluation, checkpoints.
+"""Training: one step builder for one device or many, the schemes, evaluation, the loop.
 
 Schemes (paper appendix D):
 
@@ -12,10 +12,19 @@ Schemes (paper appendix D):
 The feature extractor and the rest of the network have separate Adam states, so freezing
 one half really freezes it (no momentum drift). Each (bucket, phase) compiles once.
 
-Checkpoints are Orbax: ``<workdir>/checkpoints/latest`` keeps the last ``ckpt_keep``
-states and ``<workdir>/checkpoints/best`` the one with the lowest test-intra normal error.
-A run restarted in the same workdir resumes from the latest state; since batches are a
-function of ``(seed, step)``, the resumed run is bit-identical to an uninterrupted one.
+One engine: `make_train_step` builds the step of a phase for a device mesh
+(`parallel.batch_mesh`). A batch is one group of meshes per device, stacked on a leading
+axis (`pipeline.training_batch`); `jax.shard_map` gives every device its group, the
+groups' loss terms (`losses.Term`: sums and counts) are added across devices, and
+`losses.reduce_terms` divides once, so k steps on n devices are k steps on the whole
+batch, up to the order of float sums. Training on one device is the same code on a
+one-device mesh, with a batch of one group.
+
+Checkpoints are Orbax (`dmd_jax.checkpoints`): ``<workdir>/checkpoints/latest`` keeps the
+last ``ckpt_keep`` states and ``<workdir>/checkpoints/best`` the one with the lowest
+normal error of the evaluation set that picks it. A run restarted in the same workdir
+resumes from the latest state; since batches are a function of ``(seed, step)``, the
+resumed run is bit-identical to an uninterrupted one.
 """
 
 from __future__ import annotations
@@ -32,22 +41,24 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
 
-from dmd_jax import geometry, losses, metrics
-from dmd_jax.config import ExperimentConfig
-from dmd_jax.graph import MeshGraph
-from dmd_jax.io import atomic_write
-from dmd_jax.model import DMDNet
-from dmd_jax.pipeline import (
-    Batch,
-    MeshExample,
-    NoiseSettings,
-    evaluation_batches,
-    training_batch,
+from dmd_jax import geometry, losses, metrics, parallel
+from dmd_jax.checkpoints import (
+    checkpoint_managers,
+    restore_checkpoint,
+    save_checkpoint,
 )
+from dmd_jax.config import SCHEMES, ExperimentConfig, LossConfig, NoiseConfig
+from dmd_jax.graph import MeshGraph
+from dmd_jax.io import write_text_atomic
+from dmd_jax.model import DMDNet
+from dmd_jax.pipeline import Batch, MeshExample, evaluation_batches, training_batch
 
 FE_PREFIX = "feature_extractor"
-SCHEMES = ("joint", "alter", "two_phase", "u_fe")
+# Which param halves a phase trains.
+PHASE_PARTS = {"all": ("fe", "rest"), "fe": ("fe",), "rest": ("rest",)}
 
 
 class NonFiniteLossError(RuntimeError):
@@ -72,7 +83,7 @@ def merge_params(halves: dict) -> dict:
 
 
 def make_optimizer(cfg: ExperimentConfig) -> optax.GradientTransformation:
-    """Adam (β1, β2 from the config) with gradient clipping and the configured schedule."""
+    """Adam (β1, β2, ε from the config) with gradient clipping and the configured schedule."""
     t = cfg.train
     if t.schedule == "constant":
         lr = t.learning_rate
@@ -86,7 +97,7 @@ def make_optimizer(cfg: ExperimentConfig) -> optax.GradientTransformation:
         )
     else:
         raise ValueError(f"unknown schedule {t.schedule!r}; use 'constant' or 'cosine'")
-    chain = [optax.adam(lr, b1=t.b1, b2=t.b2)]
+    chain = [optax.adam(lr, b1=t.b1, b2=t.b2, eps=t.eps)]
     if t.grad_clip and t.grad_clip > 0:
         chain.insert(0, optax.clip_by_global_norm(t.grad_clip))
     return optax.chain(*chain)
@@ -104,20 +115,18 @@ def phase_of(scheme: str, step: int, two_phase_fe_steps: int, alter_period: int 
     raise ValueError(f"unknown training scheme {scheme!r}; use one of {SCHEMES}")
 
 
-def loss_weights_for(cfg: ExperimentConfig, phase: str) -> losses.LossWeights:
-    """The loss weights of a phase of the configured scheme."""
-    w = cfg.loss.weights()
-    if cfg.train.scheme == "u_fe":
-        return w._replace(feature=0.0)
-    if phase == "fe":
+def phase_loss(cfg: ExperimentConfig, phase: str) -> LossConfig:
+    """The loss of a phase of the configured scheme: `cfg.loss` with some weights at 0."""
+    if phase == "fe" and cfg.train.scheme != "u_fe":
         # The paper's FE phases train the feature extractor on its own loss alone.
-        return losses.LossWeights(vertex=0.0, normal=0.0, curvature=0.0, chamfer=0.0, feature=1.0)
-    if phase == "rest":
-        return w._replace(feature=0.0)
-    return w
+        off = ("vertex", "normal", "curvature", "chamfer", "face_normal")
+        return cfg.loss.with_edits({name: 0.0 for name in off} | {"feature": 1.0})
+    if cfg.train.scheme == "u_fe" or phase == "rest":
+        return cfg.loss.with_edits({"feature": 0.0})
+    return cfg.loss
 
 
-def compute_loss(
+def loss_terms(
     model: DMDNet,
     cfg: ExperimentConfig,
     params: dict,
@@ -125,10 +134,20 @@ def compute_loss(
     clean,
     graph: MeshGraph,
     *,
-    weights: losses.LossWeights,
+    loss: LossConfig,
     rng=None,
-):
-    """Total loss and its components for one padded batch (all in canonical frames)."""
+) -> dict[str, losses.Term]:
+    """The loss terms (sums and counts) of one padded group of meshes.
+
+    Args:
+      model: `DMDNet(cfg.model)`.
+      cfg: the experiment config (how feature targets are expressed).
+      params: the model's params.
+      noisy, clean: `[n_vertex, 3]` in the frame of the model's encoding.
+      graph: the group's padded `MeshGraph`.
+      loss: the weights of the phase (`phase_loss`).
+      rng: dropout key, or None (deterministic).
+    """
     deterministic = rng is None
     out, feats, aux = model.apply(
         {"params": params},
@@ -142,110 +161,128 @@ def compute_loss(
         target_feats = geometry.vertex_features(clean, graph.faces)
         if cfg.loss.feature_curvature == "asinh":
             target_feats = target_feats.at[:, 3:].set(jnp.arcsinh(target_feats[:, 3:]))
-    total, parts = losses.total_loss(
+    return losses.loss_terms(
         out,
         clean,
         graph.faces,
         pred_features=feats,
         target_features=target_feats,
-        weights=weights,
-        gamma_h=cfg.loss.gamma_h,
-        gamma_g=cfg.loss.gamma_g,
+        weights=loss,
+        # The normal-first head's own prediction, before its vertex update.
+        pred_face_normals=aux.get("face_normals"),
         vertex_mask=graph.vertex_mask,
         face_mask=graph.face_mask,
         vertex_graph=graph.vertex_graph,
         n_graph=graph.n_graph,
-        chamfer_block=cfg.loss.chamfer_block,
     )
-    if cfg.loss.face_normal and "face_normals" in aux and weights.vertex + weights.normal > 0:
-        # The normal-first head's own prediction, before the vertex update.
-        term = losses.predicted_normal_loss(
-            aux["face_normals"], clean, graph.faces, face_mask=graph.face_mask
-        )
-        parts = {**parts, "face_normal": term}
-        total = total + cfg.loss.face_normal * term
-    return total, parts
+
+
+def make_train_step(cfg: ExperimentConfig, phase: str, mesh: Mesh) -> Callable:
+    """The jitted train step of one phase on a device mesh (a pure function of its inputs).
+
+    Args:
+      cfg: the experiment config.
+      phase: `"all"`, `"fe"` or `"rest"` (`phase_of`).
+      mesh: a one-axis device mesh (`parallel.batch_mesh`); one device is a mesh too.
+
+    Returns:
+      `step(state, noisy, clean, graph, rng) -> (state, metrics)`: `noisy`, `clean` are
+      `[n_group, n_vertex, 3]` and `graph` a `MeshGraph` of `[n_group, ...]` arrays,
+      one group per device along the batch axis (`parallel.shard_batch`); `state` is
+      replicated (`parallel.replicate`); `rng` is the step's dropout key. The new state
+      and the metrics (`loss`, `grad_norm` and every term's mean) come back replicated.
+    """
+    model = DMDNet(cfg.model)
+    tx = make_optimizer(cfg)
+    loss = phase_loss(cfg, phase)
+    use_dropout = cfg.model.dropout > 0
+    axis = parallel.BATCH_AXIS
+
+    def group_terms(params, noisy, clean, graph, rng):
+        # One device's block: its group, with a leading axis of 1.
+        noisy, clean, graph = jax.tree.map(lambda x: x[0], (noisy, clean, graph))
+        group_rng = jax.random.fold_in(rng, jax.lax.axis_index(axis)) if use_dropout else None
+        terms = loss_terms(model, cfg, params, noisy, clean, graph, loss=loss, rng=group_rng)
+        return jax.lax.psum(terms, axis)
+
+    batch_terms = jax.shard_map(
+        group_terms,
+        mesh=mesh,
+        in_specs=(P(), P(axis), P(axis), P(axis), P()),
+        out_specs=P(),
+    )
+
+    def step(state: TrainState, noisy, clean, graph, rng):
+        def loss_of(halves):
+            terms = batch_terms(merge_params(halves), noisy, clean, graph, rng)
+            return losses.reduce_terms(terms, loss)
+
+        (total, means), grads = jax.value_and_grad(loss_of, has_aux=True)(state.params)
+        new_params, new_opt = dict(state.params), dict(state.opt_state)
+        for part in PHASE_PARTS[phase]:
+            updates, new_opt[part] = tx.update(
+                grads[part], state.opt_state[part], state.params[part]
+            )
+            new_params[part] = optax.apply_updates(state.params[part], updates)
+        metrics_ = {"loss": total, "grad_norm": optax.tree.norm(grads), **means}
+        return TrainState(state.step + 1, new_params, new_opt), metrics_
+
+    replicated = NamedSharding(mesh, P())
+    return jax.jit(step, out_shardings=(replicated, replicated))
 
 
 class Trainer:
-    """Owns the model, optimizer and jitted step of one experiment."""
+    """The steps of one experiment on one device mesh, built once per phase.
 
-    def __init__(self, cfg: ExperimentConfig):
+    Attributes:
+      cfg: the experiment config.
+      mesh: the device mesh (default: the first device alone).
+      compiles: how many programs the steps have compiled so far (one per bucket and
+        phase).
+    """
+
+    def __init__(self, cfg: ExperimentConfig, mesh: Mesh | None = None):
         if cfg.train.scheme not in SCHEMES:
             raise ValueError(f"unknown training scheme {cfg.train.scheme!r}; use one of {SCHEMES}")
         self.cfg = cfg
+        self.mesh = parallel.batch_mesh(jax.devices()[:1]) if mesh is None else mesh
         self.model = DMDNet(cfg.model)
-        self.tx = make_optimizer(cfg)
-        self.compiles = 0
         self._step_fns: dict[str, Callable] = {}
         self._eval_fn = jax.jit(self._predict)
 
-    # ---------------------------------------------------------------- init
-    def init(self, example: Batch) -> TrainState:
+    @property
+    def compiles(self) -> int:
+        return sum(fn._cache_size() for fn in self._step_fns.values())
+
+    def init(self, batch: Batch) -> TrainState:
+        """A fresh state, replicated on the mesh; `batch` is any one padded group."""
         key = jax.random.PRNGKey(self.cfg.train.seed)
+        first = jax.tree.map(lambda x: x[0], batch) if np.ndim(batch.noisy) == 3 else batch
         variables = self.model.init(
             {"params": key, "dropout": key},
-            jnp.asarray(example.noisy),
-            jax.tree.map(jnp.asarray, example.graph),
+            jnp.asarray(first.noisy),
+            jax.tree.map(jnp.asarray, first.graph),
             deterministic=True,
         )
         halves = split_params(variables["params"])
-        opt_state = {k: self.tx.init(v) for k, v in halves.items()}
-        return TrainState(step=jnp.asarray(0, jnp.int32), params=halves, opt_state=opt_state)
-
-    # ---------------------------------------------------------------- step
-    def _make_step(self, phase: str) -> Callable:
-        weights = loss_weights_for(self.cfg, phase)
-        use_dropout = self.cfg.model.dropout > 0
-
-        def step_fn(state: TrainState, noisy, clean, graph, rng):
-            self.compiles += 1  # runs at trace time only: counts compilations
-
-            def loss_of(halves):
-                return compute_loss(
-                    self.model,
-                    self.cfg,
-                    merge_params(halves),
-                    noisy,
-                    clean,
-                    graph,
-                    weights=weights,
-                    rng=rng if use_dropout else None,
-                )
-
-            (loss, parts), grads = jax.value_and_grad(loss_of, has_aux=True)(state.params)
-            new_params, new_opt = dict(state.params), dict(state.opt_state)
-            trained = {"all": ("fe", "rest"), "fe": ("fe",), "rest": ("rest",)}[phase]
-            for part in trained:
-                updates, new_opt[part] = self.tx.update(
-                    grads[part], state.opt_state[part], state.params[part]
-                )
-                new_params[part] = optax.apply_updates(state.params[part], updates)
-            grad_norm = optax.global_norm(grads)
-            return (
-                TrainState(state.step + 1, new_params, new_opt),
-                {"loss": loss, "grad_norm": grad_norm, **parts},
-            )
-
-        return jax.jit(step_fn)
+        tx = make_optimizer(self.cfg)
+        opt_state = {k: tx.init(v) for k, v in halves.items()}
+        state = TrainState(step=jnp.asarray(0, jnp.int32), params=halves, opt_state=opt_state)
+        return parallel.replicate(self.mesh, state)
 
     def step_fn(self, step: int) -> Callable:
         t = self.cfg.train
         phase = phase_of(t.scheme, step, t.two_phase_fe_steps, t.alter_period)
         if phase not in self._step_fns:
-            self._step_fns[phase] = self._make_step(phase)
+            self._step_fns[phase] = make_train_step(self.cfg, phase, self.mesh)
         return self._step_fns[phase]
 
     def train_step(self, state: TrainState, batch: Batch) -> tuple[TrainState, dict]:
+        """One step on a batch of this process's groups (`pipeline.training_batch`)."""
         step = int(state.step)
         rng = jax.random.fold_in(jax.random.PRNGKey(self.cfg.train.seed + 1), step)
-        return self.step_fn(step)(
-            state,
-            jnp.asarray(batch.noisy),
-            jnp.asarray(batch.clean),
-            jax.tree.map(jnp.asarray, batch.graph),
-            rng,
-        )
+        placed = parallel.shard_batch(self.mesh, batch)
+        return self.step_fn(step)(state, placed.noisy, placed.clean, placed.graph, rng)
 
     # ---------------------------------------------------------------- eval
     def _predict(self, params, noisy, graph):
@@ -279,84 +316,6 @@ class Trainer:
         if not rows:
             return {}
         return {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
-
-
-# -------------------------------------------------------------------- checkpoints
-
-
-def _checkpointers(workdir: Path, keep: int):
-    import orbax.checkpoint as ocp
-
-    latest = ocp.CheckpointManager(
-        (workdir / "checkpoints" / "latest").absolute(),
-        options=ocp.CheckpointManagerOptions(
-            max_to_keep=keep, create=True, enable_async_checkpointing=False
-        ),
-    )
-    best = ocp.CheckpointManager(
-        (workdir / "checkpoints" / "best").absolute(),
-        options=ocp.CheckpointManagerOptions(
-            max_to_keep=1,
-            create=True,
-            best_fn=lambda m: m["normal_deg"],
-            best_mode="min",
-            enable_async_checkpointing=False,
-        ),
-    )
-    return latest, best
-
-
-def save_checkpoint(
-    manager, state: TrainState, cfg: ExperimentConfig, metrics_: dict | None = None
-):
-    import orbax.checkpoint as ocp
-
-    manager.save(
-        int(state.step),
-        args=ocp.args.Composite(
-            state=ocp.args.StandardSave(jax.device_get(state._asdict())),
-            config=ocp.args.JsonSave(cfg.to_dict()),
-        ),
-        metrics=metrics_,
-    )
-    manager.wait_until_finished()
-
-
-def restore_checkpoint(manager, template: TrainState, step: int | None = None) -> TrainState:
-    import orbax.checkpoint as ocp
-
-    step = manager.latest_step() if step is None else step
-    abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, jax.device_get(template._asdict()))
-    restored = manager.restore(
-        step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract))
-    )
-    return TrainState(**restored["state"])
-
-
-def load_params(checkpoint_dir) -> tuple[dict, ExperimentConfig]:
-    """Params and config of the newest checkpoint in an Orbax manager directory."""
-    import orbax.checkpoint as ocp
-
-    checkpoint_dir = Path(checkpoint_dir).absolute()
-    if not checkpoint_dir.is_dir():
-        raise FileNotFoundError(f"{checkpoint_dir}: no such checkpoint directory")
-    manager = ocp.CheckpointManager(checkpoint_dir)
-    step = manager.latest_step()
-    if step is None:
-        raise ValueError(f"{checkpoint_dir}: holds no checkpoint")
-    try:
-        cfg_dict = manager.restore(step, args=ocp.args.Composite(config=ocp.args.JsonRestore()))
-        cfg = ExperimentConfig.from_dict(cfg_dict["config"])
-        state = manager.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore()))
-    except FileNotFoundError:
-        raise
-    except Exception as exc:  # orbax raises assorted types on corrupt directories
-        message = " ".join(str(exc).split())[:300]
-        raise ValueError(
-            f"{checkpoint_dir}: unreadable checkpoint of step {step} "
-            f"({type(exc).__name__}: {message})"
-        ) from exc
-    return merge_params(state["state"]["params"]), cfg
 
 
 # -------------------------------------------------------------------- loop
@@ -402,88 +361,8 @@ def _plot_curves(log_path: Path, png_path: Path) -> None:
     plt.close(fig)
 
 
-class _Steps(NamedTuple):
-    """How `train` runs a step: on one device, or data-parallel (chosen once per run)."""
-
-    trainer: Any  # `Trainer` or `parallel.ParallelTrainer`: `train_step`, `compiles`
-    base: Trainer  # init and evaluation
-    first: Batch  # a batch for `base.init`
-    run: Callable  # (state, step, nan) -> (state, metrics): builds the batch, steps
-    place: Callable  # state on the host or one device -> state as `run` takes it
-    local: Callable  # params of a placed state -> params for `base.evaluate`
-
-
 def _nan_batch(batch: Batch) -> Batch:
     return batch._replace(noisy=np.full_like(batch.noisy, np.nan))
-
-
-def _single_device_steps(cfg: ExperimentConfig, examples, noise: NoiseSettings) -> _Steps:
-    t = cfg.train
-    trainer = Trainer(cfg)
-
-    def make_batch(step: int) -> Batch:
-        return training_batch(
-            examples,
-            step,
-            batch_size=t.batch_size,
-            seed=t.seed,
-            noise=noise,
-            rotate=t.rotate,
-            encoding=cfg.model.encoding,
-        )
-
-    def run(state: TrainState, step: int, nan: bool):
-        batch = make_batch(step)
-        return trainer.train_step(state, _nan_batch(batch) if nan else batch)
-
-    def same(x):
-        return x
-
-    return _Steps(trainer, trainer, make_batch(0), run, same, same)
-
-
-def _data_parallel_steps(cfg: ExperimentConfig, examples, noise: NoiseSettings) -> _Steps:
-    """Steps of `parallel.ParallelTrainer` over every device of every process."""
-    from dmd_jax import parallel
-
-    t = cfg.train
-    mesh = parallel.batch_mesh()
-    if t.batch_size < mesh.size:
-        raise ValueError(
-            f"data-parallel training needs at least one mesh per device: train.batch_size "
-            f"is {t.batch_size} but there are {mesh.size} devices; set train.batch_size "
-            f">= {mesh.size} or run on fewer devices"
-        )
-    trainer = parallel.ParallelTrainer(cfg, mesh)
-    mine = parallel.local_groups(mesh)
-
-    def make_groups(step: int) -> dict[int, Batch]:
-        return parallel.device_batches(
-            examples,
-            step,
-            n_group=mesh.size,
-            batch_size=t.batch_size,
-            seed=t.seed,
-            noise=noise,
-            rotate=t.rotate,
-            groups=mine,
-            encoding=cfg.model.encoding,
-        )
-
-    def run(state: TrainState, step: int, nan: bool):
-        groups = make_groups(step)
-        if nan:
-            groups = {i: _nan_batch(b) for i, b in groups.items()}
-        return trainer.train_step(state, parallel.shard_batch(mesh, groups))
-
-    def place(state: TrainState) -> TrainState:
-        return parallel.replicate(mesh, state)
-
-    def local(params: dict) -> dict:
-        # The copy on this process's first device: evaluation needs no other device.
-        return jax.tree.map(lambda x: x.addressable_data(0), params)
-
-    return _Steps(trainer, trainer.base, make_groups(0)[mine[0]], run, place, local)
 
 
 def train(
@@ -497,7 +376,7 @@ def train(
     inject_nan_at: int | None = None,
     init_params: dict | None = None,
     data_parallel: bool = False,
-    eval_noise: NoiseSettings | None = None,
+    eval_noise: NoiseConfig | None = None,
 ) -> dict:
     """Trains (or resumes) a run in `workdir`; returns the final evaluation.
 
@@ -515,8 +394,8 @@ def train(
         With an eval set named `val`, the best checkpoint is chosen on its normal
         error; otherwise on `test_intra`'s.
       data_parallel: split each step's global batch over every device of every process
-        (`parallel.ParallelTrainer` on `parallel.batch_mesh()`); the same steps as on one
-        device up to the order of float sums, dropout masks aside. With several
+        (`parallel.batch_mesh()`; otherwise the mesh is the first device alone); the
+        same steps as on one device up to the order of float sums, dropout masks aside. With several
         processes (`jax.distributed.initialize` first) each builds only its own groups,
         only process 0 writes `config.json`, `log.jsonl` and the plot, and Orbax writes
         the checkpoints from process 0: `workdir` must be one shared directory.
@@ -528,13 +407,29 @@ def train(
     from tqdm.auto import tqdm
 
     t = cfg.train
-    noise = (
-        NoiseSettings(**cfg.noise.settings()) if hasattr(cfg.noise, "settings") else NoiseSettings()
-    )
-    steps = (_data_parallel_steps if data_parallel else _single_device_steps)(
-        cfg, train_examples, noise
-    )
-    trainer = steps.trainer
+    mesh = parallel.batch_mesh() if data_parallel else parallel.batch_mesh(jax.devices()[:1])
+    if t.batch_size < mesh.size:
+        raise ValueError(
+            f"data-parallel training needs at least one mesh per device: train.batch_size "
+            f"is {t.batch_size} but there are {mesh.size} devices; set train.batch_size "
+            f">= {mesh.size} or run on fewer devices"
+        )
+    trainer = Trainer(cfg, mesh)
+    mine = parallel.local_groups(mesh)
+
+    def make_batch(step: int) -> Batch:
+        return training_batch(
+            train_examples,
+            step,
+            batch_size=t.batch_size,
+            seed=t.seed,
+            noise=cfg.noise,
+            rotate=t.rotate,
+            encoding=cfg.model.encoding,
+            n_group=mesh.size,
+            groups=mine,
+        )
+
     # Data-parallel processes share one workdir: only the first writes the run's files.
     primary = not data_parallel or jax.process_index() == 0
     workdir = Path(workdir)
@@ -547,23 +442,22 @@ def train(
                 f"{workdir} holds a run with a different config; use another --workdir"
             )
     elif primary:
-        text = json.dumps(cfg.to_dict(), indent=2)
-        atomic_write(cfg_path, lambda tmp: Path(tmp).write_text(text))
-    state = steps.base.init(steps.first)
+        write_text_atomic(cfg_path, json.dumps(cfg.to_dict(), indent=2))
+    state = trainer.init(make_batch(0))
     if init_params is not None:
         fresh = jax.tree_util.tree_structure(merge_params(state.params))
         if jax.tree_util.tree_structure(init_params) != fresh:
             raise ValueError("init_params do not match the model of this config")
-        state = state._replace(params=split_params(jax.tree.map(jnp.asarray, init_params)))
-    latest, best = _checkpointers(workdir, t.ckpt_keep)
+        halves = split_params(jax.tree.map(jnp.asarray, init_params))
+        state = parallel.replicate(mesh, state._replace(params=halves))
+    latest, best = checkpoint_managers(workdir, t.ckpt_keep)
     if latest.latest_step() is not None:
-        state = restore_checkpoint(latest, state)
-    state = steps.place(state)
+        state = parallel.replicate(mesh, restore_checkpoint(latest, state))
     eval_batches = {
         name: evaluation_batches(
             ex,
             seed=t.seed + 12345,
-            noise=noise if eval_noise is None else eval_noise,
+            noise=cfg.noise if eval_noise is None else eval_noise,
             rotate=t.rotate,
             encoding=cfg.model.encoding,
         )
@@ -583,9 +477,10 @@ def train(
                 if fh.read(1) != b"\n":
                     log.write("\n")  # a killed run's cut-off row must not swallow the next
         for step in range(start, end):
-            new_state, out = steps.run(
-                state, step, inject_nan_at is not None and step == inject_nan_at
-            )
+            batch = make_batch(step)
+            if inject_nan_at is not None and step == inject_nan_at:
+                batch = _nan_batch(batch)
+            new_state, out = trainer.train_step(state, batch)
             loss = float(out["loss"])
             if not math.isfinite(loss):
                 bar.close()
@@ -594,21 +489,23 @@ def train(
                     f"checkpoint (step {latest.latest_step()}) is kept in {workdir}/checkpoints"
                 )
             state = new_state
-            row = {
-                "kind": "train",
-                "step": step + 1,
-                "time": time.time() - t0,
-                **{k: float(v) for k, v in out.items()},
-            }
-            log.write(json.dumps(row) + "\n")
+            done = step + 1
+            if (t.log_every and done % t.log_every == 0) or done == end:
+                row = {
+                    "kind": "train",
+                    "step": done,
+                    "time": time.time() - t0,
+                    **{k: float(v) for k, v in out.items()},
+                }
+                log.write(json.dumps(row) + "\n")
             bar.set_postfix(loss=f"{loss:.4g}")
             bar.update(1)
-            done = step + 1
             if eval_batches and ((t.eval_every and done % t.eval_every == 0) or done == t.steps):
-                params = steps.local(merge_params(state.params))
+                # This process's copy of the params: evaluation needs no other device.
+                params = parallel.local_copy(merge_params(state.params))
                 last_eval = {"kind": "eval", "step": done}
                 for name, batches in eval_batches.items():
-                    for k, v in steps.base.evaluate(params, batches).items():
+                    for k, v in trainer.evaluate(params, batches).items():
                         last_eval[f"{name}/{k}"] = v
                 log.write(json.dumps(last_eval) + "\n")
                 log.flush()

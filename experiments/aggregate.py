@@ -21,8 +21,8 @@ from typing import Any
 
 import numpy as np
 
-from dmd_jax.config import ABLATIONS
 from experiments import studies as st
+from experiments.ablations import ABLATIONS
 
 SPLITS = ("test_intra", "test_inter")
 METRICS = (("vertex_per_coord", 1e4, "Vertex (×10⁻⁴)"),) + (
@@ -675,7 +675,7 @@ def _preset_readme(out_dir: Path, plan: dict, summary: dict, sections: list[str]
 
 NOTES = """## How these sweeps differ from the paper, and how to read them
 
-* Every training-study row is `dmd_jax.config.ABLATIONS` applied to the preset's base
+* Every training-study row is `experiments.ablations.ABLATIONS` applied to the preset's base
   config, so all of them use λ = 1 for every loss, as the paper's appendix D says, the
   depth and STN studies included. (The paper's depth and STN tables repeat its final
   model's numbers, 3.301 / 25.37 / 1.786, which suggests those two were trained with the

@@ -222,14 +222,15 @@ def calibrate_curvature(examples, *, seed: int = 0, max_meshes: int = CALIBRATIO
     """
     import jax
 
-    from dmd_jax.pipeline import NoiseSettings, collate, corrupt
+    from dmd_jax.config import NoiseConfig
+    from dmd_jax.pipeline import collate, corrupt
 
     terms = _calibration_terms()
     lh, lg, ln = [], [], []
     base = jax.random.PRNGKey(seed)
     for i, ex in enumerate(examples[:max_meshes]):
         noisy, clean, _ = corrupt(
-            jax.random.fold_in(base, i), ex.vertices, ex.faces, rotate=True, noise=NoiseSettings()
+            jax.random.fold_in(base, i), ex.vertices, ex.faces, rotate=True, noise=NoiseConfig()
         )
         # Padded to the training buckets, so the terms compile once per bucket, not per mesh.
         b = collate([noisy], [clean], [ex.graph])
@@ -280,12 +281,12 @@ def _mean_dicts(rows: Sequence[dict]) -> dict:
 def evaluate_checkpoint(cfg, checkpoint_dir, eval_sets) -> dict:
     """The test metrics `train()` reports at its last step, from a saved checkpoint."""
     from dmd_jax.checkpoints import load_params
-    from dmd_jax.pipeline import NoiseSettings, evaluation_batches
+    from dmd_jax.pipeline import evaluation_batches
     from dmd_jax.train import Trainer
 
     params, _ = load_params(checkpoint_dir)
     trainer = Trainer(cfg)
-    noise = NoiseSettings(**cfg.noise.settings())
+    noise = cfg.noise
     out = {}
     for name, examples in eval_sets.items():
         if not examples:
@@ -348,9 +349,9 @@ def rotation_evaluation(bundle, examples, *, gamma: int = st.RE_GAMMA, seed: int
     from dmd_jax import losses
     from dmd_jax.inference import denoise
     from dmd_jax.metrics import mesh_metrics
-    from dmd_jax.pipeline import NoiseSettings, corrupt, random_rotation
+    from dmd_jax.pipeline import corrupt, random_rotation
 
-    noise = NoiseSettings(**bundle.config.noise.settings())
+    noise = bundle.config.noise
     base = jax.random.PRNGKey(seed)
     pairs, quality = [], []
     for i, ex in enumerate(examples):

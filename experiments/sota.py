@@ -490,9 +490,10 @@ def run_learned(
     """
     import jax
 
+    from dmd_jax.config import NoiseConfig
     from dmd_jax.data import load_dataset
     from dmd_jax.metrics import mesh_metrics
-    from dmd_jax.pipeline import NoiseSettings, corrupt
+    from dmd_jax.pipeline import corrupt
 
     ds = load_dataset(data_dir)
     rows = []
@@ -503,7 +504,7 @@ def run_learned(
         for k in idx.astype(int):
             v, f = records[k].load()
             key = jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(seed), s), int(k))
-            noisy, clean, spec = corrupt(key, v, f, rotate=True, noise=NoiseSettings())
+            noisy, clean, spec = corrupt(key, v, f, rotate=True, noise=NoiseConfig())
             outs = [("noisy", "Noisy", noisy, float("nan"), "")]
             for m in methods:
                 if m.fn is None:

@@ -4,7 +4,7 @@ A *study* is a list of rows; a *run* is one row at one seed. Every run is an
 `ExperimentConfig` derived from one base config with `with_edits`:
 
 * the seven training studies of the paper's appendix D (training scheme, dropout, graph
-  attention, structure, loss, depth, STN) take their rows from `dmd_jax.config.ABLATIONS`
+  attention, structure, loss, depth, STN) take their rows from `experiments.ablations.ABLATIONS`
   unchanged (`ablation_config`);
 * `noise` evaluates one trained model (the base config, i.e. the final loss weights) on
   the paper's noise table: four kinds times three levels, against the noisy input as
@@ -43,8 +43,9 @@ import re
 from collections.abc import Mapping, Sequence
 from typing import Any, NamedTuple
 
-from dmd_jax.config import ABLATIONS, ExperimentConfig, ablation_config, preset
+from dmd_jax.config import ExperimentConfig, preset
 from dmd_jax.data.dataset import DEFAULT_TEST_INTER
+from experiments.ablations import ABLATIONS, ablation_config
 
 # --------------------------------------------------------------------------------------
 # Studies

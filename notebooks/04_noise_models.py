@@ -211,7 +211,7 @@ for name in resolutions:
 # Left: at one canonical $\sigma$ the fine mesh's normals are far more disturbed than
 # the coarse mesh's. Right: in edge units the two curves nearly coincide. Training
 # (`dmd_jax.pipeline`) draws each mesh's noise in canonical units or in edge units with
-# equal probability (`NoiseSettings.p_edge = 0.5`), so the network sees both regimes.
+# equal probability (`NoiseConfig.p_edge = 0.5`), so the network sees both regimes.
 #
 # ## How the three metrics respond
 #

@@ -16,12 +16,13 @@ import scipy.stats
 from conftest import REPO, icosphere
 
 from dmd_jax import losses
-from dmd_jax.config import ABLATIONS, ablation_config
+from dmd_jax.config import NoiseConfig
 from dmd_jax.metrics import mesh_metrics
-from dmd_jax.pipeline import NoiseSettings, corrupt, make_examples
+from dmd_jax.pipeline import corrupt, make_examples
 from experiments import aggregate as agg
 from experiments import runner
 from experiments import studies as st
+from experiments.ablations import ABLATIONS, ablation_config
 
 PAPER_TEX = REPO.parent / "shared" / "paper" / "dmd-net.tex"
 
@@ -137,7 +138,7 @@ def test_calibration_is_half_the_normal_loss_over_the_median_terms(sphere_exampl
             ex.vertices,
             ex.faces,
             rotate=True,
-            noise=NoiseSettings(),
+            noise=NoiseConfig(),
         )
         lh, lg = losses.curvature_terms(noisy, clean, ex.faces)
         h.append(float(lh))
@@ -187,7 +188,7 @@ def test_rotation_test_of_the_identity_is_zero(identity_bundle, sphere_examples)
             ex.vertices,
             ex.faces,
             rotate=False,
-            noise=NoiseSettings(**identity_bundle.config.noise.settings()),
+            noise=identity_bundle.config.noise,
         )
         want.append(mesh_metrics(noisy, clean, ex.faces)["normal_deg"])
     np.testing.assert_allclose(out["denoised/normal_deg"], np.mean(want), rtol=1e-4)

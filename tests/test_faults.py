@@ -29,7 +29,7 @@ from conftest import REPO, icosphere
 
 from dmd_jax.checkpoints import load_params
 from dmd_jax.config import preset
-from dmd_jax.pipeline import NoiseSettings, make_examples, training_batch
+from dmd_jax.pipeline import make_examples, training_batch
 from dmd_jax.train import NonFiniteLossError, phase_of, train
 
 STEPS = 6
@@ -97,7 +97,7 @@ def _compilation_cache(tmp_path_factory):
 def _batch_signatures(cfg, examples) -> set:
     """`(padded shapes, phase)` of every step: what one compiled train step serves."""
     t = cfg.train
-    noise = NoiseSettings(**cfg.noise.settings())
+    noise = cfg.noise
     signatures = set()
     for step in range(t.steps):
         batch = training_batch(

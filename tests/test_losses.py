@@ -18,8 +18,8 @@ from jax.test_util import check_grads
 from scipy.spatial import cKDTree
 
 from dmd_jax import losses
+from dmd_jax.config import LossConfig
 from dmd_jax.losses import (
-    LossWeights,
     chamfer_distance,
     chamfer_distance_batched,
     curvature_loss,
@@ -293,7 +293,7 @@ def test_masked_padding_changes_nothing():
         feature_extractor_loss(fp[:n], ft[:n]),
         rtol=1e-12,
     )
-    kwargs = dict(weights=LossWeights.all_ones())
+    kwargs = dict(weights=LossConfig.all_ones())
     full, parts = total_loss(p2, t2, f2, fp, ft, vertex_mask=vm, face_mask=fm, **kwargs)
     ref, ref_parts = total_loss(pred, target, faces, fp[:n], ft[:n], **kwargs)
     np.testing.assert_allclose(full, ref, rtol=1e-12)
@@ -307,7 +307,7 @@ def test_total_loss_batched_chamfer_uses_graph_ids():
     p2, t2 = np.concatenate([pred, pred]), np.concatenate([target, target])
     f2 = np.concatenate([faces, faces + n])
     graph = np.repeat([0, 1], n)
-    weights = LossWeights(vertex=0.0, normal=0.0, curvature=0.0, chamfer=1.0, feature=0.0)
+    weights = LossConfig(vertex=0.0, normal=0.0, curvature=0.0, chamfer=1.0, feature=0.0)
     got, parts = total_loss(p2, t2, f2, weights=weights, vertex_graph=graph, n_graph=2)
     np.testing.assert_allclose(got, chamfer_distance(pred, target), rtol=1e-12)
     assert list(parts) == ["chamfer"]
@@ -341,7 +341,7 @@ def _degenerate_mesh():
 # Jitted once at module level, so the three cases below share one compilation.
 _total_value_and_grad = jax.jit(
     jax.value_and_grad(
-        lambda p, t, f, feats: total_loss(p, t, f, feats, weights=LossWeights.all_ones()),
+        lambda p, t, f, feats: total_loss(p, t, f, feats, weights=LossConfig.all_ones()),
         argnums=(0, 1),
         has_aux=True,
     )
@@ -431,7 +431,7 @@ def test_total_loss_jits_and_is_the_weighted_sum():
     rng = np.random.default_rng(0)
     fp = rng.normal(size=(len(pred), 5))
     ft = rng.normal(size=(len(pred), 5))
-    weights = LossWeights()
+    weights = LossConfig()
     fn = jax.jit(lambda p, t, f, a, b: total_loss(p, t, f, a, b, weights=weights))
     total, parts = fn(pred, target, faces, fp, ft)
     expected = {
@@ -453,7 +453,7 @@ def test_total_loss_target_features_default_to_geometry():
 
     pred, target, faces = _sphere_pair(seed=7)
     fp = np.random.default_rng(0).normal(size=(len(pred), 5))
-    w = LossWeights(vertex=0.0, normal=0.0, curvature=0.0, chamfer=0.0, feature=1.0)
+    w = LossConfig(vertex=0.0, normal=0.0, curvature=0.0, chamfer=0.0, feature=1.0)
     total, _ = total_loss(pred, target, faces, fp, weights=w)
     np.testing.assert_allclose(
         total, feature_extractor_loss(fp, vertex_features(target, faces)), rtol=1e-12
@@ -464,18 +464,43 @@ def test_zero_weight_terms_are_not_computed(monkeypatch):
     def boom(*args, **kwargs):
         raise AssertionError("a zero-weight term was computed")
 
-    for name in ["vertex_loss", "normal_loss", "curvature_loss", "chamfer_distance"]:
-        monkeypatch.setattr(losses, name, boom)
-    monkeypatch.setattr(losses, "feature_extractor_loss", boom)
+    for name in ["vertex", "normal", "curvature", "chamfer", "feature", "predicted_normal"]:
+        monkeypatch.setattr(losses, f"{name}_term", boom)
     pred, target, faces = _sphere_pair()
-    w = LossWeights(vertex=0.0, normal=0.0, curvature=0.0, chamfer=0.0, feature=0.0)
+    w = LossConfig(vertex=0.0, normal=0.0, curvature=0.0, chamfer=0.0, feature=0.0)
     total, parts = total_loss(pred, target, faces, weights=w)
     assert parts == {} and float(total) == 0.0
 
 
 def test_loss_weights():
-    assert LossWeights() == (1.0, 0.2, 0.01, 0.05, 1.0)
-    assert LossWeights.all_ones() == (1.0,) * 5
+    def weights(c):
+        return tuple(getattr(c, name) for name in ("vertex", "normal", "curvature", "chamfer"))
+
+    assert weights(LossConfig()) + (LossConfig().feature,) == (1.0, 0.2, 0.01, 0.05, 1.0)
+    assert weights(LossConfig.all_ones()) == (1.0,) * 4 and LossConfig.all_ones().feature == 1
+
+
+def test_terms_of_groups_add_up_to_the_whole_batch():
+    """Data-parallel training adds the groups' sums and counts, then divides once."""
+    a, b = _sphere_pair(seed=1), _sphere_pair(seed=2)
+    n = len(a[0])
+    pred, target = np.concatenate([a[0], b[0]]), np.concatenate([a[1], b[1]])
+    faces = np.concatenate([a[2], b[2] + n])
+    graph = np.repeat(np.arange(2, dtype=np.int32), n)
+    weights = LossConfig.all_ones().with_edits({"feature": 0.0})
+    whole = losses.loss_terms(pred, target, faces, weights=weights, vertex_graph=graph, n_graph=2)
+    parts = [
+        losses.loss_terms(p, t, f, weights=weights, vertex_graph=np.zeros(n, np.int32), n_graph=1)
+        for p, t, f in (a, b)
+    ]
+    assert whole.keys() == parts[0].keys() == {"vertex", "normal", "curvature", "chamfer"}
+    for k in whole:
+        got = parts[0][k].total + parts[1][k].total
+        np.testing.assert_allclose(got, whole[k].total, rtol=1e-10)
+        assert int(parts[0][k].count) + int(parts[1][k].count) == int(whole[k].count)
+    total, means = losses.reduce_terms(whole, weights)
+    np.testing.assert_allclose(total, sum(means.values()), rtol=1e-12)
+    np.testing.assert_allclose(means["vertex"], vertex_loss(pred, target), rtol=1e-12)
 
 
 # --------------------------------------------------------------------------------------
@@ -506,8 +531,8 @@ def test_bad_inputs_raise_value_error():
     with pytest.raises(ValueError, match="pred_features"):
         total_loss(pred, target, faces)
     with pytest.raises(ValueError, match="together"):
-        total_loss(pred, target, faces, weights=LossWeights(feature=0.0), n_graph=2)
+        total_loss(pred, target, faces, weights=LossConfig(feature=0.0), n_graph=2)
     with pytest.raises(ValueError, match=">= 0"):
-        total_loss(pred, target, faces, weights=LossWeights(vertex=-1.0, feature=0.0))
-    with pytest.raises(ValueError, match="static"):
-        jax.jit(lambda w: total_loss(pred, target, faces, weights=LossWeights(vertex=w)))(1.0)
+        total_loss(pred, target, faces, weights=LossConfig(vertex=-1.0, feature=0.0))
+    with pytest.raises(ValueError, match="loss weight vertex"):
+        jax.jit(lambda w: total_loss(pred, target, faces, weights=LossConfig(vertex=w)))(1.0)

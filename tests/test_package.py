@@ -17,13 +17,6 @@ import pytest
 import dmd_jax
 
 PACKAGE_DIR = Path(dmd_jax.__file__).resolve().parent
-# Cycles known when this test was written, to be broken by the training-engine rework of
-# the same issue; a cycle not listed here, or a listed one still present after it is
-# fixed, fails the test.
-PENDING: set[frozenset[str]] = {
-    frozenset({"dmd_jax.train", "dmd_jax.parallel"}),
-    frozenset({"dmd_jax.config", "dmd_jax.model"}),
-}
 
 
 def module_names() -> dict[str, Path]:
@@ -113,11 +106,14 @@ def test_import_graph_reads_every_kind_of_import():
 
 
 def test_no_import_cycles_inside_dmd_jax():
-    found = set(cycles(import_graph()))
-    new = [sorted(c) for c in found - PENDING]
-    assert not new, f"import cycles inside dmd_jax: {new}"
-    fixed = [sorted(c) for c in PENDING - found]
-    assert not fixed, f"cycles fixed, remove them from PENDING: {fixed}"
+    found = [sorted(c) for c in cycles(import_graph())]
+    assert not found, f"import cycles inside dmd_jax: {found}"
+
+
+def test_parallel_places_devices_and_knows_no_training():
+    graph = import_graph()
+    assert not graph["dmd_jax.parallel"], graph["dmd_jax.parallel"]
+    assert "dmd_jax.parallel" in graph["dmd_jax.train"]
 
 
 def test_graph_io_and_mesh_sit_below_the_model():

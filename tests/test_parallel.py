@@ -1,9 +1,10 @@
-"""`dmd_jax.parallel`: per-device groups, sharding, and 2-device training against 1 device.
+"""One engine on one device and on several: per-device groups, placement, 2 devices vs 1.
 
-The reference for multi-device training is `train.Trainer` on one device with the same
-global batch (`pipeline.training_batch`): the parallel step must give the same params.
-XLA's host-device count is fixed when JAX starts, so that comparison runs in a
-subprocess with `XLA_FLAGS=--xla_force_host_platform_device_count=2`.
+The reference for multi-device training is `train.Trainer` on one device (a one-device
+mesh, the batch one group) with the same global batch: the same `train.make_train_step`
+on a two-device mesh, the batch in two groups, must give the same params. XLA's
+host-device count is fixed when JAX starts, so that comparison runs in a subprocess with
+`XLA_FLAGS=--xla_force_host_platform_device_count=2`.
 """
 
 from __future__ import annotations
@@ -20,7 +21,8 @@ import numpy as np
 import pytest
 from conftest import icosphere, tetrahedron
 
-from dmd_jax import geometry, parallel, pipeline
+from dmd_jax import parallel, pipeline
+from dmd_jax.config import NoiseConfig
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -38,9 +40,14 @@ def examples():
 
 
 def real_rows(batch: pipeline.Batch):
-    """Noisy and clean rows of the real (unpadded) vertices of a padded batch."""
+    """Noisy and clean rows of the real (unpadded) vertices of a padded batch, group by
+    group."""
     m = np.asarray(batch.graph.vertex_mask)
     return np.asarray(batch.noisy)[m], np.asarray(batch.clean)[m]
+
+
+def group(batch: pipeline.Batch, i: int) -> pipeline.Batch:
+    return jax.tree.map(lambda x: x[i], batch)
 
 
 # --------------------------------------------------------------------------------------
@@ -50,48 +57,40 @@ def real_rows(batch: pipeline.Batch):
 
 @pytest.mark.parametrize(("batch_size", "n_group"), [(4, 2), (3, 2), (4, 3), (2, 1)])
 def test_groups_are_the_training_batch_split(examples, batch_size, n_group):
-    noise = pipeline.NoiseSettings()
+    kwargs = dict(batch_size=batch_size, seed=3, noise=NoiseConfig())
     for step in (0, 1, 5):
-        ref = pipeline.training_batch(examples, step, batch_size=batch_size, seed=3, noise=noise)
-        groups = parallel.device_batches(
-            examples, step, n_group=n_group, batch_size=batch_size, seed=3, noise=noise
-        )
-        assert sorted(groups) == list(range(n_group))
-        # Common sizes: every leaf of every group has the same shape.
-        shapes = {tuple(np.shape(x) for x in jax.tree.leaves(g)) for g in groups.values()}
-        assert len(shapes) == 1
-        # Slots are cut contiguously, so the groups in order are the reference batch.
-        noisy = np.concatenate([real_rows(groups[i])[0] for i in range(n_group)])
-        clean = np.concatenate([real_rows(groups[i])[1] for i in range(n_group)])
+        ref = pipeline.training_batch(examples, step, **kwargs)
+        groups = pipeline.training_batch(examples, step, n_group=n_group, **kwargs)
+        # Groups stacked on a leading axis: common padded sizes.
+        assert ref.noisy.shape[0] == 1 and groups.noisy.shape[0] == n_group
+        assert {np.shape(x)[0] for x in jax.tree.leaves(groups)} == {n_group}
+        # Slots are cut contiguously, so the groups in order are the one-group batch.
+        noisy, clean = real_rows(groups)
         ref_noisy, ref_clean = real_rows(ref)
         np.testing.assert_array_equal(noisy, ref_noisy)
         np.testing.assert_array_equal(clean, ref_clean)
-        sizes = [len(groups[i].graph.n_vertex_per_graph) - 1 for i in range(n_group)]
-        assert (
-            max(sizes) - min(sizes) <= 1
-            and sum(int(np.sum(groups[i].graph.n_vertex_per_graph > 0)) for i in range(n_group))
-            == batch_size
-        )
+        meshes = [
+            int(np.sum(group(groups, i).graph.n_vertex_per_graph > 0)) for i in range(n_group)
+        ]
+        assert max(meshes) - min(meshes) <= 1 and sum(meshes) == batch_size
 
 
 def test_only_the_requested_groups_are_built(examples):
-    noise = pipeline.NoiseSettings()
-    kwargs = dict(n_group=3, batch_size=4, seed=0, noise=noise)
-    every = parallel.device_batches(examples, 2, **kwargs)
-    one = parallel.device_batches(examples, 2, groups=[1], **kwargs)
-    assert list(one) == [1]
-    for a, b in zip(jax.tree.leaves(one[1]), jax.tree.leaves(every[1]), strict=True):
-        np.testing.assert_array_equal(a, b)
+    kwargs = dict(n_group=3, batch_size=4, seed=0, noise=NoiseConfig())
+    every = pipeline.training_batch(examples, 2, **kwargs)
+    one = pipeline.training_batch(examples, 2, groups=[1], **kwargs)
+    assert one.noisy.shape[0] == 1
+    for a, b in zip(jax.tree.leaves(one), jax.tree.leaves(group(every, 1)), strict=True):
+        np.testing.assert_array_equal(a[0], b)
 
 
-def test_collate_to_equals_collate_at_its_own_sizes(examples):
+def test_collate_at_given_sizes_equals_collate_at_its_own(examples):
     rng = np.random.default_rng(0)
     graphs = [examples[0].graph, examples[2].graph]
     noisy = [rng.standard_normal((g.n_vertex, 3)) for g in graphs]
     clean = [rng.standard_normal((g.n_vertex, 3)) for g in graphs]
     ref = pipeline.collate(noisy, clean, graphs)
-    sizes = parallel.common_sizes([graphs])
-    got = parallel.collate_to(noisy, clean, graphs, sizes)
+    got = pipeline.collate(noisy, clean, graphs, pipeline.common_sizes([graphs]))
     for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(ref), strict=True):
         assert a.dtype == b.dtype
         np.testing.assert_array_equal(a, b)
@@ -100,41 +99,22 @@ def test_collate_to_equals_collate_at_its_own_sizes(examples):
 def test_common_sizes_hold_every_group(examples):
     g = [ex.graph for ex in examples]
     groups = [[g[0], g[3]], [g[1]], [g[2], g[1]]]
-    sizes = parallel.common_sizes(groups)
+    sizes = pipeline.common_sizes(groups)
     assert sizes.n_graph == 3  # at most two meshes per group, plus the padding graph
-    for group in groups:
-        noisy = [np.zeros((x.n_vertex, 3)) for x in group]
-        batch = parallel.collate_to(noisy, noisy, group, sizes)
+    for graphs in groups:
+        noisy = [np.zeros((x.n_vertex, 3)) for x in graphs]
+        batch = pipeline.collate(noisy, noisy, graphs, sizes)
         assert batch.graph.n_vertex == sizes.n_vertex and batch.noisy.shape[0] == sizes.n_vertex
     with pytest.raises(ValueError, match="at least one mesh"):
-        parallel.common_sizes([[g[0]], []])
+        pipeline.common_sizes([[g[0]], []])
 
 
 def test_split_slots():
-    parts = parallel.split_slots(5, 2)
+    parts = pipeline.split_slots(5, 2)
     assert [p.tolist() for p in parts] == [[0, 1, 2], [3, 4]]
-    assert [p.tolist() for p in parallel.split_slots(4, 4)] == [[0], [1], [2], [3]]
+    assert [p.tolist() for p in pipeline.split_slots(4, 4)] == [[0], [1], [2], [3]]
     with pytest.raises(ValueError, match="cannot feed 3 devices"):
-        parallel.split_slots(2, 3)
-
-
-# --------------------------------------------------------------------------------------
-# Loss weights of the groups
-# --------------------------------------------------------------------------------------
-
-
-def test_term_counts_against_numpy(examples):
-    noise = pipeline.NoiseSettings()
-    groups = parallel.device_batches(examples, 0, n_group=2, batch_size=4, seed=1, noise=noise)
-    for batch in groups.values():
-        g = batch.graph
-        clean = np.asarray(batch.clean, np.float64)
-        counts = jax.tree.map(int, parallel.term_counts(batch.clean, g))
-        n_real = int(g.n_vertex_per_graph.sum())
-        assert counts["vertex"] == counts["curvature"] == counts["feature"] == n_real
-        area = np.asarray(geometry.face_areas(clean, g.faces))
-        assert counts["normal"] == int(np.sum(g.face_mask & (area > 0)))
-        assert counts["chamfer"] == len(g.n_vertex_per_graph) - 1
+        pipeline.split_slots(2, 3)
 
 
 # --------------------------------------------------------------------------------------
@@ -145,14 +125,13 @@ def test_term_counts_against_numpy(examples):
 def test_shard_batch_on_one_device(examples):
     mesh = parallel.batch_mesh(jax.devices()[:1])
     assert parallel.local_groups(mesh) == [0]
-    noise = pipeline.NoiseSettings()
-    groups = parallel.device_batches(examples, 0, n_group=1, batch_size=2, seed=0, noise=noise)
-    stacked = parallel.shard_batch(mesh, groups)
-    assert stacked.noisy.shape == (1,) + groups[0].noisy.shape
-    assert stacked.noisy.sharding.spec == jax.sharding.PartitionSpec(parallel.BATCH_AXIS)
-    np.testing.assert_array_equal(np.asarray(stacked.graph.faces[0]), groups[0].graph.faces)
+    batch = pipeline.training_batch(examples, 0, batch_size=2, seed=0, noise=NoiseConfig())
+    placed = parallel.shard_batch(mesh, batch)
+    assert placed.noisy.shape == batch.noisy.shape
+    assert placed.noisy.sharding.spec == jax.sharding.PartitionSpec(parallel.BATCH_AXIS)
+    np.testing.assert_array_equal(np.asarray(placed.graph.faces), batch.graph.faces)
     with pytest.raises(ValueError, match="groups of this process"):
-        parallel.shard_batch(mesh, {1: groups[0]})
+        parallel.shard_batch(mesh, pipeline.stack([batch, batch]))
     with pytest.raises(ValueError, match="one-axis mesh"):
         parallel.local_groups(jax.sharding.Mesh(np.asarray(jax.devices()[:1]), ("data",)))
 
@@ -188,37 +167,31 @@ TWO_DEVICE_SCRIPT = textwrap.dedent(
     assert jax.device_count() == 2, jax.devices()
     cfg = config.preset("test").with_edits(json.loads({edits!r}))
     examples = pipeline.make_examples([icosphere(1), tetrahedron(), box()])
-    noise = pipeline.NoiseSettings()
     t = cfg.train
+    kwargs = dict(batch_size=t.batch_size, seed=t.seed, noise=cfg.noise, rotate=t.rotate)
     steps = 3
 
+    # The same Trainer, on a one-device mesh with the batch in one group ...
     single = train.Trainer(cfg)
-    batches = [
-        pipeline.training_batch(
-            examples, s, batch_size=t.batch_size, seed=t.seed, noise=noise, rotate=t.rotate
-        )
-        for s in range(steps)
-    ]
+    batches = [pipeline.training_batch(examples, s, **kwargs) for s in range(steps)]
     state = single.init(batches[0])
     ref_loss = []
     for b in batches:
         state, out = single.train_step(state, b)
         ref_loss.append(float(out["loss"]))
 
+    # ... and on both devices with the batch in two groups.
     mesh = parallel.batch_mesh()
-    multi = parallel.ParallelTrainer(cfg, mesh)
+    multi = train.Trainer(cfg, mesh)
     pstate, loss, shard_shapes, group_vertices = None, [], [], []
     for s in range(steps):
-        groups = parallel.device_batches(
-            examples, s, n_group=2, batch_size=t.batch_size, seed=t.seed, noise=noise,
-            rotate=t.rotate,
-        )
-        group_vertices.append([int(g.graph.vertex_mask.sum()) for g in groups.values()])
+        groups = pipeline.training_batch(examples, s, n_group=2, **kwargs)
+        group_vertices.append([int(m.sum()) for m in groups.graph.vertex_mask])
         if pstate is None:
-            pstate = multi.init(groups[0])
-        batch = parallel.shard_batch(mesh, groups)
-        shard_shapes.append([list(x.data.shape) for x in batch.noisy.addressable_shards])
-        pstate, out = multi.train_step(pstate, batch)
+            pstate = multi.init(groups)
+        placed = parallel.shard_batch(mesh, groups)
+        shard_shapes.append([list(x.data.shape) for x in placed.noisy.addressable_shards])
+        pstate, out = multi.train_step(pstate, groups)
         loss.append(float(out["loss"]))
 
     compiles = [single.compiles, multi.compiles]
@@ -266,7 +239,7 @@ def test_two_devices_equal_one_device(tmp_path, edits):
     env = dict(os.environ)
     # The optimised HLO of the train steps is dumped to check for the all-reduce.
     flags = "--xla_force_host_platform_device_count=2 --xla_dump_hlo_as_text "
-    flags += f"--xla_dump_to={tmp_path} --xla_dump_hlo_module_re=.*step_fn.*"
+    flags += f"--xla_dump_to={tmp_path} --xla_dump_hlo_module_re=.*jit_step.*"
     env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " " + flags).strip()
     env["JAX_PLATFORMS"] = "cpu"
     script = TWO_DEVICE_SCRIPT.format(tests=str(REPO / "tests"), edits=json.dumps(edits))
@@ -288,8 +261,8 @@ def test_two_devices_equal_one_device(tmp_path, edits):
     # size (2 meshes and 1), so a plain mean over devices would not match.
     assert all(shapes == [[1, 64, 3], [1, 64, 3]] for shapes in result["shard_shapes"])
     assert all(len(set(v)) == 2 for v in result["group_vertices"])
-    # The SPMD partitioner split the step over the two devices and summed across them.
-    dumps = sorted(tmp_path.glob("*step_fn*after_optimizations.txt"))
+    # One program per mesh; the two-device one sums the groups' terms across devices.
+    dumps = sorted(tmp_path.glob("*jit_step*after_optimizations.txt"))
     assert len(dumps) == 2, [p.name for p in tmp_path.iterdir()]
     partitioned = [p.read_text() for p in dumps if "num_partitions=2" in p.read_text()]
     assert len(partitioned) == 1 and "all-reduce(" in partitioned[0]
@@ -322,29 +295,25 @@ MULTI_PROCESS_SCRIPT = textwrap.dedent(
     assert jax.device_count() == 2 and jax.local_device_count() == 1
     cfg = config.preset("test").with_edits(json.loads({edits!r}))
     examples = pipeline.make_examples([icosphere(1), tetrahedron(), box()])
-    noise = pipeline.NoiseSettings()
     t = cfg.train
+    kwargs = dict(batch_size=t.batch_size, seed=t.seed, noise=cfg.noise, rotate=t.rotate)
     mesh = parallel.batch_mesh()
     mine = parallel.local_groups(mesh)
-    multi = parallel.ParallelTrainer(cfg, mesh)
+    multi = train.Trainer(cfg, mesh)
     state, loss = None, []
     for s in range(3):
-        groups = parallel.device_batches(
-            examples, s, n_group=mesh.size, batch_size=t.batch_size, seed=t.seed,
-            noise=noise, rotate=t.rotate, groups=mine,
+        groups = pipeline.training_batch(
+            examples, s, n_group=mesh.size, groups=mine, **kwargs
         )
-        state = state or multi.init(groups[mine[0]])
-        state, out = multi.train_step(state, parallel.shard_batch(mesh, groups))
+        state = state or multi.init(groups)
+        state, out = multi.train_step(state, groups)
         loss.append(float(out["loss"]))
     result = {{"pid": pid, "mine": mine, "loss": loss}}
     if pid == 0:
-        single = train.Trainer(cfg)
+        single = train.Trainer(cfg, parallel.batch_mesh(jax.local_devices()))
         ref_state, ref = None, []
         for s in range(3):
-            b = pipeline.training_batch(
-                examples, s, batch_size=t.batch_size, seed=t.seed, noise=noise,
-                rotate=t.rotate,
-            )
+            b = pipeline.training_batch(examples, s, **kwargs)
             ref_state = ref_state or single.init(b)
             ref_state, out = single.train_step(ref_state, b)
             ref.append(float(out["loss"]))
@@ -501,7 +470,7 @@ def test_train_loop_data_parallel_on_two_devices(tmp_path):
     env = dict(os.environ, JAX_PLATFORMS="cpu")
     flags = "--xla_force_host_platform_device_count=2"
     env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " " + flags).strip()
-    edits = {**CONFIGS[0].values[0], "train": {"batch_size": 3, "steps": 3}}
+    edits = {**CONFIGS[0].values[0], "train": {"batch_size": 3, "steps": 3, "log_every": 1}}
     script = TRAIN_LOOP_SCRIPT.format(tests=str(REPO / "tests"), edits=json.dumps(edits))
     proc = subprocess.run(
         [sys.executable, "-c", script, str(tmp_path / "runs"), str(tmp_path / "cache")],
@@ -595,7 +564,7 @@ MULTI_PROCESS_TRAIN_SCRIPT = textwrap.dedent(
     sys.path.insert(0, {tests!r})
     from conftest import icosphere, tetrahedron
     from test_parallel import box
-    from dmd_jax import config, pipeline, train
+    from dmd_jax import config, parallel, pipeline, train
 
     assert jax.device_count() == 2 and jax.local_device_count() == 1
     cfg = config.preset("test").with_edits(json.loads({edits!r}))
@@ -610,12 +579,12 @@ MULTI_PROCESS_TRAIN_SCRIPT = textwrap.dedent(
                "normal_deg": final.get("test_intra/normal_deg")}}
     if pid == 0:
         t = cfg.train
-        single = train.Trainer(cfg)
+        single = train.Trainer(cfg, parallel.batch_mesh(jax.local_devices()))
         state, ref = None, []
         for s in range(t.steps):
             b = pipeline.training_batch(
-                examples, s, batch_size=t.batch_size, seed=t.seed,
-                noise=pipeline.NoiseSettings(**cfg.noise.settings()), rotate=t.rotate,
+                examples, s, batch_size=t.batch_size, seed=t.seed, noise=cfg.noise,
+                rotate=t.rotate,
             )
             state = state or single.init(b)
             state, out = single.train_step(state, b)
@@ -639,7 +608,7 @@ MULTI_PROCESS_TRAIN_SCRIPT = textwrap.dedent(
 
 @pytest.mark.slow
 def test_two_processes_train_loop_with_resume(tmp_path):
-    edits = {**CONFIGS[0].values[0], "train": {"batch_size": 3, "steps": 3}}
+    edits = {**CONFIGS[0].values[0], "train": {"batch_size": 3, "steps": 3, "log_every": 1}}
     script = MULTI_PROCESS_TRAIN_SCRIPT.format(tests=str(REPO / "tests"), edits=json.dumps(edits))
     results = run_two_processes(script, str(tmp_path))
     assert [r["step"] for r in results] == [[1, 3], [1, 3]]

@@ -8,6 +8,8 @@ import pytest
 from conftest import icosphere, tetrahedron
 
 from dmd_jax import pipeline
+from dmd_jax.config import NoiseConfig
+from dmd_jax.graph import sizes_for_vertices
 from dmd_jax.mesh import canonical_frame
 
 
@@ -32,7 +34,7 @@ def test_batch_indices_reject_empty():
 
 
 def test_training_batch_is_pure_in_seed_and_step(examples):
-    noise = pipeline.NoiseSettings()
+    noise = NoiseConfig()
     a = pipeline.training_batch(examples, 3, batch_size=2, seed=11, noise=noise)
     b = pipeline.training_batch(examples, 3, batch_size=2, seed=11, noise=noise)
     c = pipeline.training_batch(examples, 4, batch_size=2, seed=11, noise=noise)
@@ -44,9 +46,10 @@ def test_training_batch_is_pure_in_seed_and_step(examples):
 
 
 def test_batch_padding_and_masks(examples):
-    batch = pipeline.training_batch(
-        examples, 0, batch_size=3, seed=0, noise=pipeline.NoiseSettings()
-    )
+    stacked = pipeline.training_batch(examples, 0, batch_size=3, seed=0, noise=NoiseConfig())
+    # One group (one device): the batch is that group on a leading axis of 1.
+    assert stacked.noisy.shape[0] == 1
+    batch = jax.tree.map(lambda x: x[0], stacked)
     g = batch.graph
     n_real = int(g.n_vertex_per_graph.sum())
     assert g.n_graph == 4  # three meshes + the padding graph
@@ -54,7 +57,7 @@ def test_batch_padding_and_masks(examples):
     assert np.all(batch.noisy[~g.vertex_mask] == 0)
     assert np.all(np.isfinite(batch.noisy))
     # Every padded size derives from the vertex bucket: one program per bucket.
-    sizes = pipeline.sizes_for_vertices(n_real, 0, 0, 0, 3)
+    sizes = sizes_for_vertices(n_real, 0, 0, 0, 3)
     assert g.n_vertex == sizes.n_vertex
     assert g.n_face == sizes.n_face
     assert g.vertex_senders.shape[0] == sizes.n_vertex_edge
@@ -62,8 +65,8 @@ def test_batch_padding_and_masks(examples):
 
 
 def test_sizes_grow_when_edges_do_not_fit():
-    small = pipeline.sizes_for_vertices(100, 100, 100, 100, 1)
-    big = pipeline.sizes_for_vertices(100, 100, 100 * 50, 100, 1)
+    small = sizes_for_vertices(100, 100, 100, 100, 1)
+    big = sizes_for_vertices(100, 100, 100 * 50, 100, 1)
     assert big.n_vertex > small.n_vertex
     assert big.n_vertex_edge >= 100 * 50
 
@@ -79,7 +82,7 @@ def test_corrupt_uses_the_noisy_canonical_frame():
     v, f = icosphere(2, radius=7.0)
     v = v + np.array([3.0, -2.0, 1.0])
     noisy, clean, spec = pipeline.corrupt(
-        jax.random.PRNGKey(3), v, f, rotate=True, noise=pipeline.NoiseSettings()
+        jax.random.PRNGKey(3), v, f, rotate=True, noise=NoiseConfig()
     )
     frame = canonical_frame(noisy)
     np.testing.assert_allclose(frame.centre, 0.0, atol=1e-12)
@@ -93,7 +96,7 @@ def test_corrupt_uses_the_noisy_canonical_frame():
 
 
 def test_evaluation_batches_fixed(examples):
-    noise = pipeline.NoiseSettings()
+    noise = NoiseConfig()
     a = pipeline.evaluation_batches(examples[:2], seed=1, noise=noise)
     b = pipeline.evaluation_batches(examples[:2], seed=1, noise=noise)
     assert len(a) == 2

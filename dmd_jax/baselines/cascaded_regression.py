@@ -665,16 +665,17 @@ def train_cnr(
       faces_per_mesh: faces sampled per copy and stage (all when fewer).
       steps, batch_size, learning_rate: Adam settings per stage.
       seed: the run's seed.
-      noise: `dmd_jax.pipeline.NoiseSettings` (default: the paper's mixed noise).
+      noise: `dmd_jax.config.NoiseConfig` (default: the paper's mixed noise).
       log: optional progress printer.
 
     Returns:
       The trained `CNRWeights` (meta records the settings and per-stage losses).
     """
-    from dmd_jax.pipeline import NoiseSettings, corrupt
+    from dmd_jax.config import NoiseConfig
+    from dmd_jax.pipeline import corrupt
 
     cfg = config or CNRConfig()
-    noise = noise or NoiseSettings()
+    noise = noise or NoiseConfig()
     if not meshes:
         raise ValueError("train_cnr: no training meshes")
     dt = float_dtype()
@@ -773,9 +774,10 @@ def train_main(args, command: str) -> Path:
     Returns:
       The path written.
     """
+    from dmd_jax.config import NoiseConfig
     from dmd_jax.data import load_dataset
     from dmd_jax.metrics import mesh_metrics
-    from dmd_jax.pipeline import NoiseSettings, corrupt
+    from dmd_jax.pipeline import corrupt
 
     ds = load_dataset(args.data)
     records = ds.split("train")
@@ -815,7 +817,7 @@ def train_main(args, command: str) -> Path:
             v,
             f,
             rotate=True,
-            noise=NoiseSettings(),
+            noise=NoiseConfig(),
         )
         before = mesh_metrics(noisy, clean, f)["normal_deg"]
         after = mesh_metrics(cnr(noisy, f, weights=weights), clean, f)["normal_deg"]
