@@ -19,7 +19,9 @@ is the compile time), then these cases are timed round-robin:
 * `build_mesh_graph`: the host-side graph construction alone;
 * `pymeshlab two_step` (at `--pymeshlab-faces`): `evaluate.pymeshlab_filter(v, f,
   "two_step")`, the classic two-step filter (Sun et al. 2007, 20 normal and 50 vertex
-  iterations), for the ratio against `denoise` at that size.
+  iterations), for the ratio against `denoise` at that size;
+* `bnf` (at the same size): `dmd_jax.baselines.bnf(v, f)` with its defaults, the
+  library's quickest feature-preserving filter, compiled by a first call.
 
 The scaling exponent is the least-squares slope of log(median denoise time) against
 log(faces) over the sizes >= 10k faces. The `paper` preset stops at the first size whose
@@ -134,8 +136,9 @@ def measure(
     import jax
     import jax.numpy as jnp
 
-    from dmd_jax import config, inference, mesh, model
+    from dmd_jax import config, encoding, inference, model
     from dmd_jax import graph as graph_lib
+    from dmd_jax.baselines import bnf
     from dmd_jax.checkpoints import ModelBundle
     from dmd_jax.evaluate import pymeshlab_filter
 
@@ -149,7 +152,7 @@ def measure(
     # The network on the padded batch `denoise` builds, compiled ahead of time: the jit
     # cache then holds it, and `denoise` below does not compile again.
     predict = inference._predictor(cfg)
-    x = mesh.canonical_frame(v).apply(v)
+    x = encoding.mesh_frame(cfg.model.encoding, v, f).apply(v)
     graph = graph_lib.build_mesh_graph(f, v.shape[0])
     graph = graph_lib.pad_mesh_graph(graph, graph_lib.padded_sizes_for(graph))
     noisy = jnp.asarray(graph_lib.pad_vertex_array(x.astype(np.float32), graph.n_vertex))
@@ -191,6 +194,9 @@ def measure(
         cases["network (segment_sum)"] = lambda: predict(bundle.params, noisy, graph_seg)
     if pymeshlab:
         cases["pymeshlab two_step"] = lambda: pymeshlab_filter(v, f, "two_step")
+        # The library's quickest feature-preserving filter, compiled by a first call.
+        bnf(v, f)
+        cases["bnf"] = lambda: bnf(v, f)
     # A round costs about three denoise calls (denoise, two networks; the rest is small).
     rounds = int(np.clip(budget_s // max(3.5 * first_s, 1e-3), 1, repeat))
     if rounds < min(min_rounds, repeat) and min_rounds * 3.5 * first_s <= HARD_CAP_S:
@@ -418,6 +424,17 @@ def targets(rows: list[dict], args) -> tuple[str, list[tuple]]:
                     f"{ratio:.2f}× ({format_ms(median(r['times']['denoise']))} ms vs "
                     f"{format_ms(median(r['times']['pymeshlab two_step']))} ms)",
                     "met" if ratio < 1 else "missed",
+                )
+            )
+        if "bnf" in r["times"]:
+            ratio = median(r["times"]["denoise"]) / median(r["times"]["bnf"])
+            out.append(
+                (
+                    f"`{r['preset']}` no slower than bnf at {r['faces']:,} faces "
+                    "(denoise / bnf, same process, interleaved)",
+                    f"{ratio:.2f}× ({format_ms(median(r['times']['denoise']))} ms vs "
+                    f"{format_ms(median(r['times']['bnf']))} ms)",
+                    "met" if ratio <= 1 else "missed",
                 )
             )
     return markdown_table(["target", "measured", ""], out), out

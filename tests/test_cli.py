@@ -413,6 +413,12 @@ def test_sota_lite_on_one_mesh(tmp_path, weights):
             str(weights),
             "--levels",
             "0.2",
+            "--methods",
+            "meshlab_taubin",
+            "bnf",
+            "dmd",
+            "dmd_x2",
+            "--no-val",
             "--name",
             "t",
             "--out-dir",
@@ -424,7 +430,8 @@ def test_sota_lite_on_one_mesh(tmp_path, weights):
 
     with open(tmp_path / "t.csv") as fh:
         rows = list(csv.DictReader(fh))
-    assert [r["method"] for r in rows] == ["noisy", "taubin", "two_step", "dmd", "dmd_x2"]
+    assert [r["method"] for r in rows] == ["noisy", "meshlab_taubin", "bnf", "dmd", "dmd_x2"]
+    assert {r["set"] for r in rows} == {"shared"}
     clean, f = load_mesh(mesh)
     seed = sota_lite.noise_seed(mesh.name, 0.2)
     from dmd_jax.demo import gaussian_edge_noise
@@ -438,6 +445,19 @@ def test_sota_lite_on_one_mesh(tmp_path, weights):
     )
     report = (tmp_path / "t.md").read_text()
     assert "## Means over meshes" in report and "decimated-knight.off" in report
+    assert "DMD-Net margin" in report and "Median run time" in report
+    # --reuse recomputes DMD-Net only: the classic rows come back identical.
+    assert (
+        sota_lite.main(
+            ["--meshes", str(folder), "--weights", str(weights), "--levels", "0.2"]
+            + ["--methods", "bnf", "dmd", "--no-val", "--reuse"]
+            + ["--name", "t", "--out-dir", str(tmp_path)]
+        )
+        == 0
+    )
+    with open(tmp_path / "t.csv") as fh:
+        again = {r["method"]: r for r in csv.DictReader(fh)}
+    assert again["bnf"] == rows[2]
     # The three metrics in the vocabulary of `dmd-jax evaluate`, with its legend.
     assert "| method | vertex (×1e-4) | normal (°) | chamfer (×1e-4) |" in report
     assert metrics_legend() in report
