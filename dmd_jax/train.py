@@ -252,10 +252,16 @@ class Trainer:
 
     @property
     def compiles(self) -> int:
+        # The jit caches' own count: the step stays pure (no trace-time counter in it).
         return sum(fn._cache_size() for fn in self._step_fns.values())
 
     def init(self, batch: Batch) -> TrainState:
-        """A fresh state, replicated on the mesh; `batch` is any one padded group."""
+        """A fresh state, replicated on the mesh; params from the config's seed.
+
+        Args:
+          batch: a training batch (its first group is used) or one padded group; only
+            its shapes matter.
+        """
         key = jax.random.PRNGKey(self.cfg.train.seed)
         first = jax.tree.map(lambda x: x[0], batch) if np.ndim(batch.noisy) == 3 else batch
         variables = self.model.init(
