@@ -750,7 +750,7 @@ def train_cnr(
         "batch_size": batch_size,
         "learning_rate": learning_rate,
         "seed": seed,
-        "noise": noise._asdict(),
+        "noise": noise.to_dict(),
         "stage_losses": meta_losses,
         "train_seconds": round(time.perf_counter() - t0, 1),
     }
