@@ -46,6 +46,8 @@ from benchmarks.common import (  # noqa: E402
 )
 
 LEVELS = (0.1, 0.2, 0.3)
+# Larger meshes are cropped to a connected patch of this many faces (`crop`).
+MAX_FACES = 15_000
 # pymeshlab's filters: reference columns, not denoisers of this library (never "best").
 REFERENCE = ("meshlab_taubin", "meshlab_two_step")
 LABELS = {
@@ -126,8 +128,27 @@ def _runner(method: str, faces, bundle):
     return lambda v: classic.denoise_with(method, v, faces)
 
 
+def crop(vertices, faces, max_faces: int):
+    """The connected `max_faces`-face patch grown breadth-first from face 0, re-indexed
+    (deterministic, so every method and run sees the same patch)."""
+    from dmd_jax.data.real import connected_patch
+
+    face_ids, vertex_ids = connected_patch(faces, vertices.shape[0], 0, max_faces)
+    remap = np.full(vertices.shape[0], -1, np.int64)
+    remap[vertex_ids] = np.arange(vertex_ids.shape[0])
+    return vertices[vertex_ids], remap[faces[face_ids]].astype(np.int32)
+
+
 def evaluate_mesh(
-    path, bundle, levels=LEVELS, methods=None, *, mesh_set="shared", cached=None, echo=print
+    path,
+    bundle,
+    levels=LEVELS,
+    methods=None,
+    *,
+    mesh_set="shared",
+    cached=None,
+    max_faces: int = 0,
+    echo=print,
 ) -> tuple[list[list], list[str]]:
     """Noise, denoise and score one mesh at every level.
 
@@ -139,6 +160,8 @@ def evaluate_mesh(
       mesh_set: the set's name, the first CSV column.
       cached: `{(set, mesh, level, seed, method): row}` of earlier rows to reuse instead
         of rerunning (classic methods are deterministic; DMD-Net rows are never cached).
+      max_faces: crop a larger mesh to a connected patch of this many faces (`crop`);
+        0 keeps every mesh whole.
       echo: progress output.
 
     Returns:
@@ -155,6 +178,8 @@ def evaluate_mesh(
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         clean, faces = load_mesh(path)
+    if max_faces and faces.shape[0] > max_faces:
+        clean, faces = crop(clean, faces, max_faces)
     notes = [
         str(w.message).replace(str(path), path.name)
         for w in caught
@@ -349,6 +374,9 @@ def run(
     name: str = "sota_lite",
     out_dir=RESULTS_DIR,
     reuse: bool = False,
+    reuse_from=(),
+    sets=("shared", "val"),
+    max_faces: int = MAX_FACES,
     echo=print,
 ) -> tuple[Path, Path]:
     """Runs the comparison and writes `<out_dir>/<name>.md` and `.csv`.
@@ -364,6 +392,10 @@ def run(
       name, out_dir: report file stem and folder.
       reuse: take rows of classic methods from an existing `<name>.csv` (same mesh,
         level, seed and method) instead of recomputing them.
+      reuse_from: more CSV files to take such rows from (e.g. the sets run separately).
+      sets: which sets to run (`shared`, `val`).
+      max_faces: meshes above this many faces are cropped to a connected patch of it
+        (`crop`); 0 runs whole meshes.
     """
     from dmd_jax.baselines import REGISTRY
     from dmd_jax.checkpoints import load_model
@@ -374,18 +406,27 @@ def run(
     unknown = sorted(set(methods) - known)
     if unknown:
         raise ValueError(f"unknown methods {unknown}; choose from {sorted(known)}")
-    sets = {"shared": mesh_files(mesh_dir, skip)}
-    if not sets["shared"]:
-        raise ValueError(f"{mesh_dir}: no {', '.join(MESH_SUFFIXES)} files")
-    if val_dir is not None:
+    unknown_sets = sorted(set(sets) - {"shared", "val"})
+    if unknown_sets or not sets:
+        raise ValueError(f"unknown mesh sets {unknown_sets}; choose from shared, val")
+    wanted, sets = sets, {}
+    if "shared" in wanted:
+        sets["shared"] = mesh_files(mesh_dir, skip)
+        if not sets["shared"]:
+            raise ValueError(f"{mesh_dir}: no {', '.join(MESH_SUFFIXES)} files")
+    if val_dir is not None and "val" in wanted:
         sets["val"] = real_mesh_files(val_dir, "val")
+    if not sets:
+        raise ValueError("no mesh set to run (--no-val with --sets val)")
     bundle = load_model(weights)
     env = environment(
         packages=("dmd_jax", "jax", "jaxlib", "flax", "numpy", "pymeshlab", "trimesh")
     )
     env.update(_weights_description(bundle, weights))
     out_dir = Path(out_dir)
-    cached = read_cached(out_dir / f"{name}.csv") if reuse else {}
+    cached = {}
+    for csv_file in ([out_dir / f"{name}.csv"] if reuse else []) + [Path(p) for p in reuse_from]:
+        cached.update(read_cached(csv_file))
     start = time.perf_counter()
     rows, notes = [], []
     total = sum(len(files) for files in sets.values())
@@ -395,7 +436,14 @@ def run(
             i += 1
             echo(f"[{i}/{total}] {mesh_set}: {path.name}")
             mesh_rows, mesh_notes = evaluate_mesh(
-                path, bundle, levels, methods, mesh_set=mesh_set, cached=cached, echo=echo
+                path,
+                bundle,
+                levels,
+                methods,
+                mesh_set=mesh_set,
+                cached=cached,
+                max_faces=max_faces,
+                echo=echo,
             )
             rows += mesh_rows
             notes += mesh_notes
@@ -414,6 +462,14 @@ def run(
             f"; `val` = the fixed validation split of `{Path(val_dir).name}/` "
             "(`dmd_jax.data.real.validation_names`), never trained on"
             if val_dir is not None
+            else ""
+        )
+        + (
+            f". Meshes above {max_faces:,} faces are cropped to the connected "
+            f"{max_faces:,}-face patch grown from face 0 (`crop`), to keep the slowest "
+            "filters (GNF, L0: ~1 ms per face) within a CPU session; `--max-faces 0` runs "
+            "whole meshes"
+            if max_faces
             else ""
         )
         + ". `best` names the library denoiser with the lowest error; MeshLab Taubin and "
@@ -471,6 +527,16 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="reuse the classic methods' rows of an existing report of the same name",
     )
+    parser.add_argument(
+        "--reuse-from", nargs="*", default=[], help="more CSV reports to reuse rows from"
+    )
+    parser.add_argument("--sets", nargs="+", default=["shared", "val"], choices=("shared", "val"))
+    parser.add_argument(
+        "--max-faces",
+        type=int,
+        default=MAX_FACES,
+        help="crop larger meshes to a connected patch of this many faces (0: whole meshes)",
+    )
     parser.add_argument("--name", default="sota_lite", help="report file stem")
     parser.add_argument("--out-dir", default=str(RESULTS_DIR), help="report folder")
     args = parser.parse_args(argv)
@@ -485,6 +551,9 @@ def main(argv: list[str] | None = None) -> int:
             name=args.name,
             out_dir=args.out_dir,
             reuse=args.reuse,
+            reuse_from=tuple(args.reuse_from),
+            sets=tuple(args.sets),
+            max_faces=args.max_faces,
         )
     except (ValueError, FileNotFoundError) as exc:
         print(f"sota_lite: error: {exc}", file=sys.stderr)

@@ -237,7 +237,9 @@ class ModelConfig(_ConfigMixin):
         `vertex_iterations` of Sun et al.'s normal-driven update move the noisy
         vertices onto them; trained end to end). `"normal"` needs `encoding="local"`.
       vertex_iterations: iterations of the normal-driven vertex update (`head="normal"`).
-      filter_iterations: passes of each bilateral pre-filter of the `"local"` encoding.
+      filter_iterations: passes of the longest bilateral pre-filter run of the `"local"`
+        encoding (fields are also kept after 2/15 and 1/2 of it:
+        `encoding.snapshot_passes`).
     """
 
     width: int = _static(64)
@@ -260,7 +262,7 @@ class ModelConfig(_ConfigMixin):
     encoding: str = _static("xyz")
     head: str = _static("offset")
     vertex_iterations: int = _static(10)
-    filter_iterations: int = _static(8)
+    filter_iterations: int = _static(60)
 
     def __post_init__(self):
         _check_positive_int("width", self.width)
@@ -583,7 +585,7 @@ def _small() -> ExperimentConfig:
             face_normal=1.0,
         ),
         train=TrainConfig(
-            steps=4000,
+            steps=3000,
             batch_size=2,
             lr=1e-3,
             schedule="cosine",

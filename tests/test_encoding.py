@@ -130,13 +130,25 @@ def test_bilateral_pre_filter_matches_loop_reference():
     np.testing.assert_allclose(np.asarray(got), bilateral_reference(x, f, n0, 0.35, 3), atol=1e-5)
 
 
+def test_snapshots_continue_one_filter_run():
+    v, f = bumpy_sphere(subdivisions=1)
+    x, g = jnp.asarray(v), jgraph(f, v.shape[0])
+    n0 = geometry.face_normals(x, g.faces)
+    snaps = encoding.bilateral_face_normals(x, g, n0, sigma_r=0.35, iterations=(2, 5))
+    for passes, got in zip((2, 5), snaps, strict=True):
+        alone = encoding.bilateral_face_normals(x, g, n0, sigma_r=0.35, iterations=passes)
+        np.testing.assert_allclose(np.asarray(got), np.asarray(alone), atol=1e-6)
+    assert encoding.snapshot_passes(60) == (8, 30, 60)
+    assert encoding.snapshot_passes(2) == (1, 2, 3)  # strictly increasing, never 0
+
+
 def test_local_features_shapes_and_winding_visibility():
     v, f = bumpy_sphere()
     g = jgraph(f, v.shape[0])
     vert, face, cand = encoding.local_features(jnp.asarray(v), g, filter_iterations=2)
     assert vert.shape == (v.shape[0], encoding.LOCAL_VERTEX_DIM)
     assert face.shape == (f.shape[0], encoding.LOCAL_FACE_DIM)
-    assert cand.shape == (f.shape[0], 1 + len(encoding.FILTER_RANGE_SIGMAS), 3)
+    assert cand.shape == (f.shape[0], encoding.N_CANDIDATES, 3)
     assert ModelConfig(encoding="local").vertex_in_dim == encoding.LOCAL_VERTEX_DIM
     # Flipping every face flips the face normals the dual stream sees (P2D alone could not
     # tell, model-audit item D), and every normal-valued vertex column.
