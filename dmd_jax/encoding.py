@@ -23,8 +23,9 @@ The pre-filters are bilateral normal filters (Zheng et al. 2011) over the dual g
 (faces sharing an edge) with a spatial σ of one edge and the range σs of
 `FILTER_RANGE_SIGMAS`, each kept after several numbers of passes (`snapshot_passes` of
 `ModelConfig.filter_iterations`): the same kind of multi-scale filtered-normal
-descriptor CNR regresses from, and, among them, fields as smooth as BNF's. They have no parameters, so
-the model stays one function of the noisy mesh, the same in training and inference.
+descriptor CNR regresses from, and, among them, fields as smooth as BNF's. They have no
+parameters, so the model stays one function of the noisy mesh, the same in training and
+inference.
 """
 
 from __future__ import annotations
