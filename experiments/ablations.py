@@ -56,6 +56,16 @@ ABLATIONS: dict[str, dict[str, dict[str, Any]]] = {
         "2-Phase": {"train": {"scheme": "two_phase"}, "loss": dict(_ALL_ONES)},
         "U-FE": {"train": {"scheme": "u_fe"}, "loss": dict(_ALL_ONES)},
     },
+    # Not in the paper: how the network sees a mesh (dmd_jax.encoding) and what it outputs,
+    # one change at a time on the preset's recipe. "xyz (paper)" is the paper's reading.
+    "encoding": {
+        "xyz (paper)": {"model": {"encoding": "xyz", "head": "offset"}},
+        "local": {"model": {"encoding": "local", "head": "offset"}},
+    },
+    "head": {
+        "offset": {"model": {"encoding": "local", "head": "offset"}},
+        "normal-first": {"model": {"encoding": "local", "head": "normal"}},
+    },
     # Loss table columns λ_V, λ_N, λ_κ, λ_C; λ_FE stays 1.
     "loss": {
         "With All": _loss_row(1.0, 1.0, 1.0, 1.0),

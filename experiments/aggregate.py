@@ -556,9 +556,13 @@ def aggregate(out_dir) -> dict[str, Any]:
         table = study_markdown(study, rows, reference)
         cmp = compare_with_paper(study, rows)
         text = comparison_text(study, rows, cmp, reference)
+        paper = (
+            f"The paper's table (`{study.paper_table}`):\n\n{paper_markdown(study)}\n"
+            if study.paper_table
+            else "Not a study of the paper (no paper table to compare with).\n\n"
+        )
         (out_dir / f"{study.key}.md").write_text(
-            f"# {study.title} (preset {summary['preset']})\n\n{table}\n"
-            f"The paper's table (`{study.paper_table}`):\n\n{paper_markdown(study)}\n{text}"
+            f"# {study.title} (preset {summary['preset']})\n\n{table}\n{paper}{text}"
         )
         write_csv(out_dir / f"{study.key}.csv", study, rows)
         write_plot(out_dir / f"{study.key}.png", study, rows, reference)

@@ -135,6 +135,16 @@ STUDIES: tuple[Study, ...] = (
     Study("loss", "Loss", TRAIN, "table:loss_ablation", tuple(ABLATIONS["loss"]), "With All"),
     Study("depth", "Depth", TRAIN, "table:depth_ablation", tuple(ABLATIONS["depth"]), "DMD-Net 2"),
     Study("stn", "Spatial transformer", TRAIN, "table:STN", tuple(ABLATIONS["stn"]), "Without STN"),
+    # Not in the paper (no paper table): the resolution-free encoding and the output head.
+    Study(
+        "encoding",
+        "Input encoding",
+        TRAIN,
+        "",
+        tuple(ABLATIONS["encoding"]),
+        "xyz (paper)",
+    ),
+    Study("head", "Output head", TRAIN, "", tuple(ABLATIONS["head"]), "offset"),
     Study(
         "noise",
         "Noise evaluation",

@@ -78,8 +78,11 @@ def test_run_ids_are_deterministic_and_equal_settings_train_once(test_preset, ba
     noise_hashes = {r.train_hash for r in runs if r.study == "noise"}
     assert noise_hashes == {by_row[("rotation", "Rotation Augmentation")].train_hash}
     assert len(runs) == sum(len(s.rows) for s in st.STUDIES)
-    # 4 + 3 + 1 + 6 + 5 + 3 + 1 training rows beyond the shared one, 4 rotation models.
-    assert len(st.training_homes(runs)) == 1 + 3 + 3 + 1 + 6 + 5 + 3 + 1 + 4
+    # 4 + 3 + 1 + 6 + 5 + 3 + 1 training rows beyond the shared one, 4 rotation models,
+    # and 2 of the encoding/head studies: "xyz (paper)" is the base model (the rotation
+    # study's first), head "offset" is encoding "local".
+    assert len(st.training_homes(runs)) == 1 + 3 + 3 + 1 + 6 + 5 + 3 + 1 + 4 + 2
+    assert by_row[("head", "offset")].train_hash == by_row[("encoding", "local")].train_hash
     home = st.training_homes(runs)[by_row[("depth", "DMD-Net 2")].train_hash]
     assert (home.study, home.row) == ("scheme", "Joint")
 
