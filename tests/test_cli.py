@@ -367,7 +367,6 @@ def test_demo_writes_meshes_metrics_and_png(demo_dir):
 
 def test_demo_noise_is_what_it_says(demo_dir):
     from dmd_jax import demo
-
     from dmd_jax.noise import vertex_normals_np
 
     clean, f = load_mesh(demo_dir / "clean.obj")
