@@ -445,7 +445,12 @@ def test_rejects_vertices_that_do_not_match_the_graph():
 
 def expected_param_count(cfg: ModelConfig) -> int:
     """Closed-form count of our reading of the architecture (independent of Flax)."""
+    from dmd_jax import encoding
+
     w, t = cfg.width, cfg.hidden_transformer_width
+    local = cfg.encoding == "local"
+    v_in = encoding.LOCAL_VERTEX_DIM if local else 3
+    f_in = encoding.LOCAL_FACE_DIM if local else 0  # face features on every dual input
 
     def dense(i, o, bias=True):
         return i * o + (o if bias else 0)
@@ -455,27 +460,36 @@ def expected_param_count(cfg: ModelConfig) -> int:
 
     def two_stream(d_in, two):
         prim = dense(d_in, w) + cfg.n_agg * agg(w, w)
-        return prim * (2 if two else 1)
+        dual = dense(d_in + f_in, w) + cfg.n_agg * agg(w, w)
+        return prim + (dual if two else 0)
 
-    def stack(d_in, n, two, out):
-        return two_stream(d_in, two) + (n - 1) * two_stream(w, two) + dense(w, out)
+    def trunk(d_in, n, two):
+        return two_stream(d_in, two) + (n - 1) * two_stream(w, two)
 
     total = 0
     in_dim = cfg.transform_in_dim
     if cfg.uses_feature_extractor:
-        total += stack(3, cfg.fe_two_streams, cfg.fe_two_stream, 5)
+        total += trunk(v_in, cfg.fe_two_streams, cfg.fe_two_stream) + dense(w, 5)
     if cfg.uses_transformer:
         total += dense(5, t)
         total += sum(agg(t * (i + 1), t) for i in range(cfg.dense_layers))
         total += agg(t * (cfg.dense_layers + 1), t)
         total += (cfg.n_transforms - 1) * dense(t, in_dim * in_dim) + dense(t, in_dim * w)
         total += agg(w, w)
-        den_in = w + 3
+        den_in = w + v_in
     elif cfg.uses_feature_extractor:
-        den_in = 8
+        den_in = v_in + 5
     else:
-        den_in = 3
-    total += stack(den_in, cfg.depth, cfg.denoiser_two_stream, 3)
+        den_in = v_in
+    total += trunk(den_in, cfg.depth, cfg.denoiser_two_stream)
+    if cfg.head == "offset":
+        total += dense(w, 3)
+    else:
+        k = encoding.N_CANDIDATES
+        if cfg.denoiser_two_stream:  # head on [d ‖ DAP(p, d)]
+            total += dense(2 * w, k + 3)
+        else:  # face features from Dense([P2D(p) ‖ face_x])
+            total += dense(w + f_in, w) + dense(w, k + 3)
     if cfg.stn:
         s = cfg.stn_width
         total += dense(3, s) + dense(s, 2 * s) + dense(2 * s, s) + dense(s, 9)
@@ -502,6 +516,12 @@ def test_paper_preset_parameter_count(capsys):
 @pytest.mark.parametrize("name", list(VARIANTS))
 def test_variant_parameter_counts_match_closed_form(name):
     other = {"attention": True, "stn": True, "dense_layers": 1, "n_agg": 2, "depth": 3}
-    for base in (preset("small").model, preset("test").model.with_edits(other)):
+    local_offset = {"encoding": "local", "head": "offset"}
+    for base in (
+        preset("small").model,  # local encoding, normal-first head
+        preset("small").model.with_edits(local_offset),
+        preset("test").model.with_edits(other),
+        preset("test").model.with_edits({**other, "encoding": "local", "head": "normal"}),
+    ):
         cfg = variant_config(base, name)
         assert param_count(cfg) == expected_param_count(cfg)
