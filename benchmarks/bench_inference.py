@@ -72,6 +72,7 @@ CASES = (
     "network (segment_sum)",
     "build_mesh_graph",
     "pymeshlab two_step",
+    "bnf",
 )
 FIT_FROM = 10_000
 # Above this many faces the `paper` preset's segment-sum comparison is skipped: its

@@ -133,7 +133,8 @@ def test_inference_measure_and_report(tmp_path):
     text, found = inference.targets(rows, None)
     assert [t[0] for t in found] == [
         "`test` faster than pymeshlab two-step at 200 faces (denoise / two_step, same "
-        "process, interleaved)"
+        "process, interleaved)",
+        "`test` no slower than bnf at 200 faces (denoise / bnf, same process, interleaved)",
     ]
     assert found[0][2] in ("met", "missed") and found[0][0] in text
     assert "| test | 800 |" in inference.table(rows)
