@@ -28,12 +28,11 @@ import jax.numpy as jnp
 import matplotlib.pyplot as plt
 import numpy as np
 
-from dmd_jax import geometry, noise
+from dmd_jax import encoding, geometry, noise
 from dmd_jax.checkpoints import load_pretrained, load_weights
 from dmd_jax.config import variant_config
 from dmd_jax.data import generate_shape
 from dmd_jax.graph import build_mesh_graph
-from dmd_jax.mesh import canonical_frame
 from dmd_jax.metrics import mesh_metrics
 from dmd_jax.model import (
     Denoiser,
@@ -67,8 +66,9 @@ print("parameters per module:", param_counts_by_module(cfg.model))
 #
 # Four procedural shapes of different kinds: a smooth blob, a torus (genus 1), a CAD
 # bracket with sharp edges, and an open terrain patch. Each gets Gaussian noise of
-# $\sigma = 0.3$ mean edge lengths and is mapped, like at inference time, to the
-# canonical frame of the *noisy* mesh; the clean mesh goes into the same frame. All four
+# $\sigma = 0.3$ mean edge lengths and is mapped, like at inference time, to the frame
+# of the model's encoding (`encoding.mesh_frame`: for the bundled model, centred and in
+# units of the *noisy* mesh's mean edge); the clean mesh goes into the same frame. All four
 # run through the network as one padded batch (`pipeline.collate`), so the batch
 # compiles once and every per-mesh quantity, $W_{tf}$ included, comes out per graph.
 
@@ -80,14 +80,14 @@ clean_meshes = {
 
 
 def noisy_batch(seed, kind="gaussian", level=0.3, units="edge"):
-    """Noisy and clean vertices of every mesh in the noisy mesh's canonical frame, and the batch."""
+    """Noisy and clean vertices of every mesh in the noisy mesh's model frame, and the batch."""
     noisy, clean = [], []
     for i, (v, f) in enumerate(clean_meshes.values()):
         x = np.asarray(
             noise.add_noise(jax.random.PRNGKey(1000 * seed + i), v, f, kind, level, units=units),
             float,
         )
-        frame = canonical_frame(x)
+        frame = encoding.mesh_frame(cfg.model.encoding, x, f)
         noisy.append(frame.apply(x))
         clean.append(frame.apply(v))
     graphs = [build_mesh_graph(f, len(v)) for v, f in clean_meshes.values()]
@@ -125,18 +125,45 @@ params = bundle.params
 def forward(params, xyz, graph, guidance, use_guidance):
     """DMDNet's forward pass written out; `guidance` replaces the FE output where `use_guidance`."""
     xyz = xyz.astype(jnp.float32)
-    x_in = xyz
+    face_x = candidates = None
+    if model_cfg.encoding == "local":  # the resolution-free inputs (dmd_jax.encoding)
+        x_in, face_x, candidates = encoding.local_features(
+            xyz, graph, filter_iterations=model_cfg.filter_iterations
+        )
+    else:
+        x_in = xyz
     if model_cfg.stn:
-        mats = SpatialTransformer(model_cfg).apply({"params": params["stn"]}, xyz, graph)
-        x_in = apply_transform(xyz, mats, graph.vertex_graph)
-    fe = FeatureExtractor(model_cfg).apply({"params": params["feature_extractor"]}, x_in, graph)
+        mats = SpatialTransformer(model_cfg).apply({"params": params["stn"]}, x_in[:, :3], graph)
+        x_in = jnp.concatenate(
+            [apply_transform(x_in[:, :3], mats, graph.vertex_graph), x_in[:, 3:]], axis=-1
+        )
+    fe = FeatureExtractor(model_cfg).apply(
+        {"params": params["feature_extractor"]}, x_in, graph, face_x=face_x
+    )
     feats = jnp.where(use_guidance, guidance.astype(fe.dtype), fe)
-    t_in = x_in if model_cfg.transform_in_dim == 3 else jnp.concatenate([x_in, feats], axis=-1)
+    t_in = x_in if model_cfg.variant == "fgt3" else jnp.concatenate([x_in, feats], axis=-1)
     t, w_tf = Transformer(model_cfg).apply({"params": params["transformer"]}, feats, t_in, graph)
     out = Denoiser(model_cfg).apply(
-        {"params": params["denoiser"]}, jnp.concatenate([t, x_in], -1), graph
+        {"params": params["denoiser"]},
+        jnp.concatenate([t, x_in], -1),
+        graph,
+        face_x=face_x,
+        candidates=candidates,
     )
-    denoised = xyz + out if model_cfg.predict_offset else out
+    if model_cfg.head == "normal":  # predicted face normals -> Sun et al.'s vertex update
+        faces = graph.faces
+        corner_face = jnp.repeat(jnp.arange(faces.shape[0], dtype=faces.dtype), 3)
+        denoised = geometry.fit_vertices_to_normals(
+            xyz,
+            faces,
+            out,
+            faces.reshape(-1),
+            corner_face,
+            jnp.ones(xyz.shape[0], xyz.dtype),
+            model_cfg.vertex_iterations,
+        )
+    else:
+        denoised = xyz + out if model_cfg.predict_offset else out
     return denoised, fe, w_tf, t_in, t
 
 
@@ -162,28 +189,47 @@ def per_mesh(x):
 # %% [markdown]
 # ## $W_{tf}$ for different meshes
 #
-# One $8\times\text{width}$ matrix per mesh. Row $i$ says how input column $i$ (x, y,
-# z, the three normal components, $\kappa_H$, $\kappa_G$) is spread over the
-# $\text{width}$ channels of the intermediate representation. Red is positive, blue
-# negative, one colour scale for all four.
+# One matrix per mesh, a row per column of the transformer's input $[\text{primal input}
+# \,\|\,\text{features}]$: in the paper's reading x, y, z (8 rows in all); in the bundled
+# model's resolution-free encoding the Laplacian coordinate (L), the vertex normal (n) and
+# the vertex averages of the nine pre-filtered normal fields (f1..f9), 38 rows in all;
+# then the five features (the three normal components, $\kappa_H$, $\kappa_G$). Row $i$
+# says how input column $i$ is spread over the $\text{width}$ channels of the
+# intermediate representation. Red is positive, blue negative, one colour scale for all
+# four.
 
 # %%
-ROWS = ["x", "y", "z", "n_x", "n_y", "n_z", "κ_H", "κ_G"][: model_cfg.transform_in_dim]
+N_IN = model_cfg.vertex_in_dim
+if model_cfg.encoding == "xyz":
+    INPUT_ROWS = ["x", "y", "z"]
+else:
+    INPUT_ROWS = ["L_x", "L_y", "L_z", "n_x", "n_y", "n_z"] + [
+        f"f{k}_{c}" for k in range(1, (N_IN - 6) // 3 + 1) for c in "xyz"
+    ]
+ROWS = (INPUT_ROWS + ["fe_nx", "fe_ny", "fe_nz", "κ_H", "κ_G"])[: model_cfg.transform_in_dim]
 W = np.asarray(w_tf[-1][: len(CATEGORIES)])  # [n_mesh, 8, width]; drop the padding graph
 top = np.abs(W).max()
-fig, axes = plt.subplots(len(CATEGORIES), 1, figsize=(8, 1.0 + 1.1 * len(CATEGORIES)), sharex=True)
+fig, axes = plt.subplots(
+    len(CATEGORIES),
+    1,
+    figsize=(8, 1.0 + (2.2 if len(ROWS) > 12 else 1.1) * len(CATEGORIES)),
+    sharex=True,
+)
 for ax, name, w in zip(axes, CATEGORIES, W, strict=True):
     im = ax.imshow(w, cmap="RdBu_r", vmin=-top, vmax=top, aspect="auto", interpolation="nearest")
-    ax.set_yticks(range(len(ROWS)), ROWS, fontsize=7)
+    ax.set_yticks(range(len(ROWS)), ROWS, fontsize=5 if len(ROWS) > 12 else 7)
     ax.set_ylabel(name, fontsize=9)
 axes[-1].set_xlabel("output channel")
 fig.colorbar(im, ax=axes, shrink=0.8, label="W_tf entry")
 plt.show()
 
-print("row norms |W_tf[i, :]| per mesh")
-print(f"{'':8s}" + "".join(f"{r:>7s}" for r in ROWS))
+print("row norms |W_tf[i, :]| per mesh (the 6 primal-input rows after L, n are summed per field)")
+shown_rows = ROWS[:6] + ROWS[N_IN:] if len(ROWS) > 12 else ROWS
+print(f"{'':8s}" + "".join(f"{r:>7s}" for r in shown_rows))
 for name, w in zip(CATEGORIES, W, strict=True):
-    print(f"{name:8s}" + "".join(f"{x:7.3f}" for x in np.linalg.norm(w, axis=1)))
+    norms = np.linalg.norm(w, axis=1)
+    norms = np.concatenate([norms[:6], norms[N_IN:]]) if len(ROWS) > 12 else norms
+    print(f"{name:8s}" + "".join(f"{x:7.3f}" for x in norms))
 
 # %% [markdown]
 # Because FAP averages over all vertices before the reshape, $W_{tf}$ is a summary of
@@ -321,15 +367,15 @@ for name, m in (("FGT-8", model_cfg), ("FGT-3", fgt3)):
 # The bundled FGT-8's per-vertex product t_in @ W_tf, split into its two parts.
 print()
 print(
-    f"{'':8s} {'|xyz·W[:3]|':>12s} {'|features·W[3:]|':>17s}   "
+    f"{'':8s} {'|input·W[:n]|':>14s} {'|features·W[n:]|':>17s}   "
     "singular values of t_in·W_tf (relative)"
 )
 for name, x, w in zip(CATEGORIES, per_mesh(t_in), W, strict=True):
     product = x @ w
     sv = np.linalg.svd(product - product.mean(0), compute_uv=False)
     print(
-        f"{name:8s} {np.linalg.norm(x[:, :3] @ w[:3]):12.3f} "
-        f"{np.linalg.norm(x[:, 3:] @ w[3:]):17.3f}   "
+        f"{name:8s} {np.linalg.norm(x[:, :N_IN] @ w[:N_IN]):14.3f} "
+        f"{np.linalg.norm(x[:, N_IN:] @ w[N_IN:]):17.3f}   "
         + " ".join(f"{s / sv[0]:.3f}" for s in sv[:9])
     )
 
@@ -375,5 +421,6 @@ for name, g in guidance.items():
 # How far the oracle row sits below the FE row is the room left for a better feature
 # extractor; the zeros row shows how much the model relies on guidance at all (a model
 # that ignores its features scores the same in every row). `vertex` is the
-# per-coordinate squared error in the clean mesh's canonical frame, `normal°` the mean
+# per-coordinate squared error in the model's frame (edge units for the bundled model),
+# `normal°` the mean
 # face-normal angle.
