@@ -127,23 +127,34 @@ def bilateral_face_normals(x, graph, normals, *, sigma_r: float, iterations):
       `[n_face, 3]` unit normals (0 where the start normal is 0, e.g. padding faces), or
       a list of them, one per entry of a tuple `iterations`.
     """
-    s, r = graph.face_senders, graph.face_receivers
     n_face = normals.shape[0]
     c = geometry.face_centroids(x, graph.faces)
     area = geometry.face_areas(x, graph.faces)
-    d2 = jnp.sum((c[s] - c[r]) ** 2, axis=-1)
-    spatial = (
-        (graph.face_edge_weight > 0)
-        * area[s]
-        * jnp.exp(-0.5 * d2 / (FILTER_SPATIAL_SIGMA * FILTER_SPATIAL_SIGMA))
-    )
+    inv_2sr2 = 0.5 / (sigma_r * sigma_r)
+    inv_2sc2 = 0.5 / (FILTER_SPATIAL_SIGMA * FILTER_SPATIAL_SIGMA)
+    if graph.face_ell is not None:
+        # Inference's padded neighbour table (`graph.with_ell_layout`): the same sums as
+        # gathers over `[n_face, slots]`, no scatter (about 3x faster on CPU).
+        nbr, ell_w = graph.face_ell.neighbours, graph.face_ell.weights
+        d2 = jnp.sum((c[nbr] - c[:, None, :]) ** 2, axis=-1)
+        spatial = (ell_w > 0) * area[nbr] * jnp.exp(-d2 * inv_2sc2)
 
-    def step(_, n):
-        w = spatial * jnp.exp(-0.5 * jnp.sum((n[s] - n[r]) ** 2, axis=-1) / (sigma_r * sigma_r))
-        acc = jax.ops.segment_sum(
-            w[:, None] * n[s], r, num_segments=n_face, indices_are_sorted=True
-        )
-        return geometry.safe_normalize(acc)
+        def step(_, n):
+            nn = n[nbr]
+            w = spatial * jnp.exp(-jnp.sum((nn - n[:, None, :]) ** 2, axis=-1) * inv_2sr2)
+            return geometry.safe_normalize(jnp.einsum("fk,fkc->fc", w, nn))
+
+    else:
+        s, r = graph.face_senders, graph.face_receivers
+        d2 = jnp.sum((c[s] - c[r]) ** 2, axis=-1)
+        spatial = (graph.face_edge_weight > 0) * area[s] * jnp.exp(-d2 * inv_2sc2)
+
+        def step(_, n):
+            w = spatial * jnp.exp(-jnp.sum((n[s] - n[r]) ** 2, axis=-1) * inv_2sr2)
+            acc = jax.ops.segment_sum(
+                w[:, None] * n[s], r, num_segments=n_face, indices_are_sorted=True
+            )
+            return geometry.safe_normalize(acc)
 
     if isinstance(iterations, int):
         return jax.lax.fori_loop(0, iterations, step, normals)

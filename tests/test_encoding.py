@@ -339,3 +339,23 @@ def test_bundled_model_leaves_a_clean_mesh_nearly_unchanged(shared_meshes):
     out = denoise(v, f, bundle)
     assert mesh_metrics(out, v, f)["normal_deg"] < 3.0
     assert np.linalg.norm(out - v, axis=1).max() < 1.0 * mean_edge_length(v, f)
+
+
+def test_bilateral_pre_filter_ell_path_equals_edge_lists():
+    from dmd_jax.graph import with_ell_layout
+
+    v, f = bumpy_sphere()
+    g = pad_mesh_graph(
+        build_mesh_graph(f, v.shape[0]), padded_sizes_for(build_mesh_graph(f, v.shape[0]))
+    )
+    x = np.zeros((g.n_vertex, 3))
+    x[: v.shape[0]] = encoding.mesh_frame("local", v, f).apply(v)
+    x = jnp.asarray(x)
+    seg = jax.tree.map(jnp.asarray, g)
+    ell = jax.tree.map(jnp.asarray, with_ell_layout(g))
+    assert ell.face_ell is not None
+    n0 = geometry.face_normals(x, seg.faces)
+    a = encoding.bilateral_face_normals(x, seg, n0, sigma_r=0.35, iterations=(3, 9))
+    b = encoding.bilateral_face_normals(x, ell, n0, sigma_r=0.35, iterations=(3, 9))
+    for p, q in zip(a, b, strict=True):
+        np.testing.assert_allclose(np.asarray(q), np.asarray(p), atol=1e-6)
