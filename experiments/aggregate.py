@@ -677,7 +677,14 @@ def _preset_readme(out_dir: Path, plan: dict, summary: dict, sections: list[str]
     return "\n".join(lines) + "\n"
 
 
-NOTES = """## How these sweeps differ from the paper, and how to read them
+NOTES = """`cpu/` was run with the `cpu` preset *before* the `small` recipe (which `cpu` builds on)
+became the resolution-free, normal-first one (2026-11-30); rerunning `make ablate` now
+trains every study on the new recipe. `cpu-recipe/` holds the two studies that are not in
+the paper, input encoding (xyz vs local) and output head (offset vs normal-first), run on
+the new recipe (`python -m experiments run --preset cpu --studies encoding head --out
+experiments/results/cpu-recipe`; one seed, 3 trainings).
+
+## How these sweeps differ from the paper, and how to read them
 
 * Every training-study row is `experiments.ablations.ABLATIONS` applied to the preset's base
   config, so all of them use λ = 1 for every loss, as the paper's appendix D says, the
