@@ -131,12 +131,9 @@ def _runner(method: str, faces, bundle):
 def crop(vertices, faces, max_faces: int):
     """The connected `max_faces`-face patch grown breadth-first from face 0, re-indexed
     (deterministic, so every method and run sees the same patch)."""
-    from dmd_jax.data.real import connected_patch
+    from dmd_jax.data.real import patch_mesh
 
-    face_ids, vertex_ids = connected_patch(faces, vertices.shape[0], 0, max_faces)
-    remap = np.full(vertices.shape[0], -1, np.int64)
-    remap[vertex_ids] = np.arange(vertex_ids.shape[0])
-    return vertices[vertex_ids], remap[faces[face_ids]].astype(np.int32)
+    return patch_mesh(vertices, faces, 0, max_faces)
 
 
 def evaluate_mesh(

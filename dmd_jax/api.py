@@ -59,7 +59,6 @@ def add_noise(
       unit draws are float32 from `jax.random`, so a seed gives the same noise whether or
       not JAX's float64 mode is on, and the same as `dmd-jax add-noise --seed`).
     """
-    import math
 
     import jax
     import jax.numpy as jnp
@@ -69,12 +68,7 @@ def add_noise(
     if isinstance(seed, (bool, np.bool_)):
         raise ValueError(f"seed must be an integer or a jax.random key, got {seed!r}")
     key = jax.random.PRNGKey(int(seed)) if isinstance(seed, (int, np.integer)) else seed
-    try:
-        level = float(level)
-    except (TypeError, ValueError) as err:
-        raise ValueError(f"noise level must be a number, got {level!r}") from err
-    if not math.isfinite(level) or level < 0:
-        raise ValueError(f"noise level must be finite and >= 0, got {level!r}")
+    level = noise.check_level(level)
     dtype = _float_dtype(vertices)
     v = np.asarray(vertices, np.float64)
     if v.ndim != 2 or v.shape[-1] != 3 or v.shape[0] == 0:

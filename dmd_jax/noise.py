@@ -131,7 +131,8 @@ def vertex_normals_np(vertices, faces) -> np.ndarray:
     return np.where(norm > 0, acc / np.where(norm > 0, norm, 1.0), 0.0)
 
 
-def _check_level(level) -> float:
+def check_level(level) -> float:
+    """`level` as a float; `ValueError` unless it is a finite number >= 0."""
     try:
         value = float(level)
     except (TypeError, ValueError) as err:
@@ -287,7 +288,7 @@ def add_noise(
     """
     _check_kind(kind)
     _check_units(units)
-    level = _check_level(level)
+    level = check_level(level)
     v = jnp.asarray(vertices)
     if v.ndim != 2 or v.shape[-1] != 3 or v.shape[0] == 0:
         raise ValueError(f"vertices must have shape [n_vertex, 3], got {tuple(v.shape)}")
@@ -338,7 +339,7 @@ def _levels_for(levels, kind, name):
     if not chosen:
         raise ValueError(f"{name} for {kind!r} is empty")
     for level in chosen:
-        _check_level(level)
+        check_level(level)
     return chosen
 
 

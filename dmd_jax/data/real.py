@@ -110,13 +110,23 @@ def mesh_patches(
     adjacency = face_adjacency_matrix(f, v.shape[0])
     out = []
     for seed_face in rng.choice(f.shape[0], size=n_patches, replace=False):
-        face_ids, vertex_ids = connected_patch(f, v.shape[0], int(seed_face), max_faces, adjacency)
-        if face_ids.shape[0] < min_faces:
-            continue
-        remap = np.full(v.shape[0], -1, np.int64)
-        remap[vertex_ids] = np.arange(vertex_ids.shape[0])
-        out.append((v[vertex_ids], remap[f[face_ids]].astype(np.int32)))
+        pv, pf = patch_mesh(v, f, int(seed_face), max_faces, adjacency)
+        if pf.shape[0] >= min_faces:
+            out.append((pv, pf))
     return out
+
+
+def patch_mesh(
+    vertices: np.ndarray, faces: np.ndarray, seed_face: int, max_faces: int, adjacency=None
+) -> tuple[np.ndarray, np.ndarray]:
+    """`connected_patch` as a mesh of its own: `(vertices [m, 3], faces [k, 3] int32)`,
+    re-indexed so it holds only the vertices its faces use."""
+    face_ids, vertex_ids = connected_patch(
+        faces, vertices.shape[0], seed_face, max_faces, adjacency
+    )
+    remap = np.full(vertices.shape[0], -1, np.int64)
+    remap[vertex_ids] = np.arange(vertex_ids.shape[0])
+    return vertices[vertex_ids], remap[faces[face_ids]].astype(np.int32)
 
 
 def load_real_patches(
