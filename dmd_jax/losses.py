@@ -159,17 +159,23 @@ def face_normal_angles(pred, target, faces):
     _check_points("pred", pred)
     _check_same("pred", pred, "target", target)
     _check_faces(faces)
-    n_p = geometry.face_normals(pred, faces)
     n_t = geometry.face_normals(target, faces)
-    # face_normals is exactly 0 on a degenerate face and unit length otherwise.
-    pred_ok = jnp.sum(n_p * n_p, axis=-1) > 0.5
+    angle, ok = _unit_normal_angles(geometry.face_normals(pred, faces), n_t)
     target_ok = jnp.sum(n_t * n_t, axis=-1) > 0.5
-    ok = pred_ok & target_ok
+    return jnp.where(ok, angle, 0.5 * math.pi), target_ok
+
+
+def _unit_normal_angles(n_p, n_t):
+    """`(angle, ok)` per row between unit (or exactly zero) normals `[n, 3]`.
+
+    `ok` is False where either normal is zero (`geometry.face_normals` of a degenerate
+    face); there the angle is 0 with a zero gradient, for the caller to replace or mask.
+    """
+    ok = (jnp.sum(n_p * n_p, axis=-1) > 0.5) & (jnp.sum(n_t * n_t, axis=-1) > 0.5)
     sin = geometry.safe_norm(jnp.cross(n_p, n_t))
     cos = jnp.sum(n_p * n_t, axis=-1)
     # Double where: atan2(0, 0) has a NaN gradient, so the untaken branch sees (0, 1).
-    angle = jnp.arctan2(jnp.where(ok, sin, 0.0), jnp.where(ok, cos, 1.0))
-    return jnp.where(ok, angle, 0.5 * math.pi), target_ok
+    return jnp.arctan2(jnp.where(ok, sin, 0.0), jnp.where(ok, cos, 1.0)), ok
 
 
 def normal_loss(pred, target, faces, *, face_mask=None, degrees=False):
@@ -229,11 +235,7 @@ def predicted_normal_term(pred_normals, target, faces, *, face_mask=None) -> Ter
         raise ValueError(
             f"pred_normals must have shape [n_face, 3] = {faces.shape}, got {pred_normals.shape}"
         )
-    n_t = geometry.face_normals(target, faces)
-    ok = (jnp.sum(n_t * n_t, axis=-1) > 0.5) & (jnp.sum(pred_normals**2, axis=-1) > 0.5)
-    sin = geometry.safe_norm(jnp.cross(pred_normals, n_t))
-    cos = jnp.sum(pred_normals * n_t, axis=-1)
-    angle = jnp.arctan2(jnp.where(ok, sin, 0.0), jnp.where(ok, cos, 1.0))
+    angle, ok = _unit_normal_angles(pred_normals, geometry.face_normals(target, faces))
     mask = _check_mask("face_mask", face_mask, faces.shape[0])
     mask = ok if mask is None else mask & ok
     return _masked_term(angle, mask)
