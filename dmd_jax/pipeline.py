@@ -215,6 +215,7 @@ def training_batch(
     encoding: str = "xyz",
     n_group: int = 1,
     groups: Sequence[int] | None = None,
+    sizes: PaddedSizes | None = None,
 ) -> Batch:
     """The batch of `step`: a pure function of `(seed, step)` and the examples.
 
@@ -232,13 +233,17 @@ def training_batch(
       n_group: groups the batch is split into (devices along the batch axis).
       groups: the groups to build (default all; pass `parallel.local_groups(mesh)` on
         several hosts). The padded sizes always account for every group.
+      sizes: padded sizes to use instead of the step's own bucket (they must hold every
+        group): runs trained side by side (`experiments.multiseed`) pad their batches
+        to one common bucket so the batches stack.
 
     Returns:
       A `Batch` of the requested groups stacked on a leading axis, in order.
     """
     idx = batch_indices(step, len(examples), batch_size, seed)
     slots = split_slots(batch_size, n_group)
-    sizes = common_sizes([[examples[int(idx[j])].graph for j in s] for s in slots])
+    if sizes is None:
+        sizes = common_sizes([[examples[int(idx[j])].graph for j in s] for s in slots])
     key = step_key(seed, step)
     out = []
     for g in range(n_group) if groups is None else groups:
