@@ -71,7 +71,7 @@ def _resolve(args):
     if args.seeds:
         p = p.with_changes(seeds=tuple(args.seeds))
     out = args.out or REPO / "experiments" / "results" / p.name
-    data = args.data_dir or REPO / "data" / f"ablate-{p.name}"
+    data = args.data_dir or REPO / "data" / f"ablate-{p.dataset_name}"
     return p, out, data
 
 

@@ -319,6 +319,222 @@ def compare_with_paper(study: st.Study, rows: list[dict]) -> dict[str, Any]:
     return out
 
 
+# --------------------------------------------------------------------------------------
+# Confidence intervals and verdicts
+# --------------------------------------------------------------------------------------
+
+BOOTSTRAP_RESAMPLES = 2000
+CONFIDENCE = 0.95
+BOOTSTRAP_SEED = 0  # fixed: rerunning the aggregation gives the same intervals
+
+REPRODUCED, CONTRADICTED, UNDECIDED = "reproduced", "contradicted", "undecided"
+BETTER, WORSE = "better", "worse"
+MARK = {REPRODUCED: "✓", CONTRADICTED: "✗", UNDECIDED: "·", BETTER: "▼", WORSE: "▲"}
+
+
+def paired_bootstrap(
+    diff,
+    *,
+    resamples: int = BOOTSTRAP_RESAMPLES,
+    level: float = CONFIDENCE,
+    seed: int = BOOTSTRAP_SEED,
+) -> tuple[float, float, float]:
+    """Mean of paired differences and its percentile bootstrap interval.
+
+    `diff[s, m]` is a row's error minus the reference row's on test mesh `m` for
+    training seed `s`; both rows saw the same noisy mesh (evaluation noise is a function
+    of the seed and the mesh) and trained from the same seed, so the pairs share what
+    the two rows have in common. Each resample draws seeds and meshes independently with
+    replacement (a crossed bootstrap: the interval carries the seed-to-seed and the
+    mesh-to-mesh spread) and takes the mean over the drawn grid. With one seed the
+    interval speaks for the meshes only.
+
+    Args:
+      diff: `[n_seeds, n_meshes]` (a 1-D array is one seed).
+      resamples: bootstrap resamples.
+      level: coverage of the two-sided interval.
+      seed: the resampling RNG's seed.
+
+    Returns:
+      `(mean, low, high)` of the mean difference.
+    """
+    d = np.atleast_2d(np.asarray(diff, np.float64))
+    n_s, n_m = d.shape
+    if d.size == 0:
+        raise ValueError("paired_bootstrap needs at least one difference")
+    rng = np.random.default_rng(seed)
+    # A resample's mean over its grid of drawn seeds x drawn meshes is
+    # counts_s @ d @ counts_m / (n_s n_m): no [resamples, n_s, n_m] array is built.
+    cs = np.stack([np.bincount(r, minlength=n_s) for r in rng.integers(0, n_s, (resamples, n_s))])
+    cm = np.stack([np.bincount(r, minlength=n_m) for r in rng.integers(0, n_m, (resamples, n_m))])
+    stats = np.einsum("bs,sm,bm->b", cs, d, cm) / (n_s * n_m)
+    alpha = (1.0 - level) / 2
+    low, high = np.quantile(stats, [alpha, 1 - alpha])
+    return float(d.mean()), float(low), float(high)
+
+
+def verdict(low: float, high: float, paper_sign: float | None) -> str:
+    """What an interval of `row - reference` (lower error is better) says.
+
+    Args:
+      low, high: the interval.
+      paper_sign: the sign of the same difference in the paper (+1: the paper's row is
+        worse than its reference, -1: better), or None where the paper has no number.
+
+    Returns:
+      With a paper sign: `reproduced` (the interval excludes 0 on the paper's side),
+      `contradicted` (it excludes 0 on the other side) or `undecided` (it contains 0);
+      without: `better`, `worse` or `undecided`.
+    """
+    if low <= 0 <= high:
+        return UNDECIDED
+    observed = 1.0 if low > 0 else -1.0
+    if paper_sign is None or paper_sign == 0:
+        return WORSE if observed > 0 else BETTER
+    return REPRODUCED if observed == np.sign(paper_sign) else CONTRADICTED
+
+
+def _per_seed_matrix(records: Sequence[dict], key: str) -> dict[int, np.ndarray]:
+    out = {}
+    for r in records:
+        vals = r.get("per_mesh", {}).get(key)
+        if vals and r.get("status") == "ok":
+            out[int(r["seed"])] = np.asarray(vals, np.float64)
+    return out
+
+
+def interval_keys(study: st.Study) -> list[tuple[str, float, str]]:
+    """The columns that get intervals: the error metrics of the study's table."""
+    if study.kind == st.TRAIN:
+        return list(TRAIN_COLUMNS)
+    if study.kind == st.ROTATION:
+        return list(ROTATION_COLUMNS[:3])
+    return []
+
+
+def study_intervals(study: st.Study, records: dict[str, list[dict]]) -> list[dict]:
+    """Every row's difference from the study's reference row, with its interval.
+
+    For each row but the reference and each column of `interval_keys`: the per-mesh
+    values of both rows at the seeds both have finished (paired by seed and mesh),
+    `paired_bootstrap` of their difference in table units, the paper's sign of the same
+    difference where it has both numbers, and the `verdict`.
+    """
+    ref = study.reference
+    if ref is None or not records.get(ref):
+        return []
+    paper = PAPER.get(study.key, {})
+    pcols = PAPER_COLUMNS.get(study.kind, [])
+    out = []
+    for row in study.rows:
+        if row == ref or not records.get(row):
+            continue
+        for key, scale, label in interval_keys(study):
+            a, b = _per_seed_matrix(records[row], key), _per_seed_matrix(records[ref], key)
+            seeds = sorted(set(a) & set(b))
+            if not seeds or any(a[s].shape != b[s].shape for s in seeds):
+                continue
+            diff = np.stack([a[s] - b[s] for s in seeds]) * scale
+            if not np.all(np.isfinite(diff)):
+                continue
+            mean, low, high = paired_bootstrap(diff)
+            sign = None
+            if row in paper and ref in paper and key in pcols:
+                i = pcols.index(key)
+                sign = float(np.sign(paper[row][i] - paper[ref][i]))
+            out.append(
+                {
+                    "row": row,
+                    "column": key,
+                    "label": label,
+                    "diff": mean,
+                    "low": low,
+                    "high": high,
+                    "paper_sign": sign,
+                    "verdict": verdict(low, high, sign),
+                    "n_seeds": len(seeds),
+                    "n_meshes": int(diff.shape[1]),
+                }
+            )
+    return out
+
+
+def _short(key: str) -> str:
+    return SHORT.get(key, key)
+
+
+def verdict_text(study: st.Study, intervals: list[dict]) -> str:
+    """The study's verdict in one paragraph, derived from `study_intervals`."""
+    if not intervals:
+        return ""
+    ref = study.reference
+    n_s = min(iv["n_seeds"] for iv in intervals)
+    n_m = min(iv["n_meshes"] for iv in intervals)
+    head = (
+        f"*{study.title}*, verdict ({CONFIDENCE:.0%} paired bootstrap intervals of each row "
+        f"minus **{ref}**, {n_s} seed{'s' if n_s > 1 else ''} × {n_m} test meshes, "
+        f"{BOOTSTRAP_RESAMPLES} resamples): "
+    )
+
+    def listing(kind):
+        by_row: dict[str, list[str]] = {}
+        for iv in intervals:
+            if iv["verdict"] == kind:
+                by_row.setdefault(iv["row"], []).append(_short(iv["column"]))
+        return "; ".join(f"{r} ({', '.join(c)})" for r, c in by_row.items())
+
+    with_paper = [iv for iv in intervals if iv["paper_sign"]]
+    without = [iv for iv in intervals if not iv["paper_sign"]]
+    parts = []
+    if with_paper:
+        n = len(with_paper)
+        count = {k: sum(iv["verdict"] == k for iv in with_paper) for k in MARK}
+        parts.append(
+            f"of the paper's {n} orderings against {ref}, {count[REPRODUCED]} reproduced with "
+            f"confidence, {count[CONTRADICTED]} contradicted with confidence, "
+            f"{count[UNDECIDED]} undecided."
+        )
+        for kind, name in ((REPRODUCED, "Reproduced"), (CONTRADICTED, "Contradicted")):
+            text = listing(kind) if count[kind] else ""
+            if text:
+                parts.append(f"{name}: {text}.")
+    if without:
+        n = len(without)
+        count = {k: sum(iv["verdict"] == k for iv in without) for k in MARK}
+        parts.append(
+            f"{'Where the paper has no number, ' if with_paper else ''}of {n} (row, column) "
+            f"differences from {ref}, {count[BETTER]} better with confidence, "
+            f"{count[WORSE]} worse with confidence, {count[UNDECIDED]} undecided."
+        )
+        for kind, name in ((BETTER, "Better than " + ref), (WORSE, "Worse than " + ref)):
+            text = listing(kind) if count[kind] else ""
+            if text:
+                parts.append(f"{name}: {text}.")
+    return head + " ".join(parts) + "\n"
+
+
+def intervals_markdown(study: st.Study, intervals: list[dict]) -> str:
+    """Table of the differences from the reference row with their intervals and marks."""
+    if not intervals:
+        return ""
+    cols = [(k, label) for k, _, label in interval_keys(study)]
+    cells: dict[tuple[str, str], str] = {}
+    for iv in intervals:
+        cells[(iv["row"], iv["column"])] = (
+            f"{fmt(iv['diff'])} [{fmt(iv['low'])}, {fmt(iv['high'])}] {MARK[iv['verdict']]}"
+        )
+    rows = [r for r in study.rows if any((r, k) in cells for k, _ in cols)]
+    body = [[r, *(cells.get((r, k), "–") for k, _ in cols)] for r in rows]
+    legend = (
+        f"Difference from **{study.reference}** (row − {study.reference}, table units; "
+        f"negative = lower error), mean over seeds × meshes and its {CONFIDENCE:.0%} paired "
+        f"bootstrap interval. ✓ the paper's ordering reproduced with confidence, ✗ "
+        "contradicted with confidence, · undecided (the interval contains 0); where the "
+        "paper has no number: ▼ better, ▲ worse with confidence.\n\n"
+    )
+    return legend + _table(["Model", *(label for _, label in cols)], body)
+
+
 SHORT = {
     f"{split}/{key}": f"{split[5:]} {name}"
     for split in SPLITS
@@ -353,6 +569,8 @@ def comparison_text(
     study: st.Study, rows: list[dict], cmp: dict[str, Any], reference: dict | None = None
 ) -> str:
     """Plain-language comparison of our ordering with the paper's."""
+    if study.key not in PAPER:
+        return ""  # no paper table: the verdict line says all there is
     if not cmp or not cmp.get("columns"):
         return f"*{study.title}*: not enough finished rows to compare with the paper.\n"
     lines = []
@@ -464,7 +682,15 @@ def write_csv(path: Path, study: st.Study, rows: list[dict]) -> None:
             w.writerow(line)
 
 
-def write_plot(path: Path, study: st.Study, rows: list[dict], reference: dict | None) -> None:
+def write_plot(
+    path: Path,
+    study: st.Study,
+    rows: list[dict],
+    reference: dict | None,
+    intervals: Sequence[dict] = (),
+) -> None:
+    """Bars of every column (mean ± std over seeds); with `intervals`, a second row of
+    panels shows each row's difference from the reference and its interval."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -484,10 +710,16 @@ def write_plot(path: Path, study: st.Study, rows: list[dict], reference: dict | 
         ]
     else:
         panels = [(label, [(key, "")], scale, key) for key, scale, label in ROTATION_COLUMNS[:3]]
+    n_rows = 2 if intervals else 1
     fig, axes = plt.subplots(
-        1, len(panels), figsize=(4.2 * len(panels), 3.6 + 0.12 * max(map(len, names)))
+        n_rows,
+        len(panels),
+        figsize=(4.2 * len(panels), n_rows * (3.6 + 0.12 * max(map(len, names)))),
+        squeeze=False,
     )
-    for ax, (title, series, scale, metric) in zip(np.atleast_1d(axes), panels, strict=True):
+    if intervals:
+        _plot_intervals(axes[1], study, panels, intervals)
+    for ax, (title, series, scale, metric) in zip(axes[0], panels, strict=True):
         width = 0.8 / len(series)
         top = []
         for i, (key, label) in enumerate(series):
@@ -517,6 +749,63 @@ def write_plot(path: Path, study: st.Study, rows: list[dict], reference: dict | 
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
+
+
+VERDICT_COLOURS = {
+    REPRODUCED: "tab:green",
+    CONTRADICTED: "tab:red",
+    UNDECIDED: "0.5",
+    BETTER: "tab:blue",
+    WORSE: "tab:orange",
+}
+
+
+def _plot_intervals(axes, study: st.Study, panels, intervals: Sequence[dict]) -> None:
+    """Differences from the reference with their intervals, one panel per metric,
+    coloured by verdict."""
+    rows = [r for r in study.rows if r != study.reference]
+    x = np.arange(len(rows))
+    by = {(iv["row"], iv["column"]): iv for iv in intervals}
+    for ax, (title, series, _, _) in zip(axes, panels, strict=True):
+        width = 0.8 / len(series)
+        for i, (key, _) in enumerate(series):
+            for j, row in enumerate(rows):
+                iv = by.get((row, key))
+                if iv is None:
+                    continue
+                xj = x[j] + (i - (len(series) - 1) / 2) * width
+                err = [[iv["diff"] - iv["low"]], [iv["high"] - iv["diff"]]]
+                ax.errorbar(
+                    xj,
+                    iv["diff"],
+                    yerr=err,
+                    fmt="os"[i % 2],
+                    color=VERDICT_COLOURS[iv["verdict"]],
+                    capsize=3,
+                    ms=4,
+                )
+        ax.axhline(0, color="k", lw=0.8)
+        ax.set_title(f"{title}: row − {study.reference}", fontsize=9)
+        ax.set_xticks(x, rows, rotation=35, ha="right", fontsize=8)
+    handles = [
+        _legend_line(colour, name)
+        for name, colour in VERDICT_COLOURS.items()
+        if any(iv["verdict"] == name for iv in intervals)
+    ]
+    if len(panels[0][1]) > 1:
+        handles += [
+            _legend_line("k", f"{label} ({'os'[i % 2]})", marker="os"[i % 2], ls="none")
+            for i, (_, label) in enumerate(panels[0][1])
+        ]
+    axes[0].legend(handles=handles, fontsize=7, loc="best", framealpha=0.6)
+    axes[0].set_ylabel(f"{CONFIDENCE:.0%} paired bootstrap interval")
+
+
+def _legend_line(colour: str, label: str, **kwargs):
+    """A legend handle."""
+    from matplotlib.lines import Line2D
+
+    return Line2D([], [], color=colour, label=label, **kwargs)
 
 
 def _timing(plan: dict, records: dict) -> dict[str, Any]:
@@ -555,7 +844,11 @@ def aggregate(out_dir) -> dict[str, Any]:
         reference = ref_recs[0]["metrics"] if ref_recs else None
         table = study_markdown(study, rows, reference)
         cmp = compare_with_paper(study, rows)
-        text = comparison_text(study, rows, cmp, reference)
+        intervals = study_intervals(study, records[study.key])
+        verdict_line = verdict_text(study, intervals)
+        text = verdict_line + comparison_text(study, rows, cmp, reference)
+        if intervals:
+            table += "\n" + intervals_markdown(study, intervals)
         paper = (
             f"The paper's table (`{study.paper_table}`):\n\n{paper_markdown(study)}\n"
             if study.paper_table
@@ -565,12 +858,14 @@ def aggregate(out_dir) -> dict[str, Any]:
             f"# {study.title} (preset {summary['preset']})\n\n{table}\n{paper}{text}"
         )
         write_csv(out_dir / f"{study.key}.csv", study, rows)
-        write_plot(out_dir / f"{study.key}.png", study, rows, reference)
+        write_plot(out_dir / f"{study.key}.png", study, rows, reference, intervals)
         summary["studies"][study.key] = {
             "finished_rows": len(finished),
             "rows": len(rows),
             "table": {r["row"]: {k: v[0] for k, v in r["values"].items()} for r in rows},
             "comparison": cmp,
+            "intervals": intervals,
+            "verdict": verdict_line,
         }
         sections.append(
             f"### {study.title} ({len(finished)}/{len(rows)} rows)\n\n{table}\n"
@@ -682,7 +977,9 @@ became the resolution-free, normal-first one (2026-11-30); rerunning `make ablat
 trains every study on the new recipe. `cpu-recipe/` holds the two studies that are not in
 the paper, input encoding (xyz vs local) and output head (offset vs normal-first), run on
 the new recipe (`python -m experiments run --preset cpu --studies encoding head --out
-experiments/results/cpu-recipe`; one seed, 3 trainings).
+experiments/results/cpu-recipe`; one seed, 3 trainings). `cpu-quick/` is `make
+ablate-quick`: four studies (encoding, head, attention, STN) on the new recipe at 300
+steps, 3 seeds per row, 8 test meshes per split, a first look before the full sweep.
 
 ## How these sweeps differ from the paper, and how to read them
 
@@ -709,9 +1006,19 @@ experiments/results/cpu-recipe`; one seed, 3 trainings).
   centre; the three losses are taken in that frame, vertex per coordinate like the other
   tables. A network that changes nothing is exactly equivariant, so the table also gives
   each model's denoising error.
-* One seed per row unless the sweep ran with `--seeds`; a difference between two rows
-  smaller than the seed-to-seed spread is not evidence either way, and the CPU preset's
-  600 steps are far from the paper's 60 epochs of 10⁴ meshes.
+* Seeds and intervals: the `cpu` and `cpu-quick` presets train every row at 3 seeds
+  (parameter init, data order, noise and dropout keys), a row's seeds side by side as
+  one program (`experiments.multiseed`). A table cell is the mean over seeds and test
+  meshes ± the standard deviation of the per-seed means. Each row's difference from the
+  paper's chosen variant gets a 95 % paired bootstrap interval (2,000 resamples, fixed
+  RNG) that resamples seeds and test meshes; the paper's ordering of the pair is
+  *reproduced with confidence* when the interval lies on the paper's side of 0,
+  *contradicted with confidence* when it lies on the other side, and *undecided* when
+  it contains 0. Each interval is a 95 % statement on its own: among dozens of (row,
+  column) pairs a few confident verdicts are expected by chance alone. `cpu/` and
+  `cpu-recipe/` hold one seed per row and no per-mesh values, so they have no intervals.
+* Even the `cpu` preset's 1,500 steps are far from the paper's 60 epochs of 10⁴ meshes:
+  the verdicts are about these short trainings.
 """
 
 
@@ -728,8 +1035,9 @@ def write_index(results_root, presets: Sequence[str] | None = None) -> Path:
         "files. Each preset directory holds one table, CSV and bar plot per study "
         "(`<study>.md/.csv/.png`), a README with every table, and the runs "
         "(`<study>/<run-id>/config.json, metrics.json, run.log`). How to run: "
-        "`make ablate` (preset `cpu`), `make ablate ABLATE_PRESET=paper` on a GPU, "
-        "`make ablate-smoke`.",
+        "`make ablate` (preset `cpu`), `make ablate-quick` (preset `cpu-quick`), "
+        "`make ablate ABLATE_PRESET=paper` on a GPU, `make ablate-smoke`. The speed of "
+        "training a row's seeds together: [seed_speedup.md](seed_speedup.md).",
         "",
     ]
     lines += [NOTES, ""]

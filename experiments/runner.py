@@ -278,25 +278,36 @@ def _mean_dicts(rows: Sequence[dict]) -> dict:
     return {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
 
 
-def evaluate_checkpoint(cfg, checkpoint_dir, eval_sets) -> dict:
-    """The test metrics `train()` reports at its last step, from a saved checkpoint."""
+def evaluate_checkpoint(cfg, checkpoint_dir, eval_sets) -> tuple[dict, dict]:
+    """The test metrics training reports at its last step, from a saved checkpoint.
+
+    Returns:
+      `(means, per_mesh)`: `<split>/<metric>` means and lists (one value per test mesh),
+      as `multiseed.train_seeds` reports them.
+    """
     from dmd_jax.checkpoints import load_params
     from dmd_jax.pipeline import evaluation_batches
     from dmd_jax.train import Trainer
+    from experiments.multiseed import evaluate_per_mesh
 
     params, _ = load_params(checkpoint_dir)
     trainer = Trainer(cfg)
-    noise = cfg.noise
-    out = {}
+    means, per_mesh = {}, {}
     for name, examples in eval_sets.items():
         if not examples:
             continue
         batches = evaluation_batches(
-            examples, seed=cfg.train.seed + 12345, noise=noise, rotate=cfg.train.rotate
+            examples,
+            seed=cfg.train.seed + 12345,
+            noise=cfg.noise,
+            rotate=cfg.train.rotate,
+            encoding=cfg.model.encoding,
         )
-        for k, v in trainer.evaluate(params, batches).items():
-            out[f"{name}/{k}"] = v
-    return out
+        rows = evaluate_per_mesh(trainer, params, batches)
+        for k in rows[0]:
+            per_mesh[f"{name}/{k}"] = [float(r[k]) for r in rows]
+            means[f"{name}/{k}"] = float(np.mean(per_mesh[f"{name}/{k}"]))
+    return means, per_mesh
 
 
 def noise_evaluation(bundle, examples, kind: str, level: float, *, seed: int = EVAL_SEED):
@@ -329,6 +340,10 @@ def noise_evaluation(bundle, examples, kind: str, level: float, *, seed: int = E
         **{f"denoised/{k}": v for k, v in d.items()},
         **{f"reference/{k}": v for k, v in r.items()},
         "n_meshes": len(examples),
+        "per_mesh": {
+            **{f"denoised/{k}": [x[k] for x in den] for k in d},
+            **{f"reference/{k}": [x[k] for x in ref] for k in r},
+        },
     }
 
 
@@ -353,12 +368,13 @@ def rotation_evaluation(bundle, examples, *, gamma: int = st.RE_GAMMA, seed: int
 
     noise = bundle.config.noise
     base = jax.random.PRNGKey(seed)
-    pairs, quality = [], []
+    pairs, quality, per_mesh = [], [], []
     for i, ex in enumerate(examples):
         k_noise, k_rot = jax.random.split(jax.random.fold_in(base, i))
         noisy, clean, _ = corrupt(k_noise, ex.vertices, ex.faces, rotate=False, noise=noise)
         d = denoise(noisy, ex.faces, bundle)
         quality.append(mesh_metrics(d, clean, ex.faces))
+        first = len(pairs)
         for j in range(gamma):
             r = random_rotation(jax.random.fold_in(k_rot, j))
             rd = d @ r.T
@@ -372,11 +388,19 @@ def rotation_evaluation(bundle, examples, *, gamma: int = st.RE_GAMMA, seed: int
                     "chamfer": float(losses.chamfer_distance(rd, dr)),
                 }
             )
+        # Per mesh, its γ rotations averaged: the unit the bootstrap resamples.
+        per_mesh.append(
+            {
+                **{f"re/{k}": v for k, v in _mean_dicts(pairs[first:]).items()},
+                **{f"denoised/{k}": v for k, v in quality[-1].items()},
+            }
+        )
     return {
         **{f"re/{k}": v for k, v in _mean_dicts(pairs).items()},
         **{f"denoised/{k}": v for k, v in _mean_dicts(quality).items()},
         "n_meshes": len(examples),
         "gamma": gamma,
+        "per_mesh": {k: [m[k] for m in per_mesh] for k in (per_mesh[0] if per_mesh else {})},
     }
 
 
@@ -397,53 +421,73 @@ def _spec_to_json(r: st.RunSpec) -> dict:
     }
 
 
-def _train_home(job: dict, cfg, home: Path, train_ex, evals, log) -> dict:
-    """Trains (or resumes) the job's model in `home`; returns its train_metrics."""
-    from dmd_jax.train import NonFiniteLossError, train
+def _train_members(job: dict, members: list[dict], train_ex, evals, log) -> None:
+    """Trains (or resumes) the members of a row that have no `train_metrics.json` yet,
+    their seeds side by side (`multiseed.train_seeds`), and writes one per member.
 
-    done = home / "train_metrics.json"
-    if done.is_file():
-        return _read_json(done)
-    latest = home / "checkpoints" / "latest"
-    resumed_from = None
-    if latest.is_dir():
-        steps = [int(p.name) for p in latest.iterdir() if p.name.isdigit()]
-        resumed_from = max(steps) if steps else None
-    t0, c0 = time.time(), time.process_time()
-    status, error = "ok", None
-    try:
-        result = train(cfg, train_ex, home, eval_sets=evals, progress=job["progress"])
-        metrics = {k: float(v) for k, v in result.items() if "/" in k}
-        step = int(result["step"])
-        compiles = int(result.get("compiles", 0))
-    except NonFiniteLossError as exc:
-        status, error, metrics, step, compiles = "diverged", str(exc), {}, None, None
-    wall, cpu = time.time() - t0, time.process_time() - c0
-    if not metrics and latest.is_dir() and any(p.name.isdigit() for p in latest.iterdir()):
-        # Finished earlier but not evaluated (killed in between), or diverged after a
-        # checkpoint: evaluate the last saved state.
-        metrics = evaluate_checkpoint(cfg, latest, evals)
-    out = {
-        "status": status,
-        "error": error,
-        "metrics": metrics,
-        "train": {
-            "steps": cfg.train.steps,
-            "final_step": step,
-            "resumed_from": resumed_from,
-            "wall_s": round(wall, 2),
-            "cpu_s": round(cpu, 2),
-            "compiles": compiles,
-        },
-        "host": host_info(),
-    }
-    _write_json(done, out)
-    log(
-        f"trained {job['home']} ({status}): {cfg.train.steps} steps"
-        + (f", resumed from step {resumed_from}" if resumed_from else "")
-        + f", {wall:.1f} s wall, {cpu:.1f} s CPU"
-    )
-    return out
+    Members that resume from different steps (one was trained alone earlier) train in
+    separate groups, each group in one program.
+    """
+    from dmd_jax.config import ExperimentConfig
+    from experiments.multiseed import resume_step, train_seeds
+
+    out_dir = Path(job["out_dir"])
+    todo = [m for m in members if not (out_dir / m["home"] / "train_metrics.json").is_file()]
+    groups: dict[int, list[dict]] = {}
+    for m in todo:
+        groups.setdefault(resume_step(out_dir / m["home"]), []).append(m)
+    for start, group in sorted(groups.items()):
+        cfgs = [ExperimentConfig.from_dict(m["config"]) for m in group]
+        homes = [out_dir / m["home"] for m in group]
+        t0, c0 = time.time(), time.process_time()
+        results = train_seeds(
+            cfgs,
+            train_ex,
+            homes,
+            eval_sets=evals,
+            progress=job["progress"],
+            desc=job["label"],
+        )
+        wall, cpu = time.time() - t0, time.process_time() - c0
+        times = results[0]["step_times"]
+        host = host_info()
+        for cfg, home, res in zip(cfgs, homes, results, strict=True):
+            metrics, per_mesh = res["metrics"], res["per_mesh"]
+            latest = home / "checkpoints" / "latest"
+            if not metrics and resume_step(home):
+                # Diverged after a checkpoint: evaluate the last saved state.
+                metrics, per_mesh = evaluate_checkpoint(cfg, latest, evals)
+            out = {
+                "status": res["status"],
+                "error": res["error"],
+                "metrics": metrics,
+                "per_mesh": per_mesh,
+                "train": {
+                    "steps": cfg.train.steps,
+                    "final_step": res["step"],
+                    "resumed_from": res["resumed_from"],
+                    # The group's time, shared evenly: sums over runs stay the sweep's.
+                    "wall_s": round(wall / len(group), 2),
+                    "cpu_s": round(cpu / len(group), 2),
+                    "group_wall_s": round(wall, 2),
+                    "group_seeds": len(group),
+                    "median_step_s": float(np.median(times)) if times else None,
+                    "compiles": res["compiles"],
+                },
+                "host": host,
+            }
+            _write_json(home / "train_metrics.json", out)
+        log(
+            f"trained {job['label']}: seeds {[c.train.seed for c in cfgs]} together, "
+            f"{cfgs[0].train.steps} steps"
+            + (f", resumed from step {start}" if start else "")
+            + f", {wall:.1f} s wall, {cpu:.1f} s CPU"
+            + (f", median step {np.median(times) * 1e3:.0f} ms" if times else "")
+            + "; "
+            + ", ".join(
+                f"seed {c.train.seed} {r['status']}" for c, r in zip(cfgs, results, strict=True)
+            )
+        )
 
 
 def _bundle(cfg, home: Path):
@@ -455,27 +499,38 @@ def _bundle(cfg, home: Path):
 
 
 def run_job(job: dict) -> dict:
-    """One training hash: train or reuse its model, then evaluate its pending runs.
+    """One row of a study at every seed: train its seeds together (or reuse finished
+    models), then evaluate every pending run that uses them.
 
     `job` is plain JSON (it crosses process boundaries): `out_dir`, `data_dir`,
-    `eval_meshes`, `preset`, `home` (relative run dir of the training), `config`, `runs`
-    (pending runs as `_spec_to_json`), `progress`.
+    `eval_meshes`, `preset`, `label`, `progress`, and `members`, one per seed: `home`
+    (relative run dir of its training), `config`, `runs` (its pending runs as
+    `_spec_to_json`).
     """
-    from dmd_jax.config import ExperimentConfig
-
     messages: list[str] = []
 
     def log(msg):
         messages.append(msg)
 
-    out_dir = Path(job["out_dir"])
-    home = out_dir / job["home"]
-    cfg = ExperimentConfig.from_dict(job["config"])
     train_ex, evals = load_examples(job["data_dir"], job["eval_meshes"])
-    trained = _train_home(job, cfg, home, train_ex, evals, log)
+    _train_members(job, job["members"], train_ex, evals, log)
+    trains = []
+    for member in job["members"]:
+        trains.append(_evaluate_member(job, member, evals, log))
+    return {"label": job["label"], "messages": messages, "train": trains}
+
+
+def _evaluate_member(job: dict, member: dict, evals, log) -> dict:
+    """Writes the `metrics.json` of every pending run of one trained seed."""
+    from dmd_jax.config import ExperimentConfig
+
+    out_dir = Path(job["out_dir"])
+    home = out_dir / member["home"]
+    cfg = ExperimentConfig.from_dict(member["config"])
+    trained = _read_json(home / "train_metrics.json")
     test_meshes = list(evals["test_intra"]) + list(evals["test_inter"])
     bundle = None
-    for spec in job["runs"]:
+    for spec in member["runs"]:
         run_dir = out_dir / spec["study"] / spec["run_id"]
         run_dir.mkdir(parents=True, exist_ok=True)
         run_cfg = ExperimentConfig.from_dict(spec["config"])
@@ -483,6 +538,7 @@ def run_job(job: dict) -> dict:
         ev = spec["evaluation"]
         t0 = time.time()
         metrics: dict[str, Any] = {}
+        per_mesh: dict[str, list[float]] = dict(trained.get("per_mesh", {}))
         status = trained["status"]
         has_ckpt = (home / "checkpoints" / "latest").is_dir()
         if ev["kind"] == "test":
@@ -491,8 +547,10 @@ def run_job(job: dict) -> dict:
             bundle = bundle or _bundle(cfg, home)
             if ev["kind"] == "noise":
                 metrics = noise_evaluation(bundle, test_meshes, ev["noise_kind"], ev["level"])
+                per_mesh = metrics.pop("per_mesh")
             elif ev["kind"] == "rotation":
                 metrics = rotation_evaluation(bundle, test_meshes, gamma=ev["gamma"])
+                per_mesh = metrics.pop("per_mesh")
                 metrics.update({f"model/{k}": v for k, v in trained["metrics"].items()})
             else:
                 raise ValueError(f"unknown evaluation kind {ev['kind']!r}")
@@ -510,11 +568,14 @@ def run_job(job: dict) -> dict:
             "seed": spec["seed"],
             "run_id": spec["run_id"],
             "config_hash": spec["train_hash"],
-            "trained_in": job["home"],
+            "trained_in": member["home"],
             "status": status if finite else "non-finite",
             "error": trained.get("error"),
             "evaluation": ev,
             "metrics": metrics,
+            # One value per test mesh, in the order of the test sets (test-intra, then
+            # test-inter): what the paired bootstrap of `aggregate` resamples.
+            "per_mesh": per_mesh,
             "train": trained["train"],
             "eval_wall_s": round(eval_wall, 2),
             "host": trained["host"],
@@ -526,11 +587,12 @@ def run_job(job: dict) -> dict:
             f"config hash {spec['train_hash']}; "
             + (
                 "trained in this directory"
-                if rel == job["home"]
-                else f"reuses the model trained in {job['home']}"
+                if rel == member["home"]
+                else f"reuses the model trained in {member['home']}"
             ),
             f"training: {trained['status']}, {trained['train']['steps']} steps, "
-            f"{trained['train']['wall_s']} s wall, {trained['train']['cpu_s']} s CPU"
+            f"{trained['train']['wall_s']} s wall, {trained['train']['cpu_s']} s CPU (its "
+            f"share of {trained['train'].get('group_seeds', 1)} seeds trained together)"
             + (
                 f" (resumed from step {trained['train']['resumed_from']})"
                 if trained["train"].get("resumed_from")
@@ -544,7 +606,7 @@ def run_job(job: dict) -> dict:
         (run_dir / "run.log").write_text("\n".join(lines) + "\n")
         _write_json(run_dir / "metrics.json", record)
         log(f"finished {rel} ({record['status']}, evaluation {eval_wall:.1f} s)")
-    return {"home": job["home"], "messages": messages, "train": trained["train"]}
+    return trained["train"]
 
 
 # --------------------------------------------------------------------------------------
@@ -566,28 +628,52 @@ class _Log:
             tqdm.write(line)
 
 
+def seedless_hash(cfg) -> str:
+    """The training hash with `train.seed` left out: the seeds of one row share it."""
+    return st.config_hash(cfg.with_edits({"train": {"seed": 0}}))
+
+
 def make_jobs(
     runs: Sequence[st.RunSpec], out_dir: Path, *, data_dir, preset_name, eval_meshes, progress
 ) -> list[dict]:
-    """One job per training hash that still has a run without metrics.json."""
+    """One job per row (configs equal up to the seed) that still has a run without
+    `metrics.json`; its members are the row's seeds (one training hash each)."""
     homes = st.training_homes(runs)
-    pending: dict[str, list[st.RunSpec]] = {}
+    pending: dict[str, dict[str, list[st.RunSpec]]] = {}
     for r in runs:
         if not (out_dir / r.study / r.run_id / "metrics.json").is_file():
-            pending.setdefault(r.train_hash, []).append(r)
+            row = pending.setdefault(seedless_hash(r.config), {})
+            row.setdefault(r.train_hash, []).append(r)
     jobs = []
-    for h, rs in pending.items():
-        home = homes[h]
+    for by_hash in pending.values():
+        members = []
+        for h, rs in by_hash.items():
+            home = homes[h]
+            members.append(
+                {
+                    "home": f"{home.study}/{home.run_id}",
+                    "config": home.config.to_dict(),
+                    "runs": [_spec_to_json(r) for r in rs],
+                    "trained": (
+                        out_dir / home.study / home.run_id / "train_metrics.json"
+                    ).is_file(),
+                }
+            )
+        first = homes[next(iter(by_hash))]
+        steps = first.config.train.steps
         jobs.append(
             {
                 "out_dir": str(out_dir),
                 "data_dir": str(data_dir),
                 "eval_meshes": eval_meshes,
                 "preset": preset_name,
-                "home": f"{home.study}/{home.run_id}",
-                "config": home.config.to_dict(),
-                "runs": [_spec_to_json(r) for r in rs],
+                "label": f"{first.study}/{st.slug(first.row)}",
+                "members": members,
                 "progress": progress,
+                # What the remaining-time estimate weighs a job by: its training steps
+                # (a row's seeds cost about one seed's steps, see seed_speedup.md) plus
+                # a tenth for its evaluations.
+                "cost": (steps if any(not m["trained"] for m in members) else 0) + 0.1 * steps,
             }
         )
     return jobs
@@ -610,13 +696,14 @@ def run_sweep(
       p: an `AblatePreset` or a preset name.
       out_dir: results directory.
       data_dir: dataset cache (generated on first use).
-      studies: study keys (default: all).
+      studies: study keys (default: the preset's, `None` there: all).
       workers: parallel training processes (default: the preset's).
       progress: progress bars.
       aggregate: write the tables, plots and README afterwards.
       echo: print log lines (they always go to `out_dir/ablate.log`).
     """
     p = st.get_preset(p) if isinstance(p, str) else p
+    studies = studies or p.studies
     apply_xla_opt_level(p.xla_opt_level)
     if p.jax_cache:
         enable_compilation_cache()
@@ -653,10 +740,10 @@ def run_sweep(
         eval_meshes=p.eval_meshes,
         progress=progress and (workers or p.workers) <= 1,
     )
-    n_done = len(runs) - sum(len(j["runs"]) for j in jobs)
+    n_done = len(runs) - sum(len(m["runs"]) for j in jobs for m in j["members"])
     log(
-        f"{len(runs)} runs, {n_done} already finished; {len(jobs)} jobs "
-        f"({len(st.training_homes(runs))} distinct trainings in these studies)"
+        f"{len(runs)} runs, {n_done} already finished; {len(jobs)} jobs (rows, seeds "
+        f"trained together) for {len(st.training_homes(runs))} distinct trainings"
     )
     failures = _execute(jobs, workers or p.workers, log, progress)
     wall = time.time() - t0
@@ -690,20 +777,39 @@ def run_sweep(
 
 
 def _execute(jobs: list[dict], workers: int, log: Callable, progress: bool) -> list[str]:
+    """Runs the jobs (in `workers` processes); a bar and log lines give the remaining time.
+
+    The estimate weighs every job by its `cost` (training steps): remaining = elapsed ×
+    (cost left / cost done), so it is rough until the first rows have finished.
+    """
     from tqdm.auto import tqdm
 
     failures: list[str] = []
     workers = max(1, min(int(workers), len(jobs) or 1))
-    with tqdm(total=len(jobs), desc="ablate", unit="job", disable=not progress) as bar:
+    total = sum(j["cost"] for j in jobs) or 1.0
+    done = {"cost": 0.0, "jobs": 0}
+    t0 = time.time()
+    with tqdm(
+        total=round(total), desc="ablate", unit="step", disable=not progress, position=0
+    ) as bar:
 
         def finished(job, result=None, exc=None):
             if exc is not None:
-                failures.append(f"{job['home']}: {type(exc).__name__}: {exc}")
-                log(f"FAILED {job['home']}: {type(exc).__name__}: {exc}")
+                failures.append(f"{job['label']}: {type(exc).__name__}: {exc}")
+                log(f"FAILED {job['label']}: {type(exc).__name__}: {exc}")
             else:
                 for msg in result["messages"]:
                     log(msg)
-            bar.update(1)
+            done["cost"] += job["cost"]
+            done["jobs"] += 1
+            elapsed = time.time() - t0
+            left = elapsed * (total - done["cost"]) / max(done["cost"], 1e-9)
+            log(
+                f"progress: {done['jobs']}/{len(jobs)} rows, {100 * done['cost'] / total:.0f} % "
+                f"of the training steps, {elapsed / 60:.1f} min elapsed, about "
+                f"{left / 60:.0f} min left"
+            )
+            bar.update(round(done["cost"]) - bar.n)
 
         if workers == 1:
             for job in jobs:

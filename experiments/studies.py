@@ -204,7 +204,11 @@ class AblatePreset:
       jax_cache: keep compiled programs in JAX's persistent compilation cache
         (`$ABLATE_JAX_CACHE`, default `~/.cache/dmd_jax/xla-ablate`), so a rerun or a
         resumed run skips most of the compile time.
-      workers: runs trained in parallel (processes).
+      workers: rows trained in parallel (processes); a row's seeds train together in
+        one process (`experiments.multiseed`).
+      dataset: the dataset cache's name, `data/ablate-<dataset>` (default: `name`);
+        presets that share one dataset name it alike and generate it once.
+      studies: the studies `run` does by default (`None`: every study).
       dataset_workers: processes generating the dataset (`None`: every core).
       description: one line for the results README.
     """
@@ -226,8 +230,15 @@ class AblatePreset:
     xla_opt_level: int | None = None
     jax_cache: bool = True
     workers: int = 1
+    dataset: str | None = None
+    studies: tuple[str, ...] | None = None
     dataset_workers: int | None = 1
     description: str = ""
+
+    @property
+    def dataset_name(self) -> str:
+        """The dataset cache's name (`data/ablate-<dataset_name>`)."""
+        return self.dataset or self.name
 
     def to_dict(self) -> dict[str, Any]:
         return json.loads(json.dumps(dataclasses.asdict(self)))
@@ -240,7 +251,7 @@ class AblatePreset:
         if unknown:
             raise ValueError(f"AblatePreset: unknown key(s) {unknown}")
         out = dict(data)
-        for key in ("categories", "test_inter", "seeds"):
+        for key in ("categories", "test_inter", "seeds", "studies"):
             if out.get(key) is not None:
                 out[key] = tuple(out[key])
         return cls(**out)
@@ -272,6 +283,24 @@ _SMOKE_TRAIN = {
     "log_every": 1,
 }
 
+# The cpu preset's schedule; its step count is sized for `make ablate` in <= 3 h on two
+# free cores (README, "Ablation studies": how the estimate was made).
+_CPU_TRAIN = {
+    "steps": 1500,
+    "batch_size": 2,
+    "lr": 5e-4,
+    "schedule": "cosine",
+    "warmup_steps": 50,
+    "eval_every": 0,
+    "ckpt_every": 100,
+    "ckpt_keep": 1,
+    "log_every": 10,
+}
+# `make ablate-quick`: the two studies the paper lacks and two of its own, 6 distinct
+# trainings, at fewer steps (<= 20 min on two free cores).
+_QUICK_STEPS = 300
+_QUICK_STUDIES = ("encoding", "head", "attention", "stn")
+
 PRESETS: dict[str, AblatePreset] = {
     "test": AblatePreset(
         name="test",
@@ -302,32 +331,51 @@ PRESETS: dict[str, AblatePreset] = {
             "name": "ablate-cpu",
             "model": {"width": 32, "stn_width": 16},
             "loss": {"feature_curvature": "asinh"},
-            "train": {
-                "steps": 600,
-                "batch_size": 2,
-                "lr": 5e-4,
-                "schedule": "cosine",
-                "warmup_steps": 50,
-                "eval_every": 0,
-                "ckpt_every": 100,
-                "ckpt_keep": 1,
-                "log_every": 10,
-            },
+            "train": _CPU_TRAIN,
         },
         study_edits={},
         categories=None,
         test_inter=DEFAULT_TEST_INTER,
         per_category=6,
         # Two meshes of 322-383 vertices pad to the 768 bucket, one to 384: one compiled
-        # train step and one predictor per config.
+        # train step and one predictor per config (the seeds of a row share both).
         min_vertices=322,
         max_vertices=383,
         eval_meshes=None,
+        seeds=(0, 1, 2),
         workers=2,
         dataset_workers=2,
         description=(
-            "CPU sweep: width 32, 600 steps of batch 2 (lr 5e-4, cosine), 80 training "
-            "meshes of 322-383 vertices, all 34 test meshes"
+            f"CPU sweep: width 32, {_CPU_TRAIN['steps']} steps of batch 2 (lr 5e-4, cosine), "
+            "3 seeds per row trained together, 80 training meshes of 322-383 vertices, all "
+            "34 test meshes"
+        ),
+    ),
+    "cpu-quick": AblatePreset(
+        name="cpu-quick",
+        base="small",
+        edits={
+            "name": "ablate-cpu",
+            "model": {"width": 32, "stn_width": 16},
+            "loss": {"feature_curvature": "asinh"},
+            "train": {**_CPU_TRAIN, "steps": _QUICK_STEPS, "warmup_steps": 25},
+        },
+        study_edits={},
+        categories=None,
+        test_inter=DEFAULT_TEST_INTER,
+        per_category=6,
+        min_vertices=322,
+        max_vertices=383,
+        # The first 8 meshes of each test split: 16 meshes x 3 seeds per interval.
+        eval_meshes=8,
+        seeds=(0, 1, 2),
+        workers=2,
+        dataset="cpu",  # the cpu preset's dataset and calibration, generated once
+        studies=_QUICK_STUDIES,
+        dataset_workers=2,
+        description=(
+            f"first look: the cpu preset at {_QUICK_STEPS} steps, studies "
+            f"{', '.join(_QUICK_STUDIES)}, 3 seeds per row, 8 test meshes per split"
         ),
     ),
     "paper": AblatePreset(

@@ -1,0 +1,113 @@
+"""The ablation verdicts of `experiments.aggregate`: bootstrap intervals and what they say,
+on synthetic numbers whose answers are known."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from experiments import aggregate as agg
+from experiments import studies as st
+
+
+def test_constant_differences_have_a_zero_width_interval():
+    assert agg.paired_bootstrap(np.full((3, 7), 0.25)) == (0.25, 0.25, 0.25)
+
+
+def test_seed_resampling_gives_the_exact_percentiles():
+    # Only the seeds differ (every mesh alike): a resample's mean is the mean of three
+    # seeds drawn from {0, 0, 3}, i.e. 0, 1, 2 or 3. P(all three draws are 0) = 8/27 >
+    # 2.5 %, P(all are 3) = 1/27 > 2.5 %: the 95 % interval is exactly [0, 3].
+    diff = np.array([[0.0] * 5, [0.0] * 5, [3.0] * 5])
+    assert agg.paired_bootstrap(diff, resamples=20_000) == (1.0, 0.0, 3.0)
+
+
+def test_mesh_resampling_matches_the_normal_interval():
+    # One seed, 400 meshes of N(0.5, 1): the percentile interval of the mean is close to
+    # mean ± 1.96 / sqrt(400) = mean ± 0.098.
+    d = np.random.default_rng(1).normal(0.5, 1.0, 400)
+    mean, low, high = agg.paired_bootstrap(d)
+    assert mean == pytest.approx(d.mean())
+    assert high - low == pytest.approx(2 * 1.96 * d.std(ddof=1) / 20, rel=0.1)
+    assert low < mean < high
+
+
+def test_bootstrap_is_deterministic_and_seeds_widen_it():
+    rng = np.random.default_rng(2)
+    meshes = rng.normal(0, 1, (1, 30))
+    seeds = rng.normal(0, 1, (5, 1))
+    a = agg.paired_bootstrap(meshes + 0 * seeds)
+    assert agg.paired_bootstrap(meshes + 0 * seeds) == a
+    b = agg.paired_bootstrap(meshes + seeds)
+    assert b[2] - b[1] > a[2] - a[1]  # seed-to-seed spread enters the interval
+
+
+@pytest.mark.parametrize(
+    ("low", "high", "paper", "want"),
+    [
+        (0.1, 0.3, 1.0, agg.REPRODUCED),  # worse with confidence, paper: worse
+        (-0.3, -0.1, -1.0, agg.REPRODUCED),  # better, paper: better
+        (0.1, 0.3, -1.0, agg.CONTRADICTED),
+        (-0.3, -0.1, 1.0, agg.CONTRADICTED),
+        (-0.1, 0.3, 1.0, agg.UNDECIDED),
+        (0.0, 0.3, 1.0, agg.UNDECIDED),  # touching 0 is not confidence
+        (0.1, 0.3, None, agg.WORSE),  # no paper number
+        (-0.3, -0.1, None, agg.BETTER),
+        (-0.3, 0.1, None, agg.UNDECIDED),
+    ],
+)
+def test_verdict(low, high, paper, want):
+    assert agg.verdict(low, high, paper) == want
+
+
+def _records(per_seed: dict[int, dict[str, list[float]]]) -> list[dict]:
+    return [{"seed": s, "status": "ok", "per_mesh": pm} for s, pm in per_seed.items()]
+
+
+def test_study_intervals_and_verdict_text_from_synthetic_rows():
+    """Attention study: the paper has 'With Attention' worse than the reference in
+    every column. Ours: worse by 1 on test-intra normal (reproduced), better by 1 on
+    test-inter normal (contradicted), pure noise elsewhere (undecided)."""
+    study = st.get_study("attention")
+    rng = np.random.default_rng(0)
+    keys = [k for k, _, _ in agg.TRAIN_COLUMNS]
+    ref, row = {}, {}
+    for s in range(3):
+        ref[s] = {k: list(rng.normal(10, 0.1, 12)) for k in keys}
+        shift = {"test_intra/normal_deg": 1.0, "test_inter/normal_deg": -1.0}
+        row[s] = {k: [v + shift.get(k, rng.choice([-1e-3, 1e-3])) for v in ref[s][k]] for k in keys}
+    records = {"Without Attention": _records(ref), "With Attention": _records(row)}
+    ivs = agg.study_intervals(study, records)
+    by = {iv["column"]: iv for iv in ivs}
+    assert len(ivs) == 6 and {iv["n_seeds"] for iv in ivs} == {3}
+    assert by["test_intra/normal_deg"]["verdict"] == agg.REPRODUCED
+    assert by["test_intra/normal_deg"]["diff"] == pytest.approx(1.0)
+    assert by["test_inter/normal_deg"]["verdict"] == agg.CONTRADICTED
+    # Vertex and chamfer differences (±1e-3 before the ×1e4 table scale) are undecided.
+    assert by["test_intra/vertex_per_coord"]["verdict"] == agg.UNDECIDED
+    text = agg.verdict_text(study, ivs)
+    assert "1 reproduced with confidence, 1 contradicted with confidence, 4 undecided" in text
+    assert "Reproduced: With Attention (intra N)" in text
+    assert "Contradicted: With Attention (inter N)" in text
+    md = agg.intervals_markdown(study, ivs)
+    assert "✓" in md and "✗" in md and md.count("·") >= 4
+
+
+def test_rows_without_paper_numbers_get_better_or_worse():
+    study = st.get_study("head")  # not in the paper
+    keys = [k for k, _, _ in agg.TRAIN_COLUMNS]
+    ref = {s: {k: [1.0, 2.0, 3.0] for k in keys} for s in range(3)}
+    row = {s: {k: [0.5, 1.5, 2.5] for k in keys} for s in range(3)}
+    ivs = agg.study_intervals(study, {"offset": _records(ref), "normal-first": _records(row)})
+    assert {iv["verdict"] for iv in ivs} == {agg.BETTER}
+    text = agg.verdict_text(study, ivs)
+    assert "6 better with confidence, 0 worse with confidence, 0 undecided" in text
+
+
+def test_unpaired_seeds_are_left_out():
+    study = st.get_study("stn")
+    keys = [k for k, _, _ in agg.TRAIN_COLUMNS]
+    ref = {s: {k: [1.0, 2.0] for k in keys} for s in (0, 1)}
+    row = {s: {k: [1.5, 2.5] for k in keys} for s in (1, 2)}
+    ivs = agg.study_intervals(study, {"Without STN": _records(ref), "With STN": _records(row)})
+    assert {iv["n_seeds"] for iv in ivs} == {1}
