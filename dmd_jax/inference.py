@@ -2,27 +2,40 @@
 
 The weights it runs come from `dmd_jax.checkpoints` (`load_pretrained`, `load_weights`,
 `load_model`); the padded graph it runs on from `dmd_jax.graph`.
+
+Memory: a mesh whose whole-mesh run fits the memory budget (`max_memory`) runs at once,
+as it always did; a larger one runs patch by patch (`dmd_jax.patches`): first the
+per-mesh pools, summed over the patches, then every patch with those pools, keeping its
+owned vertices. Both give the same result up to float32 summation order. Patches are
+dispatched to every local device (`jax.local_devices()`), one in flight per device,
+while the host prepares the next.
 """
 
 from __future__ import annotations
 
+import math
+import re
+import sys
+from collections import deque
 from functools import lru_cache
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dmd_jax import patches as patch_lib
 from dmd_jax.checkpoints import as_bundle
-from dmd_jax.config import ExperimentConfig
+from dmd_jax.config import ExperimentConfig, ModelConfig
 from dmd_jax.encoding import mesh_frame
 from dmd_jax.graph import (
     build_mesh_graph,
     pad_mesh_graph,
     pad_vertex_array,
     padded_sizes_for,
+    sizes_for_vertices,
     with_ell_layout,
 )
-from dmd_jax.mesh import validate_mesh
+from dmd_jax.mesh import CanonicalFrame, canonical_frame, validate_mesh
 
 AGGREGATIONS = ("auto", "ell", "segment_sum")
 # `auto` keeps a graph's ELL table while it holds at most this many slots per distinct
@@ -47,6 +60,301 @@ def _predictor(config: ExperimentConfig):
     return predict
 
 
+# --------------------------------------------------------------------------------------
+# Memory budget
+# --------------------------------------------------------------------------------------
+
+# The default budget: this fraction of the memory the OS reports available when `denoise`
+# starts (MemAvailable), leaving room for other processes and for the estimate's error.
+DEFAULT_MEMORY_FRACTION = 0.5
+# Host memory per padded vertex of a run besides XLA's own buffers: the NumPy graph and its
+# build temporaries (sorted int64 edge keys), the ELL tables, the arguments' device copies
+# and the output. Measured: `small` at 999,698 faces (524,288 padded vertices) peaks at
+# 4.48 GiB resident, 0.53 GiB before the call and 2.60 GiB of XLA temporaries
+# (benchmarks/results/inference.md): 1.35 GiB / 524,288 = 2.8 kB; 3.5 kB leaves margin for
+# the next patch, prepared while one runs.
+HOST_BYTES_PER_PADDED_VERTEX = 3500
+# Whole-mesh state of the patch path per vertex and face: the validated copies, positions
+# in the frame (float64), the result, the Morton order, the vertex-face incidence and the
+# BFS stamps (see `_mesh_bytes`).
+MESH_BYTES_PER_VERTEX = 120
+MESH_BYTES_PER_FACE = 40
+# Below this many faces a whole-mesh run is taken without measuring the network (a
+# compilation): `paper`, the widest preset, needs about 0.6 GB there.
+_SMALL_MESH_FACES = 20_000
+_UNITS = {"": 1, "b": 1, "k": 10**3, "m": 10**6, "g": 10**9, "t": 10**12}
+_UNITS.update({"kb": 10**3, "mb": 10**6, "gb": 10**9, "tb": 10**12})
+_UNITS.update({"kib": 2**10, "mib": 2**20, "gib": 2**30, "tib": 2**40})
+
+
+def parse_memory(value) -> int:
+    """A memory size in bytes from a number of bytes or a string such as `"6GiB"`, `"8GB"`,
+    `"500M"` (k/M/G/T are powers of 1000, KiB/MiB/GiB/TiB of 1024).
+
+    Raises:
+      ValueError: an unreadable or non-positive size.
+    """
+    if isinstance(value, str):
+        m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:e[0-9]+)?)\s*([a-zA-Z]*)\s*", value)
+        if m is None or m.group(2).lower() not in _UNITS:
+            raise ValueError(
+                f"cannot read the memory size {value!r}; write e.g. 8GB, 6GiB, 500MB or a "
+                "number of bytes"
+            )
+        size = float(m.group(1)) * _UNITS[m.group(2).lower()]
+    elif isinstance(value, int | float) and not isinstance(value, bool):
+        size = float(value)
+    else:
+        raise ValueError(f"max_memory must be a number of bytes or a string, got {value!r}")
+    if not (math.isfinite(size) and size > 0):
+        raise ValueError(f"max_memory must be positive, got {value!r}")
+    return int(size)
+
+
+def available_memory() -> int:
+    """Bytes the OS reports available (`MemAvailable` of /proc/meminfo; psutil elsewhere).
+
+    Raises:
+      RuntimeError: neither source exists (pass `max_memory` then).
+    """
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    try:
+        import psutil
+
+        return int(psutil.virtual_memory().available)
+    except ImportError:
+        raise RuntimeError(
+            "cannot tell the available memory (no /proc/meminfo, no psutil); pass max_memory"
+        ) from None
+
+
+def default_memory_budget() -> int:
+    """`DEFAULT_MEMORY_FRACTION` of the memory available now, in bytes."""
+    return int(DEFAULT_MEMORY_FRACTION * available_memory())
+
+
+def _format_bytes(n: float) -> str:
+    if n >= 2**30:
+        return f"{n / 2**30:.2f} GiB"
+    if n >= 2**20:
+        return f"{n / 2**20:.0f} MiB"
+    return f"{int(n)} bytes"
+
+
+def _probe_graph():
+    """A padded ~8k-vertex triangulated grid with its ELL tables (for `network_bytes`)."""
+    k = 64
+    i, j = np.meshgrid(np.arange(k - 1), np.arange(k - 1), indexing="ij")
+    a = (i * k + j).ravel()
+    faces = np.concatenate(
+        [np.stack([a, a + 1, a + k], 1), np.stack([a + 1, a + k + 1, a + k], 1)]
+    ).astype(np.int32)
+    x = np.stack(
+        [*np.meshgrid(np.arange(k), np.arange(k), indexing="ij"), np.zeros((k, k))], -1
+    ).reshape(-1, 3)
+    graph = build_mesh_graph(faces, k * k)
+    graph = with_ell_layout(pad_mesh_graph(graph, padded_sizes_for(graph)))
+    return x, graph
+
+
+@lru_cache(maxsize=8)
+def network_bytes_per_vertex(config: ModelConfig) -> int:
+    """XLA's memory for one padded vertex of `config`'s forward pass, measured.
+
+    Compiles the forward pass (the patch pass, with its pools given) for a small padded
+    grid and divides what `compiled.memory_analysis()` reports (temporaries, arguments,
+    output) by its padded vertex count. Memory is linear in size (the `small` preset's
+    temporaries were 5.2 kB per padded vertex at 57k and at 524k padded vertices), so
+    this scales; the fixed part inflates it slightly at the probe's size, on the safe
+    side. Cached per config (one compilation, about a second).
+
+    Args:
+      config: the model config.
+
+    Returns:
+      Bytes per padded vertex.
+    """
+    x, graph = _probe_graph()
+    noisy = pad_vertex_array(x.astype(np.float32), graph.n_vertex)
+    predict = _patch_predictor(config)
+    params = _abstract_params(config)
+    pooled = _abstract_pools(config)
+    compiled = predict.lower(params, noisy, jax.tree.map(np.asarray, graph), pooled).compile()
+    mem = compiled.memory_analysis()
+    total = mem.temp_size_in_bytes + mem.argument_size_in_bytes + mem.output_size_in_bytes
+    return int(math.ceil(total / graph.n_vertex))
+
+
+def _abstract_params(config: ModelConfig):
+    from dmd_jax.model import param_shapes
+
+    return param_shapes(config)
+
+
+def _abstract_pools(config: ModelConfig) -> dict:
+    """Shape structs of every pool `DMDNet(pooled=...)` takes (the patch pass's)."""
+    from dmd_jax.model import pooled_names
+
+    dtype = jnp.float64 if config.dtype == "float64" else jnp.float32
+    out = {}
+    for stage in pooled_names(config):
+        for name in stage:
+            if name == "stn":
+                d = 2 * config.stn_width
+            else:
+                k = int(name[len("w_tf") :])
+                rows = config.transform_in_dim
+                cols = config.width if k == config.n_transforms - 1 else rows
+                d = rows * cols
+            out[name] = jax.ShapeDtypeStruct((d,), dtype)
+    return out
+
+
+def _padded_vertices_estimate(n_vertex: int, n_face: int) -> int:
+    """The padded vertex count of a mesh's whole-mesh graph, from its counts alone."""
+    # Edge counts of a triangle mesh: e ~ 1.5 f (primal, both ways plus loops: 3f + v) and
+    # 3 f dual edges (plus loops: 4 f), as `graph.sizes_for_vertices` sizes them.
+    return sizes_for_vertices(n_vertex, n_face, 3 * n_face + n_vertex, 4 * n_face, 1).n_vertex
+
+
+def _mesh_bytes(n_vertex: int, n_face: int) -> int:
+    return MESH_BYTES_PER_VERTEX * n_vertex + MESH_BYTES_PER_FACE * n_face
+
+
+# --------------------------------------------------------------------------------------
+# Whole mesh and patches
+# --------------------------------------------------------------------------------------
+
+
+@lru_cache(maxsize=8)
+def _patch_predictor(config: ExperimentConfig | ModelConfig):
+    """The jitted forward pass with every per-mesh pool given (`DMDNet(pooled=...)`)."""
+    from dmd_jax.model import DMDNet
+
+    model = DMDNet(config.model if isinstance(config, ExperimentConfig) else config)
+
+    @jax.jit
+    def predict(params, noisy, graph, pooled):
+        out, _, _ = model.apply({"params": params}, noisy, graph, deterministic=True, pooled=pooled)
+        return out
+
+    return predict
+
+
+@lru_cache(maxsize=8)
+def _pool_predictor(config: ModelConfig, names: tuple[str, ...]):
+    """The jitted forward pass up to the pools `names` (earlier stages given).
+
+    Only the pools are returned, so XLA drops everything that does not feed them (the
+    denoiser, the vertex update).
+    """
+    from dmd_jax.model import DMDNet
+
+    model = DMDNet(config)
+
+    @jax.jit
+    def pools(params, noisy, graph, pooled):
+        _, state = model.apply(
+            {"params": params},
+            noisy,
+            graph,
+            deterministic=True,
+            pooled=pooled,
+            mutable=["intermediates"],
+        )
+        found = dict(_find_sown(state["intermediates"]))
+        return {name: found[name][0] for name in names}  # row 0: the patch's graph
+
+    return pools
+
+
+def _find_sown(tree):
+    """`(name, value)` of every value `Module.sow` recorded, at any depth."""
+    for key, value in tree.items():
+        if isinstance(value, tuple):
+            yield key, value[-1]
+        else:
+            yield from _find_sown(value)
+
+
+def _prepared_graph(faces: np.ndarray, n_vertex: int, aggregation: str):
+    """The padded graph `denoise` runs on (edge lists, and ELL tables unless
+    `aggregation="segment_sum"`), as NumPy."""
+    graph = build_mesh_graph(faces, n_vertex)
+    graph = pad_mesh_graph(graph, padded_sizes_for(graph))
+    if aggregation != "segment_sum":
+        graph = with_ell_layout(graph, max_fill=AUTO_MAX_FILL if aggregation == "auto" else None)
+    return graph
+
+
+def _ell_widths(graph) -> tuple:
+    return tuple(
+        None if e is None else e.neighbours.shape[1] for e in (graph.vertex_ell, graph.face_ell)
+    )
+
+
+def _widen_ell(graph, widths):
+    """`graph` with its ELL tables widened to `widths` by unused slots (weight 0, pointing
+    at their own row, their own reverse slot), which change nothing; a table that is None
+    on either side stays as it is."""
+    out = []
+    for ell, width in zip((graph.vertex_ell, graph.face_ell), widths, strict=True):
+        if ell is None or width is None or ell.neighbours.shape[1] >= width:
+            out.append(ell)
+            continue
+        n, w = ell.neighbours.shape
+        extra = width - w
+        rows = np.broadcast_to(np.arange(n, dtype=np.int32)[:, None], (n, extra))
+        slots = np.broadcast_to(np.arange(w, width, dtype=np.int32)[None, :], (n, extra))
+        out.append(
+            type(ell)(
+                np.concatenate([ell.neighbours, rows], 1),
+                np.concatenate([ell.weights, np.zeros((n, extra), ell.weights.dtype)], 1),
+                np.concatenate([ell.reverse_slot, slots], 1),
+            )
+        )
+    return graph._replace(vertex_ell=out[0], face_ell=out[1])
+
+
+def lean_mesh_frame(encoding: str, vertices: np.ndarray, faces: np.ndarray) -> CanonicalFrame:
+    """`encoding.mesh_frame` in a few bytes a face, for meshes of tens of millions of faces.
+
+    The mean edge length of the `"local"` frame over unique edges as `mesh_frame` takes
+    it, but from one int64 key per half-edge sorted in place and lengths summed in
+    blocks (`mesh.mean_edge_length` holds several `[3 n_face, 2]` int64 copies at once).
+    Equal to `mesh_frame` up to float64 summation order.
+    """
+    box = canonical_frame(vertices)
+    if encoding == "xyz":
+        return box
+    n = np.int64(vertices.shape[0])
+    key = np.empty(3 * faces.shape[0], np.int64)
+    m = faces.shape[0]
+    for k, (i, j) in enumerate(((0, 1), (1, 2), (2, 0))):
+        a, b = faces[:, i].astype(np.int64), faces[:, j].astype(np.int64)
+        key[k * m : (k + 1) * m] = np.minimum(a, b) * n + np.maximum(a, b)
+        del a, b
+    key.sort()
+    first = np.ones(key.size, bool)
+    first[1:] = key[1:] != key[:-1]
+    key = key[first]
+    del first
+    total, block = 0.0, 1 << 22
+    for start in range(0, key.size, block):
+        a, b = np.divmod(key[start : start + block], n)
+        total += float(np.linalg.norm(vertices[a] - vertices[b], axis=1).sum())
+    h = total / key.size
+    if not (np.isfinite(h) and h > 0):
+        raise ValueError("the mesh's mean edge length is zero: no edge-unit frame exists")
+    return CanonicalFrame(centre=box.centre, scale=h)
+
+
 def denoise(
     vertices,
     faces,
@@ -55,12 +363,23 @@ def denoise(
     config: ExperimentConfig | None = None,
     iterations: int = 1,
     aggregation: str = "auto",
+    max_memory=None,
+    patch_size: int | None = None,
+    progress: bool | None = None,
+    devices=None,
 ) -> np.ndarray:
-    """Denoises a triangle mesh with a trained DMD-Net.
+    """Denoises a triangle mesh with a trained DMD-Net, in bounded memory.
 
     The mesh is mapped to the frame of the model's encoding (`encoding.mesh_frame`:
     bounding box centred, and longest side 1 or mean edge length 1), denoised, and
     mapped back, so the result is translation- and scale-equivariant.
+
+    A mesh whose whole-mesh run fits `max_memory` runs at once. A larger one runs patch
+    by patch (`dmd_jax.patches`): owned vertex sets of a Morton order, each grown by a
+    halo as deep as the network's receptive field; the per-mesh pools of the transformer
+    (and STN) are computed first over all patches. The result equals the whole-mesh run
+    up to float32 summation order (`tests/test_patches.py`: within 2e-5 mean edge
+    lengths for the bundled model).
 
     Args:
       vertices: `[n_vertex, 3]` in any frame; float16/32/64 or integer.
@@ -77,14 +396,26 @@ def denoise(
         graphs, except a table padded to more than `AUTO_MAX_FILL` slots per edge (a
         vertex of very high valence), whose graph then uses its edge lists. Attention
         models use the edge lists regardless.
+      max_memory: the memory this call may use beyond what the process holds when it
+        starts, in bytes or as a string (`"6GiB"`, `"8GB"`); default
+        `DEFAULT_MEMORY_FRACTION` of the memory available (`available_memory`). The
+        estimate: the network's XLA buffers per padded vertex (`network_bytes_per_vertex`,
+        measured by compiling once) plus `HOST_BYTES_PER_PADDED_VERTEX`, and the mesh's
+        own arrays in patch mode.
+      patch_size: owned vertices per patch; forces the patch path (tests, tuning). Default:
+        the largest patches the budget allows.
+      progress: a tqdm progress bar over the patches on stderr (default: when stderr is a
+        terminal and there are several patches).
+      devices: the devices patches run on (default `jax.local_devices()`).
 
     Returns:
       `[n_vertex, 3]` denoised vertices in the input frame; float32 for float32 input,
       float64 otherwise.
 
     Raises:
-      ValueError: bad mesh (see `dmd_jax.mesh.validate_mesh`), bad params, or an
-        unknown `aggregation`.
+      ValueError: bad mesh (see `dmd_jax.mesh.validate_mesh`), bad params, an unknown
+        `aggregation`, a bad `max_memory` or `patch_size`, or a budget too small for a
+        single patch (the message names the budget and what one patch needs).
     """
     if int(iterations) < 1:
         raise ValueError(f"iterations must be at least 1, got {iterations}")
@@ -92,18 +423,51 @@ def denoise(
         raise ValueError(
             f"unknown aggregation {aggregation!r}; choose one of {', '.join(AGGREGATIONS)}"
         )
+    if patch_size is not None and (isinstance(patch_size, bool) or int(patch_size) < 1):
+        raise ValueError(f"patch_size must be a positive number of vertices, got {patch_size}")
+    budget = None if max_memory is None else parse_memory(max_memory)
     v, f = validate_mesh(vertices, faces)
     in_dtype = np.asarray(vertices).dtype
     bundle = as_bundle(params, config)
+    cfg = bundle.config.model
+    n, m = v.shape[0], f.shape[0]
+    whole = patch_size is None and budget is None and m < _SMALL_MESH_FACES
+    if patch_size is None and not whole:
+        if budget is None:
+            budget = default_memory_budget()
+        if budget <= _mesh_bytes(n, m):
+            raise ValueError(
+                f"the memory budget of {_format_bytes(budget)} cannot even hold the mesh's "
+                f"own arrays ({_format_bytes(_mesh_bytes(n, m))} for {n:,} vertices and "
+                f"{m:,} faces); raise max_memory / --max-memory"
+            )
+        per_vertex = network_bytes_per_vertex(cfg) + HOST_BYTES_PER_PADDED_VERTEX
+        whole = per_vertex * _padded_vertices_estimate(n, m) <= budget
+    if whole:
+        return _denoise_whole(v, f, bundle, in_dtype, iterations, aggregation)
+    frame = lean_mesh_frame(cfg.encoding, v, f)
+    x = frame.apply(v)
+    del v
+    runner = _PatchRunner(bundle, f, n, aggregation, devices, progress)
+    if patch_size is None:
+        runner.size_from_budget(x, budget, per_vertex)
+    else:
+        runner.patch_size = int(patch_size)
+    for _ in range(int(iterations)):
+        x = runner.run(x)
+        if not np.all(np.isfinite(x)):
+            raise ValueError("the network produced non-finite vertices (broken weights?)")
+    result = frame.invert(x)
+    return result.astype(np.float32) if in_dtype == np.float32 else result
+
+
+def _denoise_whole(v, f, bundle, in_dtype, iterations: int, aggregation: str) -> np.ndarray:
+    """The whole mesh at once (the path of every mesh that fits the budget)."""
     frame = mesh_frame(bundle.config.model.encoding, v, f)
     x = frame.apply(v)
     # The padded graph does not change between passes: build it (edge lists, ELL
     # tables) and move it to the device once, not once per pass.
-    graph = build_mesh_graph(f, v.shape[0])
-    graph = pad_mesh_graph(graph, padded_sizes_for(graph))
-    if aggregation != "segment_sum":
-        graph = with_ell_layout(graph, max_fill=AUTO_MAX_FILL if aggregation == "auto" else None)
-    graph = jax.tree.map(jnp.asarray, graph)
+    graph = jax.tree.map(jnp.asarray, _prepared_graph(f, v.shape[0], aggregation))
     predict = _predictor(bundle.config)
     n, n_padded = v.shape[0], graph.n_vertex
     for _ in range(int(iterations)):
@@ -115,3 +479,226 @@ def denoise(
             raise ValueError("the network produced non-finite vertices (broken weights?)")
     result = frame.invert(x)
     return result.astype(np.float32) if in_dtype == np.float32 else result
+
+
+class _PatchRunner:
+    """Runs one network pass over a mesh patch by patch (see `denoise`).
+
+    Args:
+      bundle: the model bundle.
+      faces: `[n_face, 3]` int32 faces of the whole mesh.
+      n_vertex: its vertex count.
+      aggregation: as `denoise`'s.
+      devices: devices to spread the patches over (default `jax.local_devices()`).
+      progress: as `denoise`'s.
+    """
+
+    def __init__(self, bundle, faces, n_vertex: int, aggregation: str, devices, progress):
+        from dmd_jax.model import pooled_names
+
+        self.bundle = bundle
+        self.cfg = bundle.config.model
+        self.faces = faces
+        self.n_vertex = int(n_vertex)
+        self.aggregation = aggregation
+        self.devices = list(jax.local_devices() if devices is None else devices)
+        if not self.devices:
+            raise ValueError("denoise needs at least one device")
+        self.progress = progress
+        self.grower = patch_lib.PatchGrower(faces, n_vertex)
+        self.halo = patch_lib.halo_rings(self.cfg)
+        self.stages = pooled_names(self.cfg)
+        self.patch_size = None
+        self.max_padded_vertices = None  # None: no limit (a forced patch_size)
+        self.budget = None
+        self.order = None
+        self._params = {}
+        self._shapes = {}  # padded sizes compiled so far -> their ELL table widths
+        self.patches_run = 0  # patches of the last `run`, over every pass (benchmarks)
+        self.largest_patch = 0  # most padded vertices of any patch so far
+
+    def size_from_budget(self, x: np.ndarray, budget: int, per_vertex: int) -> None:
+        """Chooses the owned vertices per patch so that a padded patch fits `budget`.
+
+        Starts from a disc of owned vertices on a remeshed surface (radius r rings: about
+        3 r^2 vertices) whose halo keeps the patch at 3/4 of the limit, then halves or
+        doubles it while the first chunk of the Morton order (grown by the output halo)
+        is over the limit or its double still under it. Patches found too large later
+        are split as they come (`_patches`).
+
+        Args:
+          x: `[n_vertex, 3]` positions (for the Morton order).
+          budget: bytes for the whole call.
+          per_vertex: bytes per padded vertex of a patch.
+
+        Raises:
+          ValueError: the mesh's own arrays leave no room for a patch.
+        """
+        self.budget = budget
+        self._ensure_order(x)
+        room = budget - _mesh_bytes(self.n_vertex, self.faces.shape[0])
+        self.max_padded_vertices = room // per_vertex
+        if self.max_padded_vertices < 256:
+            raise ValueError(
+                f"the memory budget of {_format_bytes(budget)} leaves "
+                f"{_format_bytes(max(room, 0))} for patches after the mesh's own arrays "
+                f"({_format_bytes(_mesh_bytes(self.n_vertex, self.faces.shape[0]))}); a "
+                f"patch needs {per_vertex} bytes a padded vertex and its halo "
+                f"{self.halo.output} rings; raise max_memory / --max-memory"
+            )
+        limit = self.max_padded_vertices
+        r0 = max(math.sqrt(0.75 * limit / 3.0) - self.halo.output, 1.0)
+        size = min(max(int(3.0 * r0 * r0), 1), self.n_vertex)
+
+        def padded(k: int) -> int:
+            patch = self.grower.grow(self.order[:k], self.halo.output)
+            return padded_sizes_for(build_mesh_graph(patch.faces, patch.vertices.size)).n_vertex
+
+        while size > 1 and padded(size) > limit:
+            size //= 2
+        while size < self.n_vertex and padded(min(2 * size, self.n_vertex)) <= limit:
+            size = min(2 * size, self.n_vertex)
+        self.patch_size = size
+
+    def _ensure_order(self, x: np.ndarray) -> None:
+        if self.order is None:
+            self.order = patch_lib.morton_order(x)
+
+    # ----------------------------------------------------------------------------------
+
+    def _device_params(self, device):
+        if device not in self._params:
+            self._params[device] = jax.device_put(self.bundle.params, device)
+        return self._params[device]
+
+    def _chunks(self):
+        """Owned vertex sets, `patch_size` consecutive vertices of the Morton order."""
+        for start in range(0, self.n_vertex, self.patch_size):
+            yield self.order[start : start + self.patch_size]
+
+    def _shaped_graph(self, graph, natural):
+        """The padded graph of a patch's `graph` (natural sizes `natural`), in a shape an
+        earlier patch already compiled when one fits it with at most 2x the padding
+        (fewer compilations)."""
+        sizes = natural
+        for used in self._shapes:
+            if all(a >= b for a, b in zip(used, natural, strict=True)) and (
+                used.n_vertex <= 2 * natural.n_vertex
+                and (sizes is natural or used.n_vertex < sizes.n_vertex)
+            ):
+                sizes = used
+        graph = pad_mesh_graph(graph, sizes)
+        if self.aggregation != "segment_sum":
+            auto = self.aggregation == "auto"
+            graph = with_ell_layout(graph, max_fill=AUTO_MAX_FILL if auto else None)
+            widths = self._shapes.get(sizes)
+            if widths is not None and _ell_widths(graph) != widths:
+                graph = _widen_ell(graph, widths)
+        self._shapes.setdefault(sizes, _ell_widths(graph))
+        return graph
+
+    def _patches(self, rings: int):
+        """Yields `(patch, padded graph)`; splits owned sets whose patch is too large."""
+        todo = deque(self._chunks())
+        while todo:
+            owned = todo.popleft()
+            patch = self.grower.grow(owned, rings)
+            limit = self.max_padded_vertices
+            raw = build_mesh_graph(patch.faces, patch.vertices.size)
+            n_padded = padded_sizes_for(raw)
+            if limit is not None and n_padded.n_vertex > limit:
+                if owned.size == 1:
+                    raise ValueError(
+                        f"the memory budget of {_format_bytes(self.budget)} cannot hold a "
+                        f"single patch: one vertex with its {rings}-ring halo is "
+                        f"{patch.vertices.size} vertices ({n_padded.n_vertex} padded, "
+                        f"{limit} fit); raise max_memory / --max-memory"
+                    )
+                half = owned.size // 2
+                # Later chunks are as large: halve them all from here on.
+                self.patch_size = max(half, 1)
+                todo.appendleft(owned[half:])
+                todo.appendleft(owned[:half])
+                continue
+            graph = self._shaped_graph(raw, n_padded)
+            self.largest_patch = max(self.largest_patch, graph.n_vertex)
+            yield patch, graph
+
+    def _sweep(self, x, rings: int, fn, desc: str):
+        """Runs `fn(device, patch, graph)` (async) over every patch, several devices at
+        once; yields `(patch, result)` as NumPy in patch order."""
+        bar = None
+        show = self.progress
+        if show is None:
+            show = sys.stderr.isatty() and self.n_vertex > 2 * (self.patch_size or 1)
+        if show:
+            from tqdm.auto import tqdm
+
+            bar = tqdm(total=self.n_vertex, desc=desc, unit="vertex", unit_scale=True)
+        inflight = deque()
+        k = 0
+        try:
+            for patch, graph in self._patches(rings):
+                device = self.devices[k % len(self.devices)]
+                k += 1
+                inflight.append((patch, fn(device, patch, graph)))
+                # One patch per device runs while the host prepares the next.
+                if len(inflight) > len(self.devices):
+                    patch, out = inflight.popleft()
+                    yield patch, jax.device_get(out)
+                    if bar is not None:
+                        bar.update(int(patch.owned.sum()))
+            while inflight:
+                patch, out = inflight.popleft()
+                yield patch, jax.device_get(out)
+                if bar is not None:
+                    bar.update(int(patch.owned.sum()))
+        finally:
+            if bar is not None:
+                bar.close()
+        self.patches_run += k
+
+    def _inputs(self, device, x, patch, graph, pooled, owned_mask: bool):
+        noisy = pad_vertex_array(x[patch.vertices].astype(np.float32), graph.n_vertex)
+        if owned_mask:
+            # The pools average over the owned vertices only: each vertex counts once
+            # over all patches (`vertex_mask` reaches nothing but the pools).
+            graph = graph._replace(vertex_mask=pad_vertex_array(patch.owned, graph.n_vertex))
+        return jax.device_put((noisy, graph, pooled), device)
+
+    def run(self, x: np.ndarray) -> np.ndarray:
+        """One pass of the network: `[n_vertex, 3]` frame positions in, out."""
+        self._ensure_order(x)
+        self.patches_run = 0
+        params_dtype = np.float64 if self.cfg.dtype == "float64" else np.float32
+        pooled: dict = {}
+        n_pass = len(self.stages) + 1
+        for s, names in enumerate(self.stages):
+            predict = _pool_predictor(self.cfg, names)
+            sums = None
+
+            def pool_fn(device, patch, graph, predict=predict, pooled=pooled):
+                args = self._inputs(device, x, patch, graph, pooled, owned_mask=True)
+                return predict(self._device_params(device), *args)
+
+            desc = f"pools {s + 1}/{n_pass}"
+            for patch, out in self._sweep(x, self.halo.pools[s], pool_fn, desc):
+                count = float(patch.owned.sum())
+                part = {k: np.asarray(v, np.float64) * count for k, v in out.items()}
+                sums = part if sums is None else {k: sums[k] + part[k] for k in sums}
+            pooled = {
+                **pooled,
+                **{k: (v / self.n_vertex).astype(params_dtype) for k, v in sums.items()},
+            }
+        predict = _patch_predictor(self.cfg)
+        result = np.empty_like(x)
+
+        def run_fn(device, patch, graph):
+            args = self._inputs(device, x, patch, graph, pooled, owned_mask=False)
+            return predict(self._device_params(device), *args)
+
+        desc = f"patches {n_pass}/{n_pass}" if n_pass > 1 else "patches"
+        for patch, out in self._sweep(x, self.halo.output, run_fn, desc):
+            keep = patch.owned
+            result[patch.vertices[keep]] = out[: patch.vertices.size][keep]
+        return result

@@ -380,13 +380,17 @@ class Transformer(nn.Module):
     config: ModelConfig
 
     @nn.compact
-    def __call__(self, features, x_in, graph: MeshGraph, *, deterministic: bool = True):
+    def __call__(
+        self, features, x_in, graph: MeshGraph, *, deterministic: bool = True, pooled=None
+    ):
         """Computes the per-mesh transformation(s) and applies them to `x_in`.
 
         Args:
           features: `[n_vertex, 5]` guidance (feature extractor output).
           x_in: `[n_vertex, in_dim]` what the transformation acts on.
           graph: the mesh graph.
+          pooled: optional dict of FAP results to use instead of pooling over `graph`
+            (see `DMDNet`): `"w_tf{k}"` -> `[rows * cols]` or `[n_graph, rows * cols]`.
 
         Returns:
           `(t [n_vertex, width], [W_tf per transformation, each [n_graph, a, b]])`.
@@ -403,29 +407,42 @@ class Transformer(nn.Module):
             dropout_rate=cfg.dropout, attention=cfg.attention, param_dtype=pd, residual=False
         )
 
-        h = nn.relu(nn.Dense(hidden, param_dtype=pd, name="fc_in")(features))
-        h = nn.Dropout(cfg.dropout)(h, deterministic=deterministic)
-        outs = [h]
-        for i in range(cfg.dense_layers):
-            outs.append(
-                Aggregator(hidden, name=f"dense_agg{i}", **agg)(
-                    jnp.concatenate(outs, axis=-1), *edges, deterministic=deterministic, ell=ell
-                )
-            )
-        h = Aggregator(hidden, name="agg", **agg)(
-            jnp.concatenate(outs, axis=-1), *edges, deterministic=deterministic, ell=ell
-        )
-
         # One (rows x cols) matrix per transformation of the cascade, each from its own
         # FC head (no ReLU: W_tf entries must not be skewed positive) and FAP per mesh.
         shapes = [(in_dim, in_dim)] * (cfg.n_transforms - 1) + [(in_dim, cfg.width)]
         n_graph = graph.n_vertex_per_graph.shape[0]
-        mats = []
-        for k, (rows, cols) in enumerate(shapes):
-            name = "fc_out" if k == len(shapes) - 1 else f"fc_cascade{k}"
-            flat = nn.Dense(rows * cols, param_dtype=pd, name=name)(h)
-            pooled = ops.feature_average_pool(flat, graph.vertex_graph, n_graph, graph.vertex_mask)
-            mats.append(pooled.reshape(n_graph, rows, cols))
+        names = [f"w_tf{k}" for k in range(len(shapes))]
+        if pooled is not None and all(name in pooled for name in names):
+            # Patch-wise inference: the whole mesh's FAP, computed beforehand; the trunk
+            # that feeds it is not needed here.
+            mats = [
+                _broadcast_pooled(pooled[name], n_graph).reshape(n_graph, rows, cols)
+                for name, (rows, cols) in zip(names, shapes, strict=True)
+            ]
+        else:
+            h = nn.relu(nn.Dense(hidden, param_dtype=pd, name="fc_in")(features))
+            h = nn.Dropout(cfg.dropout)(h, deterministic=deterministic)
+            outs = [h]
+            for i in range(cfg.dense_layers):
+                outs.append(
+                    Aggregator(hidden, name=f"dense_agg{i}", **agg)(
+                        jnp.concatenate(outs, axis=-1), *edges, deterministic=deterministic, ell=ell
+                    )
+                )
+            h = Aggregator(hidden, name="agg", **agg)(
+                jnp.concatenate(outs, axis=-1), *edges, deterministic=deterministic, ell=ell
+            )
+            mats = []
+            for k, (rows, cols) in enumerate(shapes):
+                head = "fc_out" if k == len(shapes) - 1 else f"fc_cascade{k}"
+                flat = nn.Dense(rows * cols, param_dtype=pd, name=head)(h)
+                mean = ops.feature_average_pool(
+                    flat, graph.vertex_graph, n_graph, graph.vertex_mask
+                )
+                # Recorded only when the caller makes "intermediates" mutable (patch-wise
+                # inference sums these over patches); a no-op otherwise.
+                self.sow("intermediates", names[k], mean)
+                mats.append(mean.reshape(n_graph, rows, cols))
 
         t = x_in
         for k, w in enumerate(mats):
@@ -448,14 +465,22 @@ class SpatialTransformer(nn.Module):
     config: ModelConfig
 
     @nn.compact
-    def __call__(self, xyz, graph: MeshGraph, *, deterministic: bool = True):
-        """Returns `[n_graph, 3, 3]`."""
+    def __call__(self, xyz, graph: MeshGraph, *, deterministic: bool = True, pooled=None):
+        """Returns `[n_graph, 3, 3]`.
+
+        `pooled`, optional: a dict whose `"stn"` entry (`[2 stn_width]` or
+        `[n_graph, 2 stn_width]`) replaces the FAP over `graph` (see `DMDNet`).
+        """
         cfg = self.config
         pd = _param_dtype(cfg)
-        h = nn.relu(nn.Dense(cfg.stn_width, param_dtype=pd, name="mlp0")(xyz))
-        h = nn.relu(nn.Dense(2 * cfg.stn_width, param_dtype=pd, name="mlp1")(h))
         n_graph = graph.n_vertex_per_graph.shape[0]
-        g = ops.feature_average_pool(h, graph.vertex_graph, n_graph, graph.vertex_mask)
+        if pooled is not None and "stn" in pooled:
+            g = _broadcast_pooled(pooled["stn"], n_graph)
+        else:
+            h = nn.relu(nn.Dense(cfg.stn_width, param_dtype=pd, name="mlp0")(xyz))
+            h = nn.relu(nn.Dense(2 * cfg.stn_width, param_dtype=pd, name="mlp1")(h))
+            g = ops.feature_average_pool(h, graph.vertex_graph, n_graph, graph.vertex_mask)
+            self.sow("intermediates", "stn", g)
         g = nn.relu(nn.Dense(cfg.stn_width, param_dtype=pd, name="fc0")(g))
         eye = jnp.eye(3).reshape(-1)
         flat = nn.Dense(
@@ -519,12 +544,23 @@ class DMDNet(nn.Module):
     Returns `(denoised [n_vertex, 3], features [n_vertex, 5] or None, aux)` where `aux`
     holds `"w_tf"` (list of `[n_graph, a, b]`, transformer variants) and `"stn"`
     (`[n_graph, 3, 3]`, with `stn=True`).
+
+    The only per-mesh (non-local) quantities are the feature average pools (FAP) of the
+    STN (`"stn"`, `[n_graph, 2 stn_width]`) and of the transformer's heads (`"w_tf{k}"`,
+    `[n_graph, rows * cols]`, one per transformation of the cascade); `pooled_names`
+    lists them for a config. Called with `mutable=["intermediates"]`, the model records
+    each under that name (`self.sow`); called with `pooled={name: value}`, it uses the
+    given value (`[d]`, broadcast to every graph, or `[n_graph, d]`) instead of pooling
+    over `graph`. Patch-wise inference (`dmd_jax.patches`) uses both: it sums the
+    pools of disjoint vertex sets over the patches of a large mesh, then runs each patch
+    with the whole mesh's pools, so every other operation sees only a neighbourhood.
+    Without these arguments the model is unchanged.
     """
 
     config: ModelConfig
 
     @nn.compact
-    def __call__(self, vertices, graph: MeshGraph, *, deterministic: bool = True):
+    def __call__(self, vertices, graph: MeshGraph, *, deterministic: bool = True, pooled=None):
         cfg = self.config
         n_vertex = graph.vertex_graph.shape[0]
         if vertices.ndim != 2 or vertices.shape != (n_vertex, 3):
@@ -546,7 +582,7 @@ class DMDNet(nn.Module):
             # coordinates of the local encoding); the offset is added to the untransformed
             # positions.
             mats = SpatialTransformer(cfg, name="stn")(
-                x_in[:, :3], graph, deterministic=deterministic
+                x_in[:, :3], graph, deterministic=deterministic, pooled=pooled
             )
             aux["stn"] = mats
             x_in = jnp.concatenate(
@@ -562,7 +598,7 @@ class DMDNet(nn.Module):
         if cfg.uses_transformer:
             t_in = x_in if cfg.variant == "fgt3" else jnp.concatenate([x_in, features], -1)
             t, mats = Transformer(cfg, name="transformer")(
-                features, t_in, graph, deterministic=deterministic
+                features, t_in, graph, deterministic=deterministic, pooled=pooled
             )
             aux["w_tf"] = mats
             den_in = jnp.concatenate([t, x_in], axis=-1)
@@ -585,6 +621,32 @@ class DMDNet(nn.Module):
         else:
             denoised = xyz + out if cfg.predict_offset else out
         return denoised, features, aux
+
+
+def pooled_names(config: ModelConfig) -> tuple[tuple[str, ...], ...]:
+    """The model's per-mesh pools, in the order they depend on each other.
+
+    Returns:
+      Stages of names (see `DMDNet`): `("stn",)` first when `config.stn` (the
+      transformer's input depends on it), then `("w_tf0", ...)` for transformer
+      variants. Each stage can be computed once the earlier ones are known.
+    """
+    stages = []
+    if config.stn:
+        stages.append(("stn",))
+    if config.uses_transformer:
+        stages.append(tuple(f"w_tf{k}" for k in range(config.n_transforms)))
+    return tuple(stages)
+
+
+def _broadcast_pooled(value, n_graph: int):
+    """A given pool, `[d]` or `[n_graph, d]`, as `[n_graph, d]`."""
+    value = jnp.asarray(value)
+    if value.ndim == 1:
+        return jnp.broadcast_to(value[None, :], (n_graph, value.shape[0]))
+    if value.ndim != 2 or value.shape[0] != n_graph:
+        raise ValueError(f"a pooled override must be [d] or [{n_graph}, d], got {value.shape}")
+    return value
 
 
 def _param_dtype(cfg: ModelConfig):

@@ -1,0 +1,296 @@
+"""Patch-wise inference (`dmd_jax.patches`, `denoise(..., patch_size=/max_memory=)`).
+
+The receptive field is checked empirically (a perturbed vertex moves nothing beyond it,
+and, for small configs, something at its edge), and patch-wise results are compared with
+whole-mesh ones on meshes that fit in memory. The meshes are long noisy strips, so halos
+really are cut (a strip 300 columns long holds no patch of 88 rings around 100 columns).
+
+Tolerance: float32 networks on meshes in edge units, where the two paths differ only in
+summation order (the pools are sums over patches instead of one segment sum): measured
+up to 1.9e-5 mean edge lengths for the bundled model; we allow 1e-4 edges.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.sparse as sp
+from scipy.sparse.csgraph import shortest_path
+
+import dmd_jax
+from dmd_jax import inference, patches
+from dmd_jax.checkpoints import ModelBundle
+from dmd_jax.config import ModelConfig, preset
+from dmd_jax.encoding import mesh_frame
+from dmd_jax.graph import build_mesh_graph
+from dmd_jax.model import DMDNet, init_params
+
+TOL_EDGES = 1e-4
+
+
+def strip(nx: int, ny: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """A wavy triangulated strip, `nx` by `ny` vertices, unit edges, Gaussian noise 0.2."""
+    i, j = np.meshgrid(np.arange(nx - 1), np.arange(ny - 1), indexing="ij")
+    a = (i * ny + j).ravel()
+    f = np.concatenate(
+        [np.stack([a, a + ny, a + 1], 1), np.stack([a + 1, a + ny, a + ny + 1], 1)]
+    ).astype(np.int32)
+    x, y = np.meshgrid(np.arange(nx, dtype=float), np.arange(ny, dtype=float), indexing="ij")
+    z = np.sin(x / 7) * 3 + np.cos(y / 5)
+    v = np.stack([x, y, z], -1).reshape(-1, 3)
+    return v + np.random.default_rng(seed).normal(0, 0.2, v.shape), f
+
+
+def jitter_heads(params, scale: float, seed: int = 1):
+    """Fresh params with random heads: an untrained head is zero (an identity map)."""
+    flat, tree = jax.tree_util.tree_flatten_with_path(params)
+    keys = jax.random.split(jax.random.PRNGKey(seed), len(flat))
+    out = []
+    for (path, leaf), k in zip(flat, keys, strict=True):
+        if "head" in jax.tree_util.keystr(path):
+            leaf = leaf + scale * jax.random.normal(k, leaf.shape, leaf.dtype)
+        out.append(leaf)
+    return jax.tree_util.tree_unflatten(tree, out)
+
+
+def fresh_bundle(model: ModelConfig, scale: float) -> ModelBundle:
+    params = jitter_heads(init_params(model, jax.random.PRNGKey(0)), scale)
+    cfg = preset("test").with_edits({"model": model.to_dict()})
+    return ModelBundle(params=params, config=cfg, meta={})
+
+
+def ring_distance(faces: np.ndarray, n: int, source: int) -> np.ndarray:
+    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    a = sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)).tocsr()
+    return shortest_path(a, unweighted=True, directed=False, indices=source)
+
+
+# --------------------------------------------------------------------------------------
+# Receptive field
+# --------------------------------------------------------------------------------------
+
+
+def test_receptive_field_of_the_presets():
+    # small: pre-filters 60 passes (+1 to vertices), FE 2 x (3 + 1), transformer 3 + 1 to
+    # the pool / 1 to the output, denoiser 2 x 4 - 1 to the last dual stream, 10 updates.
+    assert patches.receptive_field(preset("small").model) == (87, (73,))
+    assert patches.halo_rings(preset("small").model) == (88, (74,))
+    # paper: xyz, offset head: FE 2 x 4, transformer 1, denoiser 2 x 4.
+    assert patches.receptive_field(preset("paper").model) == (17, (12,))
+
+
+TINY = dict(dtype="float64", n_agg=1, fe_two_streams=1, depth=1, dense_layers=1)
+TINY_LOCAL = dict(TINY, encoding="local", head="normal", filter_iterations=3, vertex_iterations=2)
+SLOW = pytest.mark.slow
+PERTURB_CASES = [
+    pytest.param(TINY_LOCAL, id="fgt8-local-normal", marks=SLOW),
+    pytest.param(dict(TINY_LOCAL, stn=True, variant="mt"), id="mt-stn"),
+    pytest.param(dict(TINY, encoding="xyz", head="offset"), id="fgt8-xyz-offset", marks=SLOW),
+    pytest.param(dict(TINY_LOCAL, variant="fgt_1s"), id="fgt_1s", marks=SLOW),
+    pytest.param(dict(TINY_LOCAL, variant="fgt3"), id="fgt3", marks=SLOW),
+    pytest.param(dict(TINY, encoding="xyz", head="offset", variant="wo_t"), id="wo_t", marks=SLOW),
+    pytest.param(
+        dict(TINY, encoding="xyz", head="offset", variant="do_1s"), id="do_1s", marks=SLOW
+    ),
+    pytest.param(
+        dict(TINY_LOCAL, head="offset", variant="do_2s", n_agg=2, depth=2),
+        id="do_2s-local-offset",
+        marks=SLOW,
+    ),
+]
+
+
+@pytest.mark.parametrize("edits", PERTURB_CASES)
+def test_a_perturbed_vertex_moves_nothing_beyond_the_receptive_field(edits):
+    model_cfg = ModelConfig().with_edits(edits)
+    v, f = strip(60, 6)
+    params = jitter_heads(init_params(model_cfg, jax.random.PRNGKey(0)), 0.3)
+    model = DMDNet(model_cfg)
+    graph = jax.tree.map(jnp.asarray, build_mesh_graph(f, v.shape[0]))
+    x = jnp.asarray(v / 3.0)
+    _, state = jax.jit(lambda x: model.apply({"params": params}, x, graph, mutable=True))(x)
+    pooled = {k: val[0] for k, val in inference._find_sown(state.get("intermediates", {}))}
+    # The pools are the only non-local quantities: with them fixed, outputs are local.
+    run = jax.jit(lambda x: model.apply({"params": params}, x, graph, pooled=pooled)[0])
+    base = run(x)
+    source = 30 * 6 + 3
+    moved = run(x.at[source].add(0.05))
+    changed = np.abs(np.asarray(moved - base)).max(axis=1) > 0
+    reach = ring_distance(f, v.shape[0], source)[changed].max()
+    rf = patches.receptive_field(model_cfg).output
+    assert reach <= rf
+    # ... and the count is tight: a perturbation reaches within one ring of it.
+    assert reach >= rf - 1
+
+
+def test_grown_patch_is_the_ring_ball_with_its_incident_faces():
+    v, f = strip(40, 7)
+    grower = patches.PatchGrower(f, v.shape[0])
+    owned = np.array([100, 101, 150])
+    patch = grower.grow(owned, 4)
+    d = np.min([ring_distance(f, v.shape[0], s) for s in owned], axis=0)
+    np.testing.assert_array_equal(patch.vertices, np.flatnonzero(d <= 4))
+    inner = np.flatnonzero(d <= 3)
+    expected = np.flatnonzero(np.isin(f, inner).any(axis=1))
+    np.testing.assert_array_equal(patch.vertices[patch.faces], f[expected])
+    np.testing.assert_array_equal(patch.vertices[patch.owned], np.sort(owned))
+    with pytest.raises(ValueError, match="ring"):
+        grower.grow(owned, 0)
+
+
+def test_morton_order_is_a_permutation():
+    v, _ = strip(20, 9)
+    order = patches.morton_order(v)
+    np.testing.assert_array_equal(np.sort(order), np.arange(v.shape[0]))
+
+
+@pytest.mark.parametrize("encoding", ["xyz", "local"])
+def test_lean_frame_equals_mesh_frame(encoding):
+    v, f = strip(30, 8)
+    a = mesh_frame(encoding, v, f)
+    b = inference.lean_mesh_frame(encoding, v, f)
+    np.testing.assert_allclose(b.centre, a.centre, rtol=0, atol=0)
+    assert b.scale == pytest.approx(a.scale, rel=1e-12)
+
+
+# --------------------------------------------------------------------------------------
+# Patch-wise equals whole-mesh
+# --------------------------------------------------------------------------------------
+
+
+def test_bundled_model_patchwise_equals_whole_mesh():
+    v, f = strip(300, 6)  # 3,290 faces; halo 88 rings, patches of 100 columns
+    bundle = dmd_jax.load_pretrained()
+    whole = dmd_jax.denoise(v, f, bundle)
+    patched = dmd_jax.denoise(v, f, bundle, patch_size=600)
+    assert np.abs(whole - v).max() > 0.05  # the network does move vertices
+    np.testing.assert_allclose(patched, whole, rtol=0, atol=TOL_EDGES)
+
+
+# The paper's structure (FGT-8, xyz, offset head) at width 16: its width does not change
+# the receptive field (the full width: the slow test below).
+PAPER16 = preset("paper").model.with_edits({"width": 16})
+FRESH_CASES = [
+    pytest.param(PAPER16, 1e-3, id="paper-structure"),
+    pytest.param(
+        preset("test").model.with_edits({"filter_iterations": 8}), 0.3, id="test-preset", marks=SLOW
+    ),
+    pytest.param(
+        preset("test").model.with_edits(
+            {"stn": True, "variant": "mt", "encoding": "xyz", "head": "offset"}
+        ),
+        1e-3,
+        id="stn-mt-xyz-offset",
+        marks=SLOW,
+    ),
+]
+
+
+@pytest.fixture(scope="module")
+def paper16():
+    return fresh_bundle(PAPER16, 1e-3)
+
+
+@pytest.mark.parametrize("model_cfg, scale", FRESH_CASES)
+def test_fresh_params_patchwise_equals_whole_mesh(model_cfg, scale):
+    bundle = fresh_bundle(model_cfg, scale)
+    v, f = strip(150, 6)
+    whole = dmd_jax.denoise(v, f, bundle)
+    patched = dmd_jax.denoise(v, f, bundle, patch_size=150, iterations=1)
+    assert np.abs(whole - v).max() > 0.05
+    np.testing.assert_allclose(patched, whole, rtol=0, atol=TOL_EDGES)
+
+
+@pytest.mark.slow
+def test_paper_preset_patchwise_equals_whole_mesh():
+    bundle = fresh_bundle(preset("paper").model, 1e-3)
+    v, f = strip(120, 8)
+    whole = dmd_jax.denoise(v, f, bundle)
+    patched = dmd_jax.denoise(v, f, bundle, patch_size=200)
+    np.testing.assert_allclose(patched, whole, rtol=0, atol=TOL_EDGES)
+
+
+def test_two_iterations_and_float32_patchwise(paper16):
+    bundle = paper16
+    v, f = strip(150, 6)
+    v32 = v.astype(np.float32)
+    whole = dmd_jax.denoise(v32, f, bundle, iterations=2)
+    patched = dmd_jax.denoise(v32, f, bundle, patch_size=150, iterations=2)
+    assert patched.dtype == np.float32
+    np.testing.assert_allclose(patched, whole, rtol=0, atol=TOL_EDGES)
+
+
+# --------------------------------------------------------------------------------------
+# Memory budget
+# --------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "text, expected",
+    [("8GB", 8 * 10**9), ("6GiB", 6 * 2**30), ("500M", 5 * 10**8), (" 1.5 gib", 3 * 2**29)],
+)
+def test_parse_memory(text, expected):
+    assert inference.parse_memory(text) == expected
+    assert inference.parse_memory(expected) == expected
+
+
+@pytest.mark.parametrize("bad", ["lots", "8 parsecs", "-1GB", 0, True, None])
+def test_parse_memory_refuses_nonsense(bad):
+    with pytest.raises(ValueError, match="memory"):
+        inference.parse_memory(bad)
+
+
+def test_a_budget_too_small_for_one_patch_is_a_clear_error():
+    v, f = strip(150, 6)
+    bundle = dmd_jax.load_pretrained()
+    with pytest.raises(ValueError, match=r"budget of 4096 bytes.*max_memory"):
+        dmd_jax.denoise(v, f, bundle, max_memory=4096)
+
+
+def test_the_budget_chooses_patches_and_the_result_is_the_same(paper16):
+    bundle = paper16
+    v, f = strip(150, 6)
+    whole = dmd_jax.denoise(v, f, bundle)
+    per_vertex = inference.network_bytes_per_vertex(bundle.config.model)
+    per_vertex += inference.HOST_BYTES_PER_PADDED_VERTEX
+    # Room for 500 padded vertices per patch: the 900-vertex strip is split.
+    budget = inference._mesh_bytes(v.shape[0], f.shape[0]) + 500 * per_vertex
+    patched = dmd_jax.denoise(v, f, bundle, max_memory=budget)
+    np.testing.assert_allclose(patched, whole, rtol=0, atol=TOL_EDGES)
+
+
+def test_patch_size_must_be_positive():
+    v, f = strip(10, 4)
+    with pytest.raises(ValueError, match="patch_size"):
+        dmd_jax.denoise(v, f, dmd_jax.load_pretrained(), patch_size=0)
+
+
+@pytest.mark.slow
+def test_patches_spread_over_two_devices_give_the_same_result(tmp_path):
+    # A fresh process: the device count is fixed when JAX starts.
+    script = textwrap.dedent(
+        f"""
+        import sys
+        sys.path.insert(0, {str(os.path.dirname(__file__))!r})
+        import jax, numpy as np
+        import dmd_jax
+        from test_patches import fresh_bundle, strip, preset
+        assert len(jax.local_devices()) == 2, jax.local_devices()
+        bundle = fresh_bundle(preset("paper").model.with_edits({{"width": 16}}), 1e-3)
+        v, f = strip(150, 6)
+        one = dmd_jax.denoise(v, f, bundle, patch_size=150, devices=jax.local_devices()[:1])
+        two = dmd_jax.denoise(v, f, bundle, patch_size=150)
+        np.save({str(tmp_path / "diff.npy")!r}, np.abs(one - two).max())
+        """
+    )
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    env["JAX_PLATFORMS"] = "cpu"
+    subprocess.run([sys.executable, "-c", script], check=True, env=env, timeout=300)
+    assert float(np.load(tmp_path / "diff.npy")) == 0.0
