@@ -79,7 +79,7 @@ sota: $(STAMP)
 	$(BIN)/python experiments/sota.py --table all $(if $(WEIGHTS),--weights checkpoint=$(WEIGHTS))
 
 # The paper's ablation studies (experiments/): every study at $(ABLATE_PRESET) (cpu: 29
-# rows x 3 seeds of 1500 steps, each row's seeds trained together, sized for <= 3 h on two
+# rows x 3 seeds of 1000 steps, each row's seeds trained together, sized for <= 3 h on two
 # free cores; paper: for a GPU). Reruns skip finished runs and resume interrupted ones;
 # results and tables go to experiments/results/$(ABLATE_PRESET)/.
 ABLATE_PRESET ?= cpu

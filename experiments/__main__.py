@@ -2,7 +2,8 @@
 
 Examples::
 
-    python -m experiments run --preset cpu                      # all studies
+    python -m experiments run --preset cpu                      # all studies, 3 seeds
+    python -m experiments run --preset cpu-quick                # a first look (make ablate-quick)
     python -m experiments run --preset cpu --studies structure depth
     python -m experiments run --preset test --out out/ablate-smoke --data-dir out/ablate-data
     python -m experiments list --preset cpu                     # the runs and their ids
@@ -34,7 +35,9 @@ def _parser() -> argparse.ArgumentParser:
             choices=sorted(PRESETS),
             help="sweep size (default: $ABLATE_PRESET or cpu)",
         )
-        p.add_argument("--studies", nargs="+", choices=STUDY_KEYS, help="default: all")
+        p.add_argument(
+            "--studies", nargs="+", choices=STUDY_KEYS, help="default: the preset's (cpu: all)"
+        )
         p.add_argument("--seeds", nargs="+", type=int, help="training seeds (default: preset's)")
         p.add_argument(
             "--out", type=Path, help="results dir (default experiments/results/<preset>)"
@@ -108,7 +111,7 @@ def main(argv=None) -> int:
         )
         if p.calibrate_curvature and gammas is None:
             print(f"(no calibration in {data} yet: ids below use the paper's gammas)")
-        runs = st.plan(p, st.base_config(p, gammas), args.studies)
+        runs = st.plan(p, st.base_config(p, gammas), args.studies or p.studies)
         homes = st.training_homes(runs)
         for r in runs:
             done = (out / r.study / r.run_id / "metrics.json").is_file()

@@ -342,8 +342,8 @@ def paired_bootstrap(
     """Mean of paired differences and its percentile bootstrap interval.
 
     `diff[s, m]` is a row's error minus the reference row's on test mesh `m` for
-    training seed `s`; both rows saw the same noisy mesh (evaluation noise is a function
-    of the seed and the mesh) and trained from the same seed, so the pairs share what
+    training seed `s`; both rows saw the same noisy mesh (the sweep's evaluation noise is
+    fixed, `runner.EVAL_SEED`) and trained from the same seed, so the pairs share what
     the two rows have in common. Each resample draws seeds and meshes independently with
     replacement (a crossed bootstrap: the interval carries the seed-to-seed and the
     mesh-to-mesh spread) and takes the mean over the drawn grid. With one seed the
@@ -745,6 +745,12 @@ def write_plot(
     fig.suptitle(
         f"{study.title}: "
         + ("mean ± std over {seeds} seeds" if seeds > 1 else "one seed per row").format(seeds=seeds)
+        + (
+            f"; below, each row minus {study.reference} with its {CONFIDENCE:.0%} paired "
+            "bootstrap interval over seeds × meshes"
+            if intervals
+            else ""
+        )
     )
     fig.tight_layout()
     fig.savefig(path, dpi=90)
@@ -874,13 +880,16 @@ def aggregate(out_dir) -> dict[str, Any]:
         comparisons.append(text)
     timing = _timing(plan, records)
     summary["timing"] = {**timing, "hosts": sorted(timing["hosts"])}
+    # A preset that runs only some studies (cpu-quick) is complete without the others.
+    chosen = plan["preset"].get("studies") or st.STUDY_KEYS
     summary["missing"] = [
         s.key
         for s in st.STUDIES
-        if summary["studies"].get(s.key, {}).get("finished_rows", 0) < len(s.rows)
+        if s.key in chosen
+        and summary["studies"].get(s.key, {}).get("finished_rows", 0) < len(s.rows)
     ]
     summary["comparisons"] = comparisons
-    homes = {r["train_hash"] for r in plan["runs"]}
+    homes = {r["train_hash"] for r in plan["runs"] if r["study"] in chosen}
     if timing["trainings"]:
         per = timing["train_cpu_s"] / timing["trainings"]
         remaining = max(0, len(homes) - timing["trainings"])
@@ -966,7 +975,15 @@ def _preset_readme(out_dir: Path, plan: dict, summary: dict, sections: list[str]
                 )
                 + ")."
             )
-    lines += ["", "## Comparison with the paper", ""]
+    lines.append(
+        f"* Seeds and intervals: {len(p['seeds'])} seed(s) per row; a cell is the mean over "
+        "seeds and test meshes ± the standard deviation of the per-seed means; each row's "
+        f"difference from the study's reference row has a {CONFIDENCE:.0%} paired bootstrap "
+        f"interval over seeds and test meshes ({BOOTSTRAP_RESAMPLES} resamples, RNG seed "
+        f"{BOOTSTRAP_SEED}), and its verdict (✓ reproduced, ✗ contradicted with confidence, "
+        "· undecided) is derived from it."
+    )
+    lines += ["", "## Verdicts and comparison with the paper", ""]
     lines += [c.rstrip() + "\n" for c in summary["comparisons"]]
     lines += ["## Tables", ""] + sections
     return "\n".join(lines) + "\n"
@@ -1008,16 +1025,18 @@ steps, 3 seeds per row, 8 test meshes per split, a first look before the full sw
   each model's denoising error.
 * Seeds and intervals: the `cpu` and `cpu-quick` presets train every row at 3 seeds
   (parameter init, data order, noise and dropout keys), a row's seeds side by side as
-  one program (`experiments.multiseed`). A table cell is the mean over seeds and test
-  meshes ± the standard deviation of the per-seed means. Each row's difference from the
-  paper's chosen variant gets a 95 % paired bootstrap interval (2,000 resamples, fixed
-  RNG) that resamples seeds and test meshes; the paper's ordering of the pair is
-  *reproduced with confidence* when the interval lies on the paper's side of 0,
-  *contradicted with confidence* when it lies on the other side, and *undecided* when
-  it contains 0. Each interval is a 95 % statement on its own: among dozens of (row,
-  column) pairs a few confident verdicts are expected by chance alone. `cpu/` and
-  `cpu-recipe/` hold one seed per row and no per-mesh values, so they have no intervals.
-* Even the `cpu` preset's 1,500 steps are far from the paper's 60 epochs of 10⁴ meshes:
+  one program (`experiments.multiseed`). Every model is scored on the same noisy test
+  meshes (one fixed evaluation key), so a table cell, the mean over seeds and test
+  meshes ± the standard deviation of the per-seed means, shows the training's spread.
+  Each row's difference from the paper's chosen variant gets a 95 % paired bootstrap
+  interval (2,000 resamples, fixed RNG) that resamples seeds and test meshes; the
+  paper's ordering of the pair is *reproduced with confidence* when the interval lies on
+  the paper's side of 0, *contradicted with confidence* when it lies on the other side,
+  and *undecided* when it contains 0. Each interval is a 95 % statement on its own:
+  among dozens of (row, column) pairs a few confident verdicts are expected by chance
+  alone. `cpu/` and `cpu-recipe/` hold one seed per row and no per-mesh values, so they
+  have no intervals.
+* Even the `cpu` preset's 1,000 steps are far from the paper's 60 epochs of 10⁴ meshes:
   the verdicts are about these short trainings.
 """
 

@@ -146,6 +146,7 @@ def train_seeds(
     progress: bool = True,
     stop_after: int | None = None,
     desc: str = "train",
+    eval_seed: int | None = None,
 ) -> list[dict]:
     """Trains (or resumes) several seeds of one config together; evaluates each.
 
@@ -159,6 +160,9 @@ def train_seeds(
       progress: a tqdm bar over steps with the remaining-time estimate.
       stop_after: stop (as if killed) after this many steps of this call (tests).
       desc: the progress bar's label.
+      eval_seed: the key of the evaluation noise, the same for every seed, so that all
+        seeds (and all rows) are scored on the same noisy test meshes; `None` gives each
+        seed its own, `train.seed + 12345`, as `dmd_jax.train.train` does.
 
     Returns:
       Per seed: `status` (`ok` or `diverged`), `error`, `step` (the last good step),
@@ -273,7 +277,7 @@ def train_seeds(
                     continue
                 batches = evaluation_batches(
                     examples,
-                    seed=cfg.train.seed + 12345,
+                    seed=cfg.train.seed + 12345 if eval_seed is None else eval_seed,
                     noise=cfg.noise,
                     rotate=t.rotate,
                     encoding=cfg.model.encoding,

@@ -21,8 +21,12 @@ Presets (`PRESETS`):
 
 * `test`: the smoke sweep. Width 8, two steps per run, one mesh size (one padding bucket),
   one test mesh per split, XLA backend optimisation level 0.
-* `cpu`: width 32, 600 steps of batch 2 on 80 training meshes of 322-383 vertices (one
-  padding bucket), evaluated on every test mesh (16 test-intra, 18 test-inter).
+* `cpu`: the `small` recipe at width 32, 1,000 steps of batch 2 on 80 training meshes of
+  322-383 vertices (one padding bucket), 3 seeds per row trained together
+  (`experiments.multiseed`), evaluated on every test mesh (16 test-intra, 18
+  test-inter); sized for `make ablate` in <= 3 h on two free cores.
+* `cpu-quick`: `make ablate-quick`, a first look: `cpu` at 300 steps, four studies
+  (encoding, head, attention, STN), 3 seeds, the first 8 test meshes of each split.
 * `paper`: the paper's width and epochs (60 epochs of 10⁴ meshes at batch 4 = 150,000
   steps; 200 epochs = 500,000 for the depth study) on the procedural dataset at 40 shapes
   per category; for GPUs.
@@ -286,7 +290,7 @@ _SMOKE_TRAIN = {
 # The cpu preset's schedule; its step count is sized for `make ablate` in <= 3 h on two
 # free cores (README, "Ablation studies": how the estimate was made).
 _CPU_TRAIN = {
-    "steps": 1500,
+    "steps": 1000,
     "batch_size": 2,
     "lr": 5e-4,
     "schedule": "cosine",
