@@ -79,6 +79,10 @@ HOST_BYTES_PER_PADDED_VERTEX = 3500
 # BFS stamps (see `_mesh_bytes`).
 MESH_BYTES_PER_VERTEX = 120
 MESH_BYTES_PER_FACE = 40
+# What the patch path holds besides patches and the mesh: compiled programs (a handful:
+# one per rung of patch shapes and pass) and XLA's compiler working memory. Measured: a
+# 300k-face run with a 1 GiB budget peaked 0.34 GiB above it with 16 programs compiled.
+RUNTIME_BYTES = 512 * 2**20
 # Below this many faces a whole-mesh run is taken without measuring the network (a
 # compilation): `paper`, the widest preset, needs about 0.6 GB there.
 _SMALL_MESH_FACES = 20_000
@@ -224,7 +228,8 @@ def _padded_vertices_estimate(n_vertex: int, n_face: int) -> int:
 
 
 def _mesh_bytes(n_vertex: int, n_face: int) -> int:
-    return MESH_BYTES_PER_VERTEX * n_vertex + MESH_BYTES_PER_FACE * n_face
+    """Bytes the patch path holds for the whole mesh and the runtime (not the patches)."""
+    return MESH_BYTES_PER_VERTEX * n_vertex + MESH_BYTES_PER_FACE * n_face + RUNTIME_BYTES
 
 
 # --------------------------------------------------------------------------------------
@@ -367,6 +372,7 @@ def denoise(
     patch_size: int | None = None,
     progress: bool | None = None,
     devices=None,
+    info: dict | None = None,
 ) -> np.ndarray:
     """Denoises a triangle mesh with a trained DMD-Net, in bounded memory.
 
@@ -407,6 +413,9 @@ def denoise(
       progress: a tqdm progress bar over the patches on stderr (default: when stderr is a
         terminal and there are several patches).
       devices: the devices patches run on (default `jax.local_devices()`).
+      info: a dict to fill with how the call ran: `path` (`"whole"` or `"patches"`),
+        `budget_bytes`, and for patches `patch_size` (owned vertices), `patches` (run
+        over every pass), `largest_padded_vertices`, `halo_rings`, `devices`.
 
     Returns:
       `[n_vertex, 3]` denoised vertices in the input frame; float32 for float32 input,
@@ -443,20 +452,56 @@ def denoise(
             )
         per_vertex = network_bytes_per_vertex(cfg) + HOST_BYTES_PER_PADDED_VERTEX
         whole = per_vertex * _padded_vertices_estimate(n, m) <= budget
+    if info is not None:
+        info.clear()
+        info.update(path="whole" if whole else "patches", budget_bytes=budget)
     if whole:
         return _denoise_whole(v, f, bundle, in_dtype, iterations, aggregation)
+    return _denoise_patches(
+        v,
+        f,
+        bundle,
+        in_dtype,
+        iterations,
+        aggregation,
+        budget,
+        patch_size,
+        devices,
+        progress,
+        info,
+    )
+
+
+def _denoise_patches(
+    v, f, bundle, in_dtype, iterations, aggregation, budget, patch_size, devices, progress, info
+) -> np.ndarray:
+    """The patch path of `denoise` (a given `patch_size`, or one chosen from `budget`)."""
+    cfg = bundle.config.model
     frame = lean_mesh_frame(cfg.encoding, v, f)
     x = frame.apply(v)
+    runner = _PatchRunner(bundle, f, v.shape[0], aggregation, devices, progress)
     del v
-    runner = _PatchRunner(bundle, f, n, aggregation, devices, progress)
     if patch_size is None:
+        per_vertex = network_bytes_per_vertex(cfg) + HOST_BYTES_PER_PADDED_VERTEX
         runner.size_from_budget(x, budget, per_vertex)
     else:
         runner.patch_size = int(patch_size)
+    patches_run = 0
     for _ in range(int(iterations)):
         x = runner.run(x)
+        patches_run += runner.patches_run
         if not np.all(np.isfinite(x)):
             raise ValueError("the network produced non-finite vertices (broken weights?)")
+    if info is not None:
+        info.update(
+            path="patches",
+            budget_bytes=budget,
+            patch_size=runner.patch_size,
+            patches=patches_run,
+            largest_padded_vertices=runner.largest_patch,
+            halo_rings=runner.halo.output,
+            devices=len(runner.devices),
+        )
     result = frame.invert(x)
     return result.astype(np.float32) if in_dtype == np.float32 else result
 
@@ -514,6 +559,7 @@ class _PatchRunner:
         self.order = None
         self._params = {}
         self._shapes = {}  # padded sizes compiled so far -> their ELL table widths
+        self.reference = None  # padded vertices of a typical full patch (the ladder's top)
         self.patches_run = 0  # patches of the last `run`, over every pass (benchmarks)
         self.largest_patch = 0  # most padded vertices of any patch so far
 
@@ -551,7 +597,10 @@ class _PatchRunner:
         size = min(max(int(3.0 * r0 * r0), 1), self.n_vertex)
 
         def padded(k: int) -> int:
-            patch = self.grower.grow(self.order[:k], self.halo.output)
+            # A chunk from the middle of the Morton order: away from the mesh's corners,
+            # whose patches lose part of their halo and come out smaller.
+            start = max(min(self.n_vertex // 2, self.n_vertex - k), 0)
+            patch = self.grower.grow(self.order[start : start + k], self.halo.output)
             return padded_sizes_for(build_mesh_graph(patch.faces, patch.vertices.size)).n_vertex
 
         while size > 1 and padded(size) > limit:
@@ -559,6 +608,7 @@ class _PatchRunner:
         while size < self.n_vertex and padded(min(2 * size, self.n_vertex)) <= limit:
             size = min(2 * size, self.n_vertex)
         self.patch_size = size
+        self.reference = padded(size)
 
     def _ensure_order(self, x: np.ndarray) -> None:
         if self.order is None:
@@ -577,16 +627,22 @@ class _PatchRunner:
             yield self.order[start : start + self.patch_size]
 
     def _shaped_graph(self, graph, natural):
-        """The padded graph of a patch's `graph` (natural sizes `natural`), in a shape an
-        earlier patch already compiled when one fits it with at most 2x the padding
-        (fewer compilations)."""
+        """The padded graph of a patch's `graph` (natural sizes `natural`).
+
+        Patches are padded to a ladder of shapes, the reference patch's padded vertex
+        count halved as often as needed (`self.reference`), so a sweep compiles about
+        one program per rung instead of one per bucket that patch sizes happen to hit;
+        a patch above the reference keeps its own bucket. ELL tables are widened to the
+        width the shape first had.
+        """
         sizes = natural
-        for used in self._shapes:
-            if all(a >= b for a, b in zip(used, natural, strict=True)) and (
-                used.n_vertex <= 2 * natural.n_vertex
-                and (sizes is natural or used.n_vertex < sizes.n_vertex)
-            ):
-                sizes = used
+        if self.reference is not None and natural.n_vertex <= self.reference:
+            rung = self.reference
+            while rung // 2 >= max(natural.n_vertex, 1024):
+                rung //= 2
+            sizes = sizes_for_vertices(rung - 1, 0, 0, 0, natural.n_graph - 1)
+            if any(a < b for a, b in zip(sizes, natural, strict=True)):
+                sizes = natural
         graph = pad_mesh_graph(graph, sizes)
         if self.aggregation != "segment_sum":
             auto = self.aggregation == "auto"
