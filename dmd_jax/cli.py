@@ -129,6 +129,47 @@ def _cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
+def _denoise_inputs(args: argparse.Namespace):
+    """`[(input, output)]` of a `denoise` call: one file and `-o`, or files and folders
+    (their mesh files, not recursive) and `--out DIR` (same names there)."""
+    from pathlib import Path
+
+    many = len(args.input) > 1 or Path(args.input[0]).is_dir()
+    if not many:
+        if args.out is not None:
+            raise ValueError("one input file takes -o/--output FILE; --out DIR is for several")
+        if args.output is None:
+            raise ValueError("give -o/--output FILE for the denoised mesh")
+        return [(args.input[0], args.output)]
+    if args.output is not None:
+        raise ValueError("several inputs (or a folder) take --out DIR, not -o/--output")
+    if args.out is None:
+        raise ValueError("several inputs (or a folder) need --out DIR for the results")
+    files = []
+    for name in args.input:
+        p = Path(name)
+        if p.is_dir():
+            found = sorted(q for q in p.iterdir() if q.suffix.lower() in MESH_SUFFIXES)
+            if not found:
+                raise ValueError(f"{name}: holds no mesh files ({', '.join(MESH_SUFFIXES)})")
+            files += found
+        else:
+            files.append(p)
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"{args.out}: exists and is not a directory")
+    names = [f.name for f in files]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        raise ValueError(f"two inputs share the file name {twice[0]}; their outputs would collide")
+    out.mkdir(parents=True, exist_ok=True)
+    pairs = [(str(f), str(out / f.name)) for f in files]
+    # Check every output before the first (possibly long) run.
+    for src, dst in pairs:
+        _check_output(dst, src, args.overwrite)
+    return pairs
+
+
 def _cmd_denoise(args: argparse.Namespace) -> int:
     import time
 
@@ -144,19 +185,47 @@ def _cmd_denoise(args: argparse.Namespace) -> int:
             f"--weights is for --method {' or '.join(WEIGHTED_METHODS)}; {args.method!r} is a "
             "classic filter with no weights (drop --weights)"
         )
-    vertices, faces = _load_input(args.input)
-    _check_output(args.output, args.input, args.overwrite)
-    t0 = time.perf_counter()
-    # One call for the network and every baseline, as in Python (dmd_jax.denoise_with).
-    out = denoise_with(
-        args.method, vertices, faces, weights=args.weights, iterations=args.iterations
-    )
-    elapsed = time.perf_counter() - t0
-    save_mesh(args.output, out, faces, overwrite=args.overwrite, protect=[args.input])
-    print(
-        f"denoised {args.input} ({len(vertices)} vertices, {len(faces)} faces) with "
-        f"{args.method} in {elapsed:.2f} s -> {args.output}"
-    )
+    extra = {}
+    if args.max_memory is not None:
+        if args.method != "dmd":
+            raise ValueError("--max-memory is for --method dmd (the network)")
+        from dmd_jax.inference import parse_memory
+
+        extra["max_memory"] = parse_memory(args.max_memory)
+    pairs = _denoise_inputs(args)
+    weights = args.weights
+    if args.method == "dmd" and len(pairs) > 1:
+        from dmd_jax.checkpoints import load_model
+
+        weights = load_model(weights)  # once for every mesh
+    t_all = time.perf_counter()
+    for src, dst in pairs:
+        vertices, faces = _load_input(src)
+        if len(pairs) == 1:
+            _check_output(dst, src, args.overwrite)
+        info = {}
+        if args.method == "dmd":
+            extra["info"] = info
+        t0 = time.perf_counter()
+        # One call for the network and every baseline, as in Python (dmd_jax.denoise_with).
+        out = denoise_with(
+            args.method, vertices, faces, weights=weights, iterations=args.iterations, **extra
+        )
+        elapsed = time.perf_counter() - t0
+        save_mesh(dst, out, faces, overwrite=args.overwrite, protect=[src])
+        how = ""
+        if info.get("path") == "patches":
+            how = f" in {info['patches']} patches of {info['patch_size']:,} vertices"
+        print(
+            f"denoised {src} ({len(vertices)} vertices, {len(faces)} faces) with "
+            f"{args.method}{how} in {elapsed:.2f} s -> {dst}"
+        )
+    if len(pairs) > 1:
+        minutes = (time.perf_counter() - t_all) / 60
+        print(
+            f"{len(pairs)} meshes in {minutes * 60:.1f} s ({len(pairs) / minutes:.1f} meshes "
+            "per minute, reading and writing included)"
+        )
     return 0
 
 
@@ -549,9 +618,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--variant", help="structure-ablation variant, e.g. FGT-3 or fgt3")
     p.set_defaults(func=_cmd_info)
 
-    p = sub.add_parser("denoise", help="denoise a mesh file")
-    p.add_argument("input", help="noisy mesh (.obj .off .ply .stl)")
-    p.add_argument("-o", "--output", required=True, help="where to write the result")
+    p = sub.add_parser("denoise", help="denoise mesh files")
+    p.add_argument(
+        "input", nargs="+", help="noisy mesh (.obj .off .ply .stl), or several, or folders"
+    )
+    p.add_argument("-o", "--output", help="where to write the result (one input file)")
+    p.add_argument("--out", help="folder for the results of several inputs (same file names)")
     p.add_argument(
         "--weights",
         default=None,
@@ -566,6 +638,12 @@ def build_parser() -> argparse.ArgumentParser:
         + " (cnr is learned: it takes --weights too; the others are classic filters)",
     )
     p.add_argument("--iterations", type=int, default=1, help="passes of the denoiser")
+    p.add_argument(
+        "--max-memory",
+        default=None,
+        help="memory budget of the network, e.g. 8GB or 6GiB; larger meshes run in "
+        "patches (default: half the memory available)",
+    )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.set_defaults(func=_cmd_denoise)
 
@@ -779,6 +857,7 @@ EXAMPLES = {
     "denoise": [
         "dmd-jax denoise scan.ply -o scan_dmd.ply",
         "dmd-jax denoise scan.ply -o scan_bnf.ply --method bnf",
+        "dmd-jax denoise scans/ --out scans_dmd/ --max-memory 8GB",
     ],
     "add-noise": ["dmd-jax add-noise part.obj -o part_noisy.obj --level 0.2 --units edge"],
     "evaluate": ["dmd-jax evaluate --gt part.obj --mesh part_noisy.obj part_dmd.obj"],

@@ -294,3 +294,56 @@ def test_patches_spread_over_two_devices_give_the_same_result(tmp_path):
     env["JAX_PLATFORMS"] = "cpu"
     subprocess.run([sys.executable, "-c", script], check=True, env=env, timeout=300)
     assert float(np.load(tmp_path / "diff.npy")) == 0.0
+
+
+# --------------------------------------------------------------------------------------
+# Command line: several inputs, --out, --max-memory
+# --------------------------------------------------------------------------------------
+
+
+def test_cli_denoises_a_folder_and_files_into_out(tmp_path, capsys):
+    from dmd_jax.cli import main
+    from dmd_jax.io import load_mesh, save_mesh
+
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    for k in range(2):
+        v, f = strip(12 + k, 5, seed=k)
+        save_mesh(scans / f"s{k}.obj", v, f)
+    (scans / "notes.txt").write_text("not a mesh")
+    extra = tmp_path / "extra.off"
+    save_mesh(extra, *strip(9, 4, seed=5))
+    out = tmp_path / "out"
+    args = [str(scans), str(extra), "--out", str(out), "--method", "laplacian"]
+    assert main(["denoise", *args]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["extra.off", "s0.obj", "s1.obj"]
+    v, f = load_mesh(out / "s1.obj")
+    assert f.shape == strip(13, 5)[1].shape
+    printed = capsys.readouterr().out
+    assert "3 meshes in" in printed and "meshes per minute" in printed
+    # Outputs exist now: a second run refuses before denoising anything.
+    assert main(["denoise", *args]) == 2
+    assert "--overwrite" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["{a}", "{b}", "-o", "{tmp}/x.obj"], "--out DIR"),
+        (["{a}", "{b}"], "need --out"),
+        (["{a}"], "-o/--output"),
+        (["{a}", "-o", "{tmp}/x.obj", "--out", "{tmp}/o"], "--out DIR is for several"),
+        (["{a}", "-o", "{tmp}/x.obj", "--method", "bnf", "--max-memory", "1GB"], "dmd"),
+        (["{a}", "-o", "{tmp}/x.obj", "--max-memory", "lots"], "memory size"),
+    ],
+)
+def test_cli_denoise_refuses_bad_combinations(tmp_path, capsys, args, message):
+    from dmd_jax.cli import main
+    from dmd_jax.io import save_mesh
+
+    a, b = tmp_path / "a.obj", tmp_path / "b.obj"
+    save_mesh(a, *strip(6, 4))
+    save_mesh(b, *strip(6, 4))
+    filled = [x.format(a=a, b=b, tmp=tmp_path) for x in args]
+    assert main(["denoise", *filled]) == 2
+    assert message in capsys.readouterr().err
