@@ -199,6 +199,33 @@ def common_sizes(groups: Sequence[Sequence[MeshGraph]]) -> PaddedSizes:
     )
 
 
+def largest_sizes(examples: Sequence[MeshExample], per_group: int) -> PaddedSizes:
+    """Padded sizes that hold any `per_group` of the examples: one bucket for every batch.
+
+    Each count (vertices, faces, edges) is `per_group` times the largest mesh's, an
+    upper bound of any group's (a batch may draw one mesh twice across an epoch
+    boundary), so `training_batch(..., sizes=largest_sizes(...))` never outgrows it and
+    the step compiles once.
+
+    Args:
+      examples: the meshes a batch may draw.
+      per_group: meshes per group (`ceil(batch_size / n_group)`).
+    """
+    if not examples or per_group < 1:
+        raise ValueError("largest_sizes needs examples and per_group >= 1")
+
+    def top(fn):
+        return per_group * max(int(fn(ex.graph)) for ex in examples)
+
+    return sizes_for_vertices(
+        top(lambda g: g.n_vertex),
+        top(lambda g: g.n_face),
+        top(lambda g: g.vertex_senders.shape[0]),
+        top(lambda g: g.face_senders.shape[0]),
+        per_group,
+    )
+
+
 def stack(batches: Sequence[Batch]) -> Batch:
     """Batches of equal padded sizes stacked on a new leading axis."""
     return jax.tree.map(lambda *xs: np.stack(xs), *batches)
@@ -272,8 +299,13 @@ def evaluation_batches(
     noise: NoiseConfig,
     rotate: bool = True,
     encoding: str = "xyz",
+    sizes: PaddedSizes | None = None,
 ) -> list[tuple[Batch, noise_lib.NoiseSpec]]:
-    """One single-mesh batch per example with fixed noise (the same for every evaluation)."""
+    """One single-mesh batch per example with fixed noise (the same for every evaluation).
+
+    `sizes`: pad every batch to these sizes (e.g. `largest_sizes(examples, 1)`: one
+    compiled evaluation program) instead of each mesh's own bucket.
+    """
     out = []
     base = jax.random.PRNGKey(seed)
     for i, ex in enumerate(examples):
@@ -285,5 +317,5 @@ def evaluation_batches(
             noise=noise,
             encoding=encoding,
         )
-        out.append((collate([n], [c], [ex.graph]), spec))
+        out.append((collate([n], [c], [ex.graph], sizes), spec))
     return out

@@ -54,9 +54,20 @@ from dmd_jax.config import SCHEMES, ExperimentConfig, LossConfig, NoiseConfig
 from dmd_jax.graph import MeshGraph
 from dmd_jax.io import write_text_atomic
 from dmd_jax.model import DMDNet
-from dmd_jax.pipeline import Batch, MeshExample, evaluation_batches, training_batch
+from dmd_jax.pipeline import (
+    Batch,
+    MeshExample,
+    evaluation_batches,
+    largest_sizes,
+    training_batch,
+)
 
 FE_PREFIX = "feature_extractor"
+# How `train` pads batches: each step to its own vertex bucket (a program per bucket it
+# meets; the least padding, right for long runs), or every step to the largest batch
+# the data can form (one program; right for short runs, where compiling, ~15 s of CPU a
+# program for the `test` preset on 2 cores, costs more than the padding).
+PAD_MODES = ("bucket", "largest")
 # Which param halves a phase trains.
 PHASE_PARTS = {"all": ("fe", "rest"), "fe": ("fe",), "rest": ("rest",)}
 
@@ -255,6 +266,11 @@ class Trainer:
         # The jit caches' own count: the step stays pure (no trace-time counter in it).
         return sum(fn._cache_size() for fn in self._step_fns.values())
 
+    @property
+    def eval_compiles(self) -> int:
+        """Programs the evaluation has compiled so far (one per padded shape)."""
+        return self._eval_fn._cache_size()
+
     def init(self, batch: Batch) -> TrainState:
         """A fresh state, replicated on the mesh; params from the config's seed.
 
@@ -264,11 +280,14 @@ class Trainer:
         """
         key = jax.random.PRNGKey(self.cfg.train.seed)
         first = jax.tree.map(lambda x: x[0], batch) if np.ndim(batch.noisy) == 3 else batch
-        variables = self.model.init(
+        # Jitted: the forward pass is traced once and XLA keeps only the initialisers;
+        # run eagerly, every primitive of the forward pass compiled on its own (~35 s of
+        # wall time for the test preset on a loaded 2-core machine).
+        init = jax.jit(lambda rngs, x, g: self.model.init(rngs, x, g, deterministic=True))
+        variables = init(
             {"params": key, "dropout": key},
             jnp.asarray(first.noisy),
             jax.tree.map(jnp.asarray, first.graph),
-            deterministic=True,
         )
         halves = split_params(variables["params"])
         tx = make_optimizer(self.cfg)
@@ -311,8 +330,10 @@ class Trainer:
             clean = np.asarray(batch.clean[:n], np.float64)
             pred = np.asarray(out[:n], np.float64)
             noisy = np.asarray(batch.noisy[:n], np.float64)
-            m = metrics.mesh_metrics(pred, clean, faces)
-            r = metrics.mesh_metrics(noisy, clean, faces)
+            # Padded to the batch's rows: one metric program per evaluation shape.
+            padded = batch.noisy.shape[0]
+            m = metrics.mesh_metrics(pred, clean, faces, min_rows=padded)
+            r = metrics.mesh_metrics(noisy, clean, faces, min_rows=padded)
             rows.append(
                 {
                     **{k: float(v) for k, v in m.items()},
@@ -383,6 +404,8 @@ def train(
     init_params: dict | None = None,
     data_parallel: bool = False,
     eval_noise: NoiseConfig | None = None,
+    pad_to: str = "bucket",
+    verbose: bool = False,
 ) -> dict:
     """Trains (or resumes) a run in `workdir`; returns the final evaluation.
 
@@ -405,6 +428,11 @@ def train(
         processes (`jax.distributed.initialize` first) each builds only its own groups,
         only process 0 writes `config.json`, `log.jsonl` and the plot, and Orbax writes
         the checkpoints from process 0: `workdir` must be one shared directory.
+      pad_to: `"bucket"` (each training batch and evaluation mesh padded to its own
+        vertex bucket) or `"largest"` (every training batch to the largest the training
+        set can form, every evaluation mesh to the largest evaluation mesh: one training
+        and one evaluation program); `PAD_MODES`.
+      verbose: print a line when a program is compiled and how long it took.
 
     Raises:
       NonFiniteLossError: the loss became NaN/inf; the last good checkpoint is kept.
@@ -413,6 +441,8 @@ def train(
     from tqdm.auto import tqdm
 
     t = cfg.train
+    if pad_to not in PAD_MODES:
+        raise ValueError(f"pad_to must be one of {PAD_MODES}, got {pad_to!r}")
     mesh = parallel.batch_mesh() if data_parallel else parallel.batch_mesh(jax.devices()[:1])
     if t.batch_size < mesh.size:
         raise ValueError(
@@ -422,6 +452,11 @@ def train(
         )
     trainer = Trainer(cfg, mesh)
     mine = parallel.local_groups(mesh)
+    train_sizes = eval_sizes = None
+    if pad_to == "largest":
+        train_sizes = largest_sizes(train_examples, -(-t.batch_size // mesh.size))
+        every_eval = [ex for exs in (eval_sets or {}).values() for ex in exs]
+        eval_sizes = largest_sizes(every_eval, 1) if every_eval else None
 
     def make_batch(step: int) -> Batch:
         return training_batch(
@@ -434,6 +469,7 @@ def train(
             encoding=cfg.model.encoding,
             n_group=mesh.size,
             groups=mine,
+            sizes=train_sizes,
         )
 
     # Data-parallel processes share one workdir: only the first writes the run's files.
@@ -466,6 +502,7 @@ def train(
             noise=cfg.noise if eval_noise is None else eval_noise,
             rotate=t.rotate,
             encoding=cfg.model.encoding,
+            sizes=eval_sizes,
         )
         for name, ex in (eval_sets or {}).items()
         if ex
@@ -476,6 +513,11 @@ def train(
     bar = tqdm(total=t.steps, initial=start, disable=not progress, desc="train", unit="step")
     last_eval: dict = {}
     t0 = time.time()
+
+    def say(message: str) -> None:
+        if verbose and primary:
+            tqdm.write(message)
+
     with open(log_path if primary else os.devnull, "a") as log:
         if log.tell():
             with open(log_path, "rb") as fh:
@@ -486,8 +528,16 @@ def train(
             batch = make_batch(step)
             if inject_nan_at is not None and step == inject_nan_at:
                 batch = _nan_batch(batch)
+            compiled = trainer.compiles
+            started = time.perf_counter()
             new_state, out = trainer.train_step(state, batch)
             loss = float(out["loss"])
+            if trainer.compiles > compiled:
+                say(
+                    f"compiled the training step for batches of {batch.noisy.shape[-2]:,} "
+                    f"padded vertices in {time.perf_counter() - started:.1f} s (first step "
+                    f"included; {trainer.compiles} program(s) so far, pad_to={pad_to!r})"
+                )
             if not math.isfinite(loss):
                 bar.close()
                 raise NonFiniteLossError(
@@ -510,9 +560,17 @@ def train(
                 # This process's copy of the params: evaluation needs no other device.
                 params = parallel.local_copy(merge_params(state.params))
                 last_eval = {"kind": "eval", "step": done}
+                compiled = trainer.eval_compiles
+                started = time.perf_counter()
                 for name, batches in eval_batches.items():
                     for k, v in trainer.evaluate(params, batches).items():
                         last_eval[f"{name}/{k}"] = v
+                if trainer.eval_compiles > compiled:
+                    say(
+                        f"evaluated {sum(map(len, eval_batches.values()))} meshes in "
+                        f"{time.perf_counter() - started:.1f} s, compiling "
+                        f"{trainer.eval_compiles - compiled} evaluation program(s)"
+                    )
                 log.write(json.dumps(last_eval) + "\n")
                 log.flush()
                 key = "val/normal_deg" if "val/normal_deg" in last_eval else "test_intra/normal_deg"
@@ -524,4 +582,10 @@ def train(
     bar.close()
     if primary:
         _plot_curves(log_path, workdir / "loss_curve.png")
-    return {"step": int(state.step), "compiles": trainer.compiles, **last_eval, "state": state}
+    return {
+        "step": int(state.step),
+        "compiles": trainer.compiles,
+        "eval_compiles": trainer.eval_compiles,
+        **last_eval,
+        "state": state,
+    }

@@ -112,3 +112,23 @@ def test_bad_inputs():
         mesh_metrics(v, v, f + len(v))
     with pytest.raises(ValueError, match="zero extent"):
         mesh_metrics(np.zeros((3, 3)), np.zeros((3, 3)), np.array([[0, 1, 2]]))
+
+
+def test_mesh_metrics_padding_changes_nothing():
+    """`mesh_metrics` pads to a size bucket (one program per bucket); the numbers are the
+    unpadded losses, with or without extra rows (`min_rows`)."""
+    from dmd_jax import losses
+    from dmd_jax.metrics import _in_gt_frame
+
+    v, f = icosphere(2)
+    noisy = v + 0.01 * np.random.default_rng(0).standard_normal(v.shape)
+    pred, gt, ff = _in_gt_frame(noisy, v, f)
+    ref = {
+        "vertex": float(losses.vertex_loss(pred, gt)),
+        "normal_deg": float(losses.normal_loss(pred, gt, ff, degrees=True)),
+        "chamfer": float(losses.chamfer_distance(pred, gt)),
+    }
+    for min_rows in (0, 3000):
+        got = mesh_metrics(noisy, v, f, min_rows=min_rows)
+        for key, value in ref.items():
+            np.testing.assert_allclose(got[key], value, rtol=1e-5, err_msg=key)

@@ -333,3 +333,23 @@ def test_sampler_without_new_options_is_unchanged():
     for i in range(20):
         s = sample_noise_spec(jax.random.PRNGKey(i))
         assert s.direction == "isotropic" and s.level > 0
+
+
+def test_unit_noise_draws_do_not_depend_on_the_rows_drawn():
+    """`unit_noise` draws a power-of-two row count and slices; the first rows of a draw
+    are the same however many rows are drawn, so that rounding changes no value."""
+    from dmd_jax.noise import _noise_rows, _unit_noise_jit
+
+    key = jax.random.PRNGKey(3)
+    assert _noise_rows(1000) == _noise_rows(4096) == 4096 and _noise_rows(4097) == 8192
+    for kind in ("gaussian", "uniform", "gamma", "impulse"):
+        for tail in ((3,), (1,)):
+            small, big = (
+                np.asarray(
+                    _unit_noise_jit(
+                        key, (rows, *tail), kind, np.dtype("float32"), 0.15, 0.15, "coordinate"
+                    )
+                )
+                for rows in (1000, 8192)
+            )
+            np.testing.assert_array_equal(small, big[:1000], err_msg=f"{kind} {tail}")
