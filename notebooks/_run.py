@@ -30,6 +30,9 @@ from nbformat.v4 import new_code_cell, new_markdown_cell, new_notebook
 
 HERE = Path(__file__).resolve().parent
 NEEDS_WEIGHTS = ("05_feature_guided_transformer", "06_denoise_walkthrough")
+# Notebooks that read real meshes from the project's shared/meshes folder (beside the
+# repository, or DMD_JAX_SHARED_MESHES); users without it skip them.
+NEEDS_SHARED = ("07_bundled_model_layer_by_layer",)
 CODE_MARK = "# %%"
 MARKDOWN_MARK = "# %% [markdown]"
 
@@ -92,6 +95,14 @@ def weights_available() -> str | None:
     return f"{path} does not exist yet and DMD_JAX_WEIGHTS is not set (see notebooks/README.md)"
 
 
+def shared_meshes_available() -> str | None:
+    """Why notebook 07 cannot run (None when shared/meshes is there)."""
+    folder = Path(os.environ.get("DMD_JAX_SHARED_MESHES") or HERE.parents[1] / "shared" / "meshes")
+    if (folder / "fandisk.off").is_file():
+        return None
+    return f"{folder} holds no fandisk.off (set DMD_JAX_SHARED_MESHES=DIR)"
+
+
 def execute(path: Path, *, timeout: int = 600, cwd: Path | None = None):
     """Runs every cell of the notebook of `path` in a fresh `python3` kernel.
 
@@ -136,6 +147,9 @@ def main(argv=None) -> int:
     failed = []
     for path in paths:
         if path.stem in NEEDS_WEIGHTS and (reason := weights_available()):
+            print(f"SKIP {path.name}: {reason}")
+            continue
+        if path.stem in NEEDS_SHARED and (reason := shared_meshes_available()):
             print(f"SKIP {path.name}: {reason}")
             continue
         start = time.perf_counter()
