@@ -71,9 +71,11 @@ DEFAULT_MEMORY_FRACTION = 0.5
 # build temporaries (sorted int64 edge keys), the ELL tables, the arguments' device copies
 # and the output. Measured: `small` at 999,698 faces (524,288 padded vertices) peaks at
 # 4.48 GiB resident, 0.53 GiB before the call and 2.60 GiB of XLA temporaries
-# (benchmarks/results/inference.md): 1.35 GiB / 524,288 = 2.8 kB; 3.5 kB leaves margin for
-# the next patch, prepared while one runs.
-HOST_BYTES_PER_PADDED_VERTEX = 3500
+# (benchmarks/results/inference.md): 1.35 GiB / 524,288 = 2.8 kB. A 20M-face patch-wise
+# run with 3.5 kB here (patches of up to ~509k padded vertices, the next one prepared
+# while one ran) peaked 0.8 GiB over its budget: about 4.9 kB. Hence 5 kB, and CPU
+# devices no longer overlap host preparation with a running patch.
+HOST_BYTES_PER_PADDED_VERTEX = 5000
 # Whole-mesh state of the patch path per vertex and face: the validated copies, positions
 # in the frame (float64), the result, the Morton order, the vertex-face incidence and the
 # BFS stamps (see `_mesh_bytes`).
@@ -693,13 +695,16 @@ class _PatchRunner:
             bar = tqdm(total=self.n_vertex, desc=desc, unit="vertex", unit_scale=True)
         inflight = deque()
         k = 0
+        depth = len(self.devices) - (1 if self.devices[0].platform == "cpu" else 0)
         try:
             for patch, graph in self._patches(rings):
                 device = self.devices[k % len(self.devices)]
                 k += 1
                 inflight.append((patch, fn(device, patch, graph)))
-                # One patch per device runs while the host prepares the next.
-                if len(inflight) > len(self.devices):
+                # Accelerators: one patch per device runs while the host prepares the
+                # next. CPU devices share the host's cores and memory, so there the host
+                # waits instead (no second patch's graph alive beside a running one).
+                if len(inflight) > depth:
                     patch, out = inflight.popleft()
                     yield patch, jax.device_get(out)
                     if bar is not None:
