@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
 PYTEST_WORKERS ?= 2
 
-.PHONY: install test test-slow lint format bench bench-inference bench-training ablate ablate-quick ablate-smoke sota demo sota-lite
+.PHONY: install test test-slow lint format bench bench-inference bench-inference-scale bench-training ablate ablate-quick ablate-smoke sota demo sota-lite
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -51,6 +51,19 @@ bench-inference: $(STAMP)
 		--faces 1000 3000 10000 30000 --append
 	$(HUGE) $(BIN)/python benchmarks/bench_inference.py --presets paper \
 		--faces 100000 300000 1000000 --append
+	$(MAKE) bench-inference-scale
+
+# Millions of faces under a 6.5 GiB budget (patch-wise; issue 17): one fresh process per
+# size, inference_scale.md. Each size takes minutes (the 20M one most of an hour on 2
+# shared cores); --append keeps the other sizes' rows.
+bench-inference-scale: $(STAMP)
+	$(BIN)/python benchmarks/bench_inference_scale.py --presets small \
+		--faces 1000000 --modes default patches --append
+	$(BIN)/python benchmarks/bench_inference_scale.py --presets small \
+		--faces 5000000 10000000 20000000 --append
+	$(BIN)/python benchmarks/bench_inference_scale.py --presets paper \
+		--faces 1000000 3000000 --append
+	$(BIN)/python benchmarks/bench_io.py --faces 2000000 20000000
 
 bench-training: $(STAMP)
 	$(HUGE) $(BIN)/python benchmarks/bench_training.py --presets test
