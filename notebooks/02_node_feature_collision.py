@@ -43,6 +43,7 @@ tet_f = np.array([[0, 1, 2], [0, 3, 1], [0, 2, 3], [1, 3, 2]], np.int32)
 tet = jax.tree.map(jnp.asarray, build_mesh_graph(tet_f, 4))
 edges = (tet.vertex_senders, tet.vertex_receivers, tet.vertex_edge_weight)
 print("N =\n", dense_n(*edges, 4))
+assert np.allclose(dense_n(*edges, 4), 0.25)
 
 # %% [markdown]
 # Every row of $N$ is $(\tfrac14, \tfrac14, \tfrac14, \tfrac14)$, so $NX$ replaces each
@@ -78,6 +79,11 @@ plain_outs, residual_outs = cascade(plain, x0), cascade(residual, x0)
 print("layer   plain: max distance   residual: max distance")
 for k, (p, r) in enumerate(zip(plain_outs, residual_outs, strict=True)):
     print(f"{k:5d}   {max_pairwise(p):20.3e}   {max_pairwise(r):23.3e}")
+# The next paragraph's claims: plain collapses at layer 1 and stays collapsed; residual
+# keeps at least the input's spread.
+assert max_pairwise(plain_outs[0]) > 0.5
+assert all(max_pairwise(o) < 1e-5 for o in plain_outs[1:])
+assert all(max_pairwise(o) > 0.99 * max_pairwise(x0) for o in residual_outs)
 
 # %% [markdown]
 # After the first plain layer the four vertices are one point (the distance is 0, or
@@ -91,6 +97,7 @@ for k, (p, r) in enumerate(zip(plain_outs, residual_outs, strict=True)):
 for k, out in enumerate(residual_outs):
     diff = (out[:, None] - out[None]) - (residual_outs[0][:, None] - residual_outs[0][None])
     print(f"layer {k}: max |(h_i - h_j) - (x_i - x_j)| = {np.abs(diff).max():.1e}")
+    assert np.abs(diff).max() < 1e-4 * max(1.0, np.abs(out).max())  # float32 rounding
 
 # %% [markdown]
 # The same picture, projected onto the two leading principal directions of the input
@@ -132,6 +139,7 @@ print(
     f"max distance between faces: input {max_pairwise(np.asarray(x_faces)):.3f}, "
     f"after one plain dual AGG {after_plain:.1e}, after one residual {after_residual:.3f}"
 )
+assert after_plain < 1e-5 and after_residual > 0.5 * max_pairwise(np.asarray(x_faces))
 
 # %% [markdown]
 # ## Which vertices collide exactly?
@@ -160,6 +168,9 @@ quad = build_mesh_graph(np.array([[0, 1, 2], [0, 2, 3]]), 4)
 print("tetrahedron vertices:", colliding_groups(tet.vertex_senders, tet.vertex_receivers, 4))
 print("tetrahedron faces:   ", colliding_groups(tet.face_senders, tet.face_receivers, 4))
 print("quad vertices:       ", colliding_groups(quad.vertex_senders, quad.vertex_receivers, 4))
+assert colliding_groups(tet.vertex_senders, tet.vertex_receivers, 4) == [[0, 1, 2, 3]]
+assert colliding_groups(tet.face_senders, tet.face_receivers, 4) == [[0, 1, 2, 3]]
+assert colliding_groups(quad.vertex_senders, quad.vertex_receivers, 4) == [[0, 2]]
 
 # %% [markdown]
 # On the procedural meshes of `dmd_jax.data` (remeshed, closed or open), exact
@@ -175,6 +186,7 @@ for category in ("bracket", "blob", "torus", "terrain"):
         f"{category:8s} {len(v):4d} vertices: "
         f"{nv} colliding vertex groups, {nf} colliding face groups"
     )
+    assert nv == nf == 0, category
 
 # %% [markdown]
 # ## The wider picture: $N$ is a low-pass filter
@@ -208,6 +220,10 @@ print(
     f"share of directions damped below 1 % by three linear plain layers (|λ|³ < 0.01): "
     f"{np.mean(np.abs(lam) ** 3 < 0.01):.0%}"
 )
+assert np.allclose(np.linalg.eigvalsh(dense_n(*edges, 4)), [0, 0, 0, 1], atol=1e-6)
+assert -1 < lam.min() and abs(lam.max() - 1) < 1e-5
+# "Most eigenvalues are small": the median |λ| is below 1/2.
+assert np.median(np.abs(lam)) < 0.5
 
 fig, axes = plt.subplots(1, 2, figsize=(8, 2.8))
 axes[0].hist(lam, bins=50, color="tab:blue")
