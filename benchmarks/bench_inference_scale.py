@@ -141,7 +141,8 @@ def whole_fits(preset: str, n_face: int) -> bool:
     from dmd_jax import config, inference
 
     cfg = config.preset(preset).model
-    per_vertex = inference.network_bytes_per_vertex(cfg) + inference.HOST_BYTES_PER_PADDED_VERTEX
+    per_vertex = inference.network_bytes_per_vertex(cfg)
+    per_vertex += inference.WHOLE_HOST_BYTES_PER_PADDED_VERTEX
     est = per_vertex * inference._padded_vertices_estimate(n_face // 2, n_face)
     return est <= 0.8 * available_gib() * 2**30
 

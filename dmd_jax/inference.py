@@ -76,6 +76,12 @@ DEFAULT_MEMORY_FRACTION = 0.5
 # while one ran) peaked 0.8 GiB over its budget: about 4.9 kB. Hence 5 kB, and CPU
 # devices no longer overlap host preparation with a running patch.
 HOST_BYTES_PER_PADDED_VERTEX = 5000
+# The whole-mesh path holds more beside XLA's buffers: the whole mesh's graph is built in
+# one go (int64 keys of every edge, sorted) next to its padded copy and ELL tables.
+# Measured (bench_inference_scale, default malloc): `small` at 999,698 faces used 6.41 GiB
+# above its starting RSS with 2.60 GiB of XLA temporaries: (6.41 - 2.60) GiB / 524,288
+# padded vertices = 7.8 kB.
+WHOLE_HOST_BYTES_PER_PADDED_VERTEX = 7800
 # Whole-mesh state of the patch path per vertex and face: the validated copies, positions
 # in the frame (float64), the result, the Morton order, the vertex-face incidence and the
 # BFS stamps (see `_mesh_bytes`).
@@ -408,8 +414,8 @@ def denoise(
         starts, in bytes or as a string (`"6GiB"`, `"8GB"`); default
         `DEFAULT_MEMORY_FRACTION` of the memory available (`available_memory`). The
         estimate: the network's XLA buffers per padded vertex (`network_bytes_per_vertex`,
-        measured by compiling once) plus `HOST_BYTES_PER_PADDED_VERTEX`, and the mesh's
-        own arrays in patch mode.
+        measured by compiling once) plus `WHOLE_HOST_BYTES_PER_PADDED_VERTEX` (whole
+        mesh) or `HOST_BYTES_PER_PADDED_VERTEX` and the mesh's own arrays (patches).
       patch_size: owned vertices per patch; forces the patch path (tests, tuning). Default:
         the largest patches the budget allows.
       progress: a tqdm progress bar over the patches on stderr (default: when stderr is a
@@ -452,7 +458,7 @@ def denoise(
                 f"own arrays ({_format_bytes(_mesh_bytes(n, m))} for {n:,} vertices and "
                 f"{m:,} faces); raise max_memory / --max-memory"
             )
-        per_vertex = network_bytes_per_vertex(cfg) + HOST_BYTES_PER_PADDED_VERTEX
+        per_vertex = network_bytes_per_vertex(cfg) + WHOLE_HOST_BYTES_PER_PADDED_VERTEX
         whole = per_vertex * _padded_vertices_estimate(n, m) <= budget
     if info is not None:
         info.clear()
