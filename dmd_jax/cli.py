@@ -538,6 +538,11 @@ def _cmd_train(args: argparse.Namespace) -> int:
         init, init_cfg = load_params(args.init_from)
         if init_cfg.model != cfg.model:
             raise ValueError(f"{args.init_from}: its model config differs from this run's")
+    pad_to = args.pad
+    if pad_to == "auto":
+        # Short runs spend most of their time compiling (one program per vertex bucket,
+        # ~15 s of CPU each for the test preset on 2 cores): one padded shape for all.
+        pad_to = "largest" if cfg.train.steps <= AUTO_PAD_MAX_STEPS else "bucket"
     t0 = time.time()
     result = train(
         cfg,
@@ -548,12 +553,36 @@ def _cmd_train(args: argparse.Namespace) -> int:
         init_params=init,
         data_parallel=args.data_parallel,
         eval_noise=eval_noise,
+        pad_to=pad_to,
+        verbose=True,
     )
     result.pop("state", None)
     result["wall_time_s"] = time.time() - t0
     if primary:
-        print(json.dumps(result, indent=2))
+        print(json.dumps(result, indent=2) if args.json else _train_summary(result))
     return 0
+
+
+# `dmd-jax train --pad auto` pads every batch to one shape for runs of at most this many
+# steps (the test preset's 40 compile once instead of 5-6 times on a tiny dataset).
+AUTO_PAD_MAX_STEPS = 500
+
+
+def _train_summary(result: dict) -> str:
+    """One line: the trained model's mean normal error against its noisy input's, per
+    evaluation set, e.g. `test_intra normal error 9.5° vs noisy 20.1° (-53 %)`."""
+    parts = []
+    for key in sorted(k for k in result if k.endswith("/normal_deg") and "/noisy_" not in k):
+        split = key.split("/")[0]
+        model, noisy = result[key], result.get(f"{split}/noisy_normal_deg")
+        if noisy is None:
+            continue
+        change = 100.0 * (model - noisy) / noisy if noisy else 0.0
+        parts.append(f"{split} normal error {model:.1f}° vs noisy {noisy:.1f}° ({change:+.0f} %)")
+    head = f"step {result['step']}, {result['wall_time_s']:.0f} s"
+    if not parts:
+        return f"{head}: no evaluation set, nothing to compare"
+    return f"{head}: " + "; ".join(parts)
 
 
 def _cmd_export_weights(args: argparse.Namespace) -> int:
@@ -780,6 +809,17 @@ def build_parser() -> argparse.ArgumentParser:
         "added as connected patches, its fixed validation split (dmd_jax.data.real) is "
         "evaluated as 'val' with the benchmark noise and picks the best checkpoint",
     )
+    p.add_argument(
+        "--pad",
+        choices=("auto", "bucket", "largest"),
+        default="auto",
+        help="bucket: each batch padded to its own vertex bucket (one compiled program per "
+        "bucket, least padding); largest: every batch to the largest the data can form (one "
+        f"program); auto: largest for runs of at most {AUTO_PAD_MAX_STEPS} steps",
+    )
+    p.add_argument(
+        "--json", action="store_true", help="print the final evaluation as JSON, not one line"
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument(
         "--data-parallel",
@@ -865,8 +905,14 @@ EXAMPLES = {
         "dmd-jax render part_noisy.obj part_dmd.obj --gt part.obj -o cmp.png",
         "dmd-jax render part_noisy.obj part_dmd.obj --gt part.obj -o cmp.html",
     ],
-    "make-dataset": ["dmd-jax make-dataset --out data/procedural --per-category 40"],
-    "train": ["dmd-jax train --data data/procedural --workdir runs/small --preset small"],
+    "make-dataset": [
+        "dmd-jax make-dataset --out data/procedural --per-category 40",
+        "dmd-jax make-dataset --out data/tiny --per-category 2   # 38 meshes, ~16 s",
+    ],
+    "train": [
+        "dmd-jax train --data data/procedural --workdir runs/small --preset small",
+        "dmd-jax train --data data/tiny --workdir runs/tiny --preset test   # a first run",
+    ],
     "export-weights": ["dmd-jax export-weights runs/small/checkpoints/best -o mine.msgpack"],
     "demo": ["dmd-jax demo --out out/demo"],
     "train-cnr": ["dmd-jax train-cnr --data data/procedural --out cnr.msgpack"],
