@@ -5,9 +5,11 @@ and, for small configs, something at its edge), and patch-wise results are compa
 whole-mesh ones on meshes that fit in memory. The meshes are long noisy strips, so halos
 really are cut (a strip 300 columns long holds no patch of 88 rings around 100 columns).
 
-Tolerance: float32 networks on meshes in edge units, where the two paths differ only in
-summation order (the pools are sums over patches instead of one segment sum): measured
-up to 1.9e-5 mean edge lengths for the bundled model; we allow 1e-4 edges.
+Tolerance: float32 networks, where the two paths differ only in summation order (the
+pools are sums over patches instead of one segment sum): measured up to 1.9e-5 mean
+edge lengths for the bundled model (edge-unit frame); we allow 1e-4 edges. The `paper`
+preset at full width (bounding-box frame, slow test) differs by up to 3.1e-6 of the
+bounding box; we allow 1e-5 of it there.
 """
 
 from __future__ import annotations
@@ -214,7 +216,11 @@ def test_paper_preset_patchwise_equals_whole_mesh():
     v, f = strip(120, 8)
     whole = dmd_jax.denoise(v, f, bundle)
     patched = dmd_jax.denoise(v, f, bundle, patch_size=200)
-    np.testing.assert_allclose(patched, whole, rtol=0, atol=TOL_EDGES)
+    # Width 512 in the bounding-box frame: float32 rounding of 512-term sums of
+    # activations around 60 (the jittered head) reaches 3.7e-4 edges here, i.e. 3.1e-6 of
+    # the 119-edge bounding box; allow 1e-5 of it.
+    box = float(np.ptp(v, axis=0).max())
+    np.testing.assert_allclose(patched, whole, rtol=0, atol=1e-5 * box)
 
 
 def test_two_iterations_and_float32_patchwise(paper16):
