@@ -160,6 +160,8 @@ def identity_bundle(base):
     from dmd_jax.checkpoints import ModelBundle
     from dmd_jax.model import init_params
 
+    # The paper's offset head (the test preset's normal-first head is no identity at init).
+    base = base.with_edits({"model": {"encoding": "xyz", "head": "offset"}})
     assert base.model.predict_offset and base.model.head_init_scale == 0
     # One compiled init instead of hundreds of op-by-op dispatches.
     params = jax.jit(lambda key: init_params(base.model, key))(jax.random.PRNGKey(0))

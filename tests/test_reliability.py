@@ -687,7 +687,9 @@ def _future_config(p):
 
 
 def _first_kernel(params):
-    return params["denoiser"]["stack"]["head"]
+    # The normal-first head sits on the denoiser, the offset head on its stack.
+    denoiser = params["denoiser"]
+    return denoiser["head"] if "head" in denoiser else denoiser["stack"]["head"]
 
 
 def _nan_param(p):
