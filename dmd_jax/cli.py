@@ -192,6 +192,12 @@ def _cmd_denoise(args: argparse.Namespace) -> int:
         from dmd_jax.inference import parse_memory
 
         extra["max_memory"] = parse_memory(args.max_memory)
+    if args.relax:
+        if args.method != "dmd":
+            raise ValueError("--relax is for --method dmd (the network)")
+        if args.relax < 0:
+            raise ValueError(f"--relax must be 0 or more steps, got {args.relax}")
+        extra["relax"] = args.relax
     pairs = _denoise_inputs(args)
     weights = args.weights
     if args.method == "dmd" and len(pairs) > 1:
@@ -672,6 +678,14 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="memory budget of the network, e.g. 8GB or 6GiB; larger meshes run in "
         "patches (default: half the memory available)",
+    )
+    p.add_argument(
+        "--relax",
+        type=int,
+        default=0,
+        metavar="STEPS",
+        help="steps of crease-preserving tangential relaxation after the network, for "
+        "noise that is not along the normals, e.g. 3 (default: 0, none)",
     )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.set_defaults(func=_cmd_denoise)

@@ -36,6 +36,7 @@ from dmd_jax.graph import (
     with_ell_layout,
 )
 from dmd_jax.mesh import CanonicalFrame, canonical_frame, validate_mesh
+from dmd_jax.relax import relax_tangential
 
 AGGREGATIONS = ("auto", "ell", "segment_sum")
 # `auto` keeps a graph's ELL table while it holds at most this many slots per distinct
@@ -381,6 +382,7 @@ def denoise(
     progress: bool | None = None,
     devices=None,
     info: dict | None = None,
+    relax: int = 0,
 ) -> np.ndarray:
     """Denoises a triangle mesh with a trained DMD-Net, in bounded memory.
 
@@ -424,6 +426,14 @@ def denoise(
       info: a dict to fill with how the call ran: `path` (`"whole"` or `"patches"`),
         `budget_bytes`, and for patches `patch_size` (owned vertices), `patches` (run
         over every pass), `largest_padded_vertices`, `halo_rings`, `devices`.
+      relax: steps of feature-preserving tangential relaxation applied to the result
+        (`dmd_jax.relax.relax_tangential`; 0, the default, leaves it as the network
+        made it). For noise with a tangential part (per-coordinate noise, the paper's
+        Table II): the network moves vertices along normals only. On the validation
+        split, 3 steps took the mean normal error at 0.2 edges of per-coordinate noise
+        from 24.2° to 18.4°, at 0.1 / 0.3 edges along normals from 12.5 / 19.8° to
+        11.8 / 18.3°, but a clean mesh's from 7.2° to 8.9° (README, "Tangential
+        relaxation"). Runs on the whole mesh, about 300 bytes per vertex.
 
     Returns:
       `[n_vertex, 3]` denoised vertices in the input frame; float32 for float32 input,
@@ -436,6 +446,8 @@ def denoise(
     """
     if int(iterations) < 1:
         raise ValueError(f"iterations must be at least 1, got {iterations}")
+    if isinstance(relax, bool) or int(relax) != relax or relax < 0:
+        raise ValueError(f"relax must be a non-negative number of steps, got {relax!r}")
     if aggregation not in AGGREGATIONS:
         raise ValueError(
             f"unknown aggregation {aggregation!r}; choose one of {', '.join(AGGREGATIONS)}"
@@ -464,20 +476,24 @@ def denoise(
         info.clear()
         info.update(path="whole" if whole else "patches", budget_bytes=budget)
     if whole:
-        return _denoise_whole(v, f, bundle, in_dtype, iterations, aggregation)
-    return _denoise_patches(
-        v,
-        f,
-        bundle,
-        in_dtype,
-        iterations,
-        aggregation,
-        budget,
-        patch_size,
-        devices,
-        progress,
-        info,
-    )
+        result = _denoise_whole(v, f, bundle, in_dtype, iterations, aggregation)
+    else:
+        result = _denoise_patches(
+            v,
+            f,
+            bundle,
+            in_dtype,
+            iterations,
+            aggregation,
+            budget,
+            patch_size,
+            devices,
+            progress,
+            info,
+        )
+    if relax:
+        result = relax_tangential(result, f, int(relax)).astype(result.dtype)
+    return result
 
 
 def _denoise_patches(
