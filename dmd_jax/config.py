@@ -683,7 +683,12 @@ def _test() -> ExperimentConfig:
         model=small.model.replace(width=8, stn_width=8),
         loss=small.loss.replace(chamfer_block=256),
         train=small.train.replace(
-            steps=40, warmup_steps=5, eval_every=0, ckpt_every=0, log_every=5
+            steps=40,
+            batch_size=1,
+            warmup_steps=5,
+            eval_every=0,
+            ckpt_every=0,
+            log_every=5,
         ),
         data=DataConfig(instances_per_category=2, target_vertices=200),
     )
