@@ -191,13 +191,13 @@ for j, (title, x) in enumerate(STAGES.items()):
 plt.show()
 for title, r in explained.items():
     print(f"{title:38s} variance of PC1..3: " + " ".join(f"{x:.0%}" for x in r))
-assert explained["denoiser (last two-stream)"][0] > 0.3
+assert explained["denoiser (last two-stream)"][0] > 0.25
 
 # %% [markdown]
-# The denoiser's last two-stream network is dominated by one direction: its first
-# principal component alone carries more than 30 % of the channel variance (the
-# printed figures give all three stages). Its colour map follows the part's creases
-# and flat regions: what the head needs to decide which normal a face gets.
+# The denoiser's last two-stream network has one leading direction: its first
+# principal component alone carries more than a quarter of the channel variance (the
+# printed figures give all three stages); the colour maps show where on the part each
+# stage's leading direction changes sign.
 #
 # ## The normal-first head: which candidate normal each face takes
 #
@@ -276,11 +276,11 @@ off_diagonal = cos[~np.eye(len(NAMES), dtype=bool)]
 i, j = np.unravel_index(np.argmin(cos), cos.shape)
 print(f"smallest cosine similarity: {cos[i, j]:.4f} ({NAMES[i]} vs {NAMES[j]})")
 print(f"median over the 15 pairs: {np.median(off_diagonal):.4f}")
-assert off_diagonal.min() > 0.8 and np.median(off_diagonal) > 0.95
+assert off_diagonal.min() > 0.75 and np.median(off_diagonal) > 0.95
 
 # %% [markdown]
 # The matrices are alike but not identical: the cosine similarity of two meshes'
-# $W_{tf}$ is above 0.95 for the median pair and above 0.8 for every pair (the least
+# $W_{tf}$ is above 0.95 for the median pair and above 0.75 for every pair (the least
 # alike pair is printed). The transformer applies nearly one linear map, nudged per
 # mesh.
 #
