@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import icosphere, shared_mesh_path
-from test_inference import tiny_params
+from test_inference import TINY_CONFIG, tiny_params
 
 from dmd_jax import baselines, checkpoints, inference
 from dmd_jax.cli import main
@@ -30,7 +30,7 @@ PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 @pytest.fixture(scope="module")
 def weights(tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("weights") / "tiny.msgpack"
-    return checkpoints.save_weights(path, tiny_params(), preset("test"), {"note": "tiny"})
+    return checkpoints.save_weights(path, tiny_params(), TINY_CONFIG, {"note": "tiny"})
 
 
 @pytest.fixture(scope="module")
@@ -496,8 +496,9 @@ def test_point_cloud_ply_is_named_a_point_cloud(capsys, tmp_path):
 
 
 def test_directory_as_input(capsys, tmp_path, files):
+    # `denoise` takes folders (of meshes) since it has a folder mode: with -o it says so.
     code, _, err = run(capsys, "denoise", files, "-o", tmp_path / "o.obj")
-    assert_one_line_error(code, err, "is a directory, not a mesh file", "e.g. clean.obj")
+    assert_one_line_error(code, err, "take --out DIR, not -o/--output")
     assert "unknown mesh format" not in err
     empty = tmp_path / "empty"
     empty.mkdir()
@@ -662,7 +663,7 @@ def test_export_weights_says_which_step(capsys, tmp_path):
 
     latest, _ = checkpoint_managers(tmp_path / "run", 1)
     state = TrainState(jnp.asarray(7, jnp.int32), split(tiny_params()), {"fe": {}, "rest": {}})
-    save_checkpoint(latest, state, preset("test"))
+    save_checkpoint(latest, state, TINY_CONFIG)
     ckpt = tmp_path / "run" / "checkpoints" / "latest"
     code, out, err = run(capsys, "export-weights", ckpt, "-o", tmp_path / "w.msgpack")
     assert code == 0, err

@@ -564,7 +564,7 @@ CLI_CASES = {
     "input missing": (lambda d, i: ["denoise", d / "absent.obj", "-o", d / "o.obj"], "no such"),
     "input is a directory": (
         lambda d, i: ["denoise", _mkdir(d / "in.obj"), "-o", d / "o.obj"],
-        "is a directory, not a mesh file",
+        "take --out DIR, not -o",
     ),
     "weights missing": (
         lambda d, i: ["denoise", i, "-o", d / "o.obj", "--weights", d / "none.msgpack"],
