@@ -405,6 +405,10 @@ def _run_smoke(out, data):
     return proc
 
 
+# Slow since the test preset became the small recipe (local encoding, normal-first head):
+# 190 s of one worker on 2 cores, a third of the default suite's budget. `make test-slow`
+# and `make ablate-smoke` run it; tests/test_multiseed.py covers resume and skip per row.
+@pytest.mark.slow
 def test_smoke_sweep_writes_every_study_with_finite_numbers(tmp_path):
     out, data = tmp_path / "results", tmp_path / "data"
     _run_smoke(out, data)
