@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from conftest import icosphere, shared_mesh_path, tetrahedron
-from test_inference import tiny_params
+from test_inference import TINY_CONFIG, tiny_params
 from test_model import FAST_COMPILE, random_params
 
 from dmd_jax import checkpoints, inference, ops
@@ -180,7 +180,7 @@ def test_dmdnet_forward_and_gradient_match_segment_sum(variant):
 
 @pytest.fixture(scope="module")
 def small_bundle():
-    return checkpoints.ModelBundle(params=tiny_params(), config=preset("test"), meta={})
+    return checkpoints.ModelBundle(params=tiny_params(), config=TINY_CONFIG, meta={})
 
 
 def test_denoise_ell_matches_segment_sum(small_bundle, monkeypatch):
