@@ -41,13 +41,6 @@ def _one_ring(faces: np.ndarray, n_vertex: int) -> sp.csr_matrix:
     return sp.diags(inv) @ adj
 
 
-def _boundary_vertices(faces: np.ndarray) -> np.ndarray:
-    """Indices of the vertices on an edge that only one face uses."""
-    edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
-    unique, counts = np.unique(edges, axis=0, return_counts=True)
-    return np.unique(unique[counts == 1])
-
-
 def _blocked_directions(x: np.ndarray, faces: np.ndarray, feature_ratio: float) -> np.ndarray:
     """`[n_vertex, 3, 3]` projectors onto the directions a vertex must not move along."""
     n_vertex = x.shape[0]
@@ -109,12 +102,16 @@ def relax_tangential(
         raise ValueError(f"feature_ratio must lie in (0, 1], got {feature_ratio}")
     if iterations == 0 or f.size == 0:
         return x
+    # The baselines' edge bookkeeping, imported here so that `denoise` without `relax`
+    # does not load the baselines package (0.15 s).
+    from dmd_jax.baselines._common import boundary_vertex_mask
+
     mean = _one_ring(f.astype(np.int64), x.shape[0])
     # Vertices no face uses have an empty ring, and a boundary vertex's ring is one-sided
     # (its umbrella points into the mesh, so open scans would shrink): both stay put.
     free = np.zeros(x.shape[0], bool)
     free[f.ravel()] = True
-    free[_boundary_vertices(f)] = False
+    free &= ~boundary_vertex_mask(f, x.shape[0])
     for _ in range(int(iterations)):
         umbrella = np.where(free[:, None], mean @ x - x, 0.0)
         blocked = _blocked_directions(x, f, feature_ratio)
