@@ -21,6 +21,7 @@ from IPython.display import HTML, Image, Markdown, display
 from dmd_jax import denoise, load_pretrained, load_weights, noise
 from dmd_jax.baselines import DEFAULTS, denoise_with
 from dmd_jax.data import generate_shape
+from dmd_jax.graph import face_adjacency
 from dmd_jax.io import load_mesh, save_mesh
 from dmd_jax.mesh import mean_edge_length
 from dmd_jax.metrics import (
@@ -187,14 +188,10 @@ display(HTML(viewer.to_html(include_plotlyjs=True, full_html=False)))
 # %%
 fn = np.cross(clean[faces[:, 1]] - clean[faces[:, 0]], clean[faces[:, 2]] - clean[faces[:, 0]])
 fn /= np.linalg.norm(fn, axis=1, keepdims=True)
-edge_faces = {}
-for i, face in enumerate(faces):
-    for a, b in ((face[0], face[1]), (face[1], face[2]), (face[2], face[0])):
-        edge_faces.setdefault((min(a, b), max(a, b)), []).append(i)
+fa, fb = face_adjacency(faces, len(clean))  # faces sharing an edge
+dihedral = np.degrees(np.arccos(np.clip(np.sum(fn[fa] * fn[fb], axis=1), -1, 1)))
 on_crease = np.zeros(len(faces), bool)
-for pair in edge_faces.values():
-    if len(pair) == 2 and np.degrees(np.arccos(np.clip(fn[pair[0]] @ fn[pair[1]], -1, 1))) > 30:
-        on_crease[pair] = True
+on_crease[fa[dihedral > 30]] = on_crease[fb[dihedral > 30]] = True
 relaxed = denoise(noisy, faces, bundle, relax=3)
 by_region = {
     name: (err[on_crease].mean(), err[~on_crease].mean())
