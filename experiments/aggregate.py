@@ -209,8 +209,24 @@ def _best(rows: list[dict], key: str) -> float | None:
     return min(vals) if vals else None
 
 
-def study_markdown(study: st.Study, rows: list[dict], reference: dict | None) -> str:
-    """The study as a markdown table in the paper's layout (best per column in bold)."""
+# Labels of `runner.CLASSIC_REFERENCES` in the tables.
+CLASSIC_LABELS = {"taubin": "Taubin", "bnf": "BNF"}
+
+
+def load_classic(out_dir) -> dict[str, dict]:
+    """`runner.classic_references` of a sweep (`{}` when the sweep predates them)."""
+    path = Path(out_dir) / "references.json"
+    return json.loads(path.read_text()) if path.is_file() else {}
+
+
+def study_markdown(
+    study: st.Study, rows: list[dict], reference: dict | None, classic: dict | None = None
+) -> str:
+    """The study as a markdown table in the paper's layout (best per column in bold).
+
+    Training studies end with reference rows: the noisy input and each classic denoiser
+    of `classic` (`load_classic`), on the same noisy test meshes.
+    """
     cols = _columns(study)
     header = ["Model" if study.kind != st.NOISE else "Noise"]
     if study.key == "loss":
@@ -240,6 +256,13 @@ def study_markdown(study: st.Study, rows: list[dict], reference: dict | None) ->
             v = reference.get(f"{split}/noisy_{metric}")
             cells.append(fmt(None if v is None else v * scale))
         body.append(cells)
+        for method, values in (classic or {}).items():
+            cells = [f"*{CLASSIC_LABELS.get(method, method)}*"]
+            cells += ["", "", "", ""] if study.key == "loss" else []
+            for key, scale, _ in cols:
+                v = values.get(key)
+                cells.append(fmt(None if v is None else v * scale))
+            body.append(cells)
     return _table(header, body)
 
 
@@ -542,8 +565,8 @@ SHORT = {
 }
 
 
-def _versus_noisy(rows: list[dict], reference: dict | None) -> str:
-    """How many rows beat the noisy input, per test-intra metric."""
+def _versus_noisy(rows: list[dict], reference: dict | None, classic: dict | None = None) -> str:
+    """How many rows beat the noisy input, per test-intra metric, and Taubin (normal)."""
     if not reference:
         return ""
     parts = []
@@ -558,15 +581,31 @@ def _versus_noisy(rows: list[dict], reference: dict | None) -> str:
         if noisy is None or not vals:
             continue
         parts.append(f"{sum(v < noisy for v in vals)}/{len(vals)} on {name}")
-    return (
+    text = (
         ("Rows better than the noisy input (test-intra): " + ", ".join(parts) + ".")
         if parts
         else ""
     )
+    for method, values in (classic or {}).items():
+        beats = []
+        for split in ("test_intra", "test_inter"):
+            bar = values.get(f"{split}/normal_deg")
+            vals = [r["values"][f"{split}/normal_deg"][0] for r in rows]
+            vals = [v for v in vals if v is not None]
+            if bar is not None and vals:
+                beats.append(f"{sum(v < bar for v in vals)}/{len(vals)} on {split}")
+        if beats:
+            label = CLASSIC_LABELS.get(method, method)
+            text += f" Rows with a lower normal error than {label}: {', '.join(beats)}."
+    return text
 
 
 def comparison_text(
-    study: st.Study, rows: list[dict], cmp: dict[str, Any], reference: dict | None = None
+    study: st.Study,
+    rows: list[dict],
+    cmp: dict[str, Any],
+    reference: dict | None = None,
+    classic: dict | None = None,
 ) -> str:
     """Plain-language comparison of our ordering with the paper's."""
     if study.key not in PAPER:
@@ -611,7 +650,7 @@ def comparison_text(
                     + "; ".join(f"{n} ({', '.join(v)})" for n, v in by_row.items())
                     + "."
                 )
-        lines.append(_versus_noisy(rows, reference))
+        lines.append(_versus_noisy(rows, reference, classic))
     elif study.kind == st.NOISE:
         by = {r["row"]: r["values"] for r in rows}
         ratios_p, ratios_o = [], []
@@ -688,6 +727,7 @@ def write_plot(
     rows: list[dict],
     reference: dict | None,
     intervals: Sequence[dict] = (),
+    classic: dict | None = None,
 ) -> None:
     """Bars of every column (mean ± std over seeds); with `intervals`, a second row of
     panels shows each row's difference from the reference and its interval."""
@@ -734,6 +774,12 @@ def write_plot(
             if v is not None:
                 ax.axhline(v * scale, color="k", ls="--", lw=1, label="noisy input (intra)")
                 top.append(v * scale)
+            for (method, values), style in zip((classic or {}).items(), (":", "-."), strict=False):
+                v = values.get(f"test_intra/{metric}")
+                if v is not None:
+                    label = f"{CLASSIC_LABELS.get(method, method)} (intra)"
+                    ax.axhline(v * scale, color="0.4", ls=style, lw=1, label=label)
+                    top.append(v * scale)
         positive = [v for v in top if v > 0]
         if positive and max(positive) / min(positive) > 200:
             ax.set_yscale("log")
@@ -834,7 +880,10 @@ def aggregate(out_dir) -> dict[str, Any]:
     """Writes `<study>.md/.csv/.png`, `summary.json` and `README.md` into `out_dir`."""
     out_dir = Path(out_dir)
     plan, records = load_records(out_dir)
-    summary: dict[str, Any] = {"preset": plan["preset"]["name"], "studies": {}}
+    classic = {
+        m: {k: v for k, v in d.items() if k != "per_mesh"} for m, d in load_classic(out_dir).items()
+    }
+    summary: dict[str, Any] = {"preset": plan["preset"]["name"], "studies": {}, "classic": classic}
     sections, comparisons = [], []
     for study in st.STUDIES:
         if study.key not in records:
@@ -848,11 +897,11 @@ def aggregate(out_dir) -> dict[str, Any]:
             (recs for recs in records[study.key].values() if recs), []
         )
         reference = ref_recs[0]["metrics"] if ref_recs else None
-        table = study_markdown(study, rows, reference)
+        table = study_markdown(study, rows, reference, classic)
         cmp = compare_with_paper(study, rows)
         intervals = study_intervals(study, records[study.key])
         verdict_line = verdict_text(study, intervals)
-        text = verdict_line + comparison_text(study, rows, cmp, reference)
+        text = verdict_line + comparison_text(study, rows, cmp, reference, classic)
         if intervals:
             table += "\n" + intervals_markdown(study, intervals)
         paper = (
@@ -864,7 +913,7 @@ def aggregate(out_dir) -> dict[str, Any]:
             f"# {study.title} (preset {summary['preset']})\n\n{table}\n{paper}{text}"
         )
         write_csv(out_dir / f"{study.key}.csv", study, rows)
-        write_plot(out_dir / f"{study.key}.png", study, rows, reference, intervals)
+        write_plot(out_dir / f"{study.key}.png", study, rows, reference, intervals, classic)
         summary["studies"][study.key] = {
             "finished_rows": len(finished),
             "rows": len(rows),

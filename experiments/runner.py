@@ -44,6 +44,11 @@ from experiments import studies as st
 # `dmd_jax.train.train` uses at seed 0.)
 EVAL_SEED = 12345
 CALIBRATION_FILE = "ablate-calibration.json"
+# Classic denoisers scored on every sweep's test meshes (reference rows of the tables):
+# Taubin is the issue's bar for the base model, BNF the strongest classic filter on our
+# real meshes (benchmarks/results/sota_lite.md).
+CLASSIC_REFERENCES = ("taubin", "bnf")
+REFERENCES_FILE = "references.json"
 CALIBRATION_MESHES = 64
 
 
@@ -312,6 +317,63 @@ def evaluate_checkpoint(cfg, checkpoint_dir, eval_sets) -> tuple[dict, dict]:
             per_mesh[f"{name}/{k}"] = [float(r[k]) for r in rows]
             means[f"{name}/{k}"] = float(np.mean(per_mesh[f"{name}/{k}"]))
     return means, per_mesh
+
+
+def classic_references(cfg, eval_sets, methods: Sequence[str] = CLASSIC_REFERENCES) -> dict:
+    """Classic denoisers on the sweep's noisy test meshes, as reference rows of the tables.
+
+    The meshes are the ones every training-study row is scored on (`evaluation_batches`
+    with `EVAL_SEED` and the base config's noise, rotation and encoding), so a study's
+    rows can be read against, e.g., Taubin smoothing, not only against the noisy input.
+
+    Args:
+      cfg: the sweep's base `ExperimentConfig`.
+      eval_sets: `{"test_intra": [MeshExample], "test_inter": [...]}`.
+      methods: `dmd_jax.api.denoise_with` method names, run at their defaults.
+
+    Returns:
+      `{method: {"<split>/<metric>": mean, ..., "per_mesh": {"<split>/<metric>": [...]}}}`.
+    """
+    from dmd_jax.api import denoise_with
+    from dmd_jax.metrics import mesh_metrics
+    from dmd_jax.pipeline import evaluation_batches
+
+    out = {}
+    for method in methods:
+        means, per_mesh = {}, {}
+        for name, examples in eval_sets.items():
+            if not examples:
+                continue
+            batches = evaluation_batches(
+                examples,
+                seed=EVAL_SEED,
+                noise=cfg.noise,
+                rotate=cfg.train.rotate,
+                encoding=cfg.model.encoding,
+            )
+            rows = []
+            for batch, _ in batches:
+                n = int(batch.graph.n_vertex_per_graph[0])
+                nf = int(batch.graph.n_face_per_graph[0])
+                faces = np.asarray(batch.graph.faces[:nf])
+                noisy = np.asarray(batch.noisy[:n], np.float64)
+                clean = np.asarray(batch.clean[:n], np.float64)
+                rows.append(mesh_metrics(denoise_with(method, noisy, faces), clean, faces))
+            for k in rows[0]:
+                per_mesh[f"{name}/{k}"] = [float(r[k]) for r in rows]
+                means[f"{name}/{k}"] = float(np.mean(per_mesh[f"{name}/{k}"]))
+        out[method] = {**means, "per_mesh": per_mesh}
+    return out
+
+
+def ensure_references(out_dir, cfg, eval_sets) -> dict:
+    """`classic_references` of a sweep, computed once and kept in `out_dir`."""
+    path = Path(out_dir) / REFERENCES_FILE
+    if path.is_file():
+        return _read_json(path)
+    refs = classic_references(cfg, eval_sets)
+    _write_json(path, refs)
+    return refs
 
 
 def noise_evaluation(bundle, examples, kind: str, level: float, *, seed: int = EVAL_SEED):
@@ -719,11 +781,12 @@ def run_sweep(
     log(f"preset {p.name}: {p.description}; studies {', '.join(studies or st.STUDY_KEYS)}")
     ds = ensure_dataset(p, data_dir, progress=progress)
     log(f"dataset {data_dir}: {ds.counts()}")
-    train_ex, _ = load_examples(str(data_dir), p.eval_meshes)
+    train_ex, evals = load_examples(str(data_dir), p.eval_meshes)
     gammas = ensure_calibration(data_dir, train_ex) if p.calibrate_curvature else None
     if gammas:
         log(f"curvature calibration: gamma_h={gammas['gamma_h']:g}, gamma_g={gammas['gamma_g']:g}")
     base = st.base_config(p, gammas)
+    ensure_references(out_dir, base, evals)
     all_runs = st.plan(p, base)
     _write_json(
         out_dir / "plan.json",
