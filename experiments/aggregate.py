@@ -1032,6 +1032,13 @@ def _preset_readme(out_dir: Path, plan: dict, summary: dict, sections: list[str]
         f"{BOOTSTRAP_SEED}), and its verdict (✓ reproduced, ✗ contradicted with confidence, "
         "· undecided) is derived from it."
     )
+    if summary.get("classic"):
+        names = ", ".join(CLASSIC_LABELS.get(m, m) for m in summary["classic"])
+        lines.append(
+            f"* Classic references: {names} at their defaults (`dmd_jax.api.denoise_with`) on "
+            "the same noisy test meshes as every row (`experiments.runner.classic_references`"
+            ", `references.json`); they are the italic rows under the noisy input."
+        )
     lines += ["", "## Verdicts and comparison with the paper", ""]
     lines += [c.rstrip() + "\n" for c in summary["comparisons"]]
     lines += ["## Tables", ""] + sections
