@@ -210,7 +210,11 @@ def _best(rows: list[dict], key: str) -> float | None:
 
 
 # Labels of `runner.CLASSIC_REFERENCES` in the tables.
-CLASSIC_LABELS = {"taubin": "Taubin", "bnf": "BNF"}
+CLASSIC_LABELS = {
+    "taubin": "Taubin",
+    "bnf": "BNF",
+    "untrained": "untrained base",
+}
 
 
 def load_classic(out_dir) -> dict[str, dict]:
@@ -1033,11 +1037,19 @@ def _preset_readme(out_dir: Path, plan: dict, summary: dict, sections: list[str]
         "· undecided) is derived from it."
     )
     if summary.get("classic"):
-        names = ", ".join(CLASSIC_LABELS.get(m, m) for m in summary["classic"])
+        names = ", ".join(CLASSIC_LABELS.get(m, m) for m in summary["classic"] if m != "untrained")
         lines.append(
-            f"* Classic references: {names} at their defaults (`dmd_jax.api.denoise_with`) on "
-            "the same noisy test meshes as every row (`experiments.runner.classic_references`"
-            ", `references.json`); they are the italic rows under the noisy input."
+            f"* Reference rows (italic, under the noisy input), on the same noisy test meshes "
+            f"as every row (`references.json`): {names} at their defaults "
+            "(`dmd_jax.api.denoise_with`)"
+            + (
+                "; *untrained base*: the base config at initialisation, whose zero head "
+                "averages the candidate normals (the noisy one and the bilateral pre-filtered "
+                "ones) before the vertex update, i.e. what the model gives before any "
+                "training (`experiments.runner.untrained_reference`)."
+                if "untrained" in summary["classic"]
+                else "."
+            )
         )
     lines += ["", "## Verdicts and comparison with the paper", ""]
     lines += [c.rstrip() + "\n" for c in summary["comparisons"]]

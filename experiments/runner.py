@@ -366,12 +366,61 @@ def classic_references(cfg, eval_sets, methods: Sequence[str] = CLASSIC_REFERENC
     return out
 
 
+def untrained_reference(cfg, eval_sets) -> dict:
+    """The base config's network at initialisation, on the sweep's noisy test meshes.
+
+    With the normal-first head an untrained network is no identity: its zero-initialised
+    head averages the candidate normals (the noisy one and the bilateral pre-filtered
+    ones) and the vertex update follows them. This row shows what the fixed parts of the
+    model give before any training, i.e. what training itself buys. Empty for the
+    offset head (untrained, it returns the noisy input).
+
+    Returns:
+      `{"<split>/<metric>": mean, ..., "per_mesh": {...}}` like `classic_references`.
+    """
+    import jax
+
+    from dmd_jax.model import init_params
+    from dmd_jax.pipeline import evaluation_batches
+    from dmd_jax.train import Trainer
+    from experiments.multiseed import evaluate_per_mesh
+
+    if cfg.model.head != "normal":
+        return {}
+    params = jax.jit(lambda key: init_params(cfg.model, key))(jax.random.PRNGKey(cfg.train.seed))
+    trainer = Trainer(cfg)
+    means, per_mesh = {}, {}
+    for name, examples in eval_sets.items():
+        if not examples:
+            continue
+        batches = evaluation_batches(
+            examples,
+            seed=EVAL_SEED,
+            noise=cfg.noise,
+            rotate=cfg.train.rotate,
+            encoding=cfg.model.encoding,
+        )
+        rows = evaluate_per_mesh(trainer, params, batches)
+        for k in rows[0]:
+            if k.startswith("noisy_"):
+                continue
+            per_mesh[f"{name}/{k}"] = [float(r[k]) for r in rows]
+            means[f"{name}/{k}"] = float(np.mean(per_mesh[f"{name}/{k}"]))
+    return {**means, "per_mesh": per_mesh}
+
+
 def ensure_references(out_dir, cfg, eval_sets) -> dict:
-    """`classic_references` of a sweep, computed once and kept in `out_dir`."""
+    """`classic_references` and `untrained_reference` (key `"untrained"`) of a sweep,
+    each computed once and kept in `out_dir`."""
     path = Path(out_dir) / REFERENCES_FILE
-    if path.is_file():
-        return _read_json(path)
-    refs = classic_references(cfg, eval_sets)
+    refs = _read_json(path) if path.is_file() else {}
+    missing = [m for m in CLASSIC_REFERENCES if m not in refs]
+    if missing:
+        refs.update(classic_references(cfg, eval_sets, missing))
+    if "untrained" not in refs:
+        untrained = untrained_reference(cfg, eval_sets)
+        if untrained:
+            refs["untrained"] = untrained
     _write_json(path, refs)
     return refs
 

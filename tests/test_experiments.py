@@ -178,6 +178,25 @@ def test_noise_evaluation_of_the_identity_equals_the_reference(identity_bundle, 
     assert runner.noise_evaluation(identity_bundle, sphere_examples, "gaussian", 0.025) == out
 
 
+def _noisy_metrics(cfg, examples):
+    """Metrics of the noisy test meshes every row is scored on (`EVAL_SEED`)."""
+    from dmd_jax.pipeline import evaluation_batches
+
+    batches = evaluation_batches(
+        examples,
+        seed=runner.EVAL_SEED,
+        noise=cfg.noise,
+        rotate=cfg.train.rotate,
+        encoding=cfg.model.encoding,
+    )
+    out = []
+    for batch, _ in batches:
+        n, nf = int(batch.graph.n_vertex_per_graph[0]), int(batch.graph.n_face_per_graph[0])
+        faces = np.asarray(batch.graph.faces[:nf])
+        out.append(mesh_metrics(np.asarray(batch.noisy[:n]), np.asarray(batch.clean[:n]), faces))
+    return out
+
+
 def test_classic_references_score_the_meshes_every_row_is_scored_on(
     monkeypatch, base, sphere_examples
 ):
@@ -185,7 +204,6 @@ def test_classic_references_score_the_meshes_every_row_is_scored_on(
     `EVAL_SEED` (those of every row's `noisy_*` metrics); with an identity 'denoiser' it
     reports exactly the noisy input's errors."""
     import dmd_jax.api
-    from dmd_jax.pipeline import evaluation_batches
 
     evals = {"test_intra": list(sphere_examples), "test_inter": list(sphere_examples)[:1]}
     taubin = runner.classic_references(base, evals, methods=("taubin",))["taubin"]
@@ -193,24 +211,43 @@ def test_classic_references_score_the_meshes_every_row_is_scored_on(
     assert len(taubin["per_mesh"]["test_inter/normal_deg"]) == 1
     monkeypatch.setattr(dmd_jax.api, "denoise_with", lambda method, v, f: v)
     ident = runner.classic_references(base, evals, methods=("identity",))["identity"]
-    batches = evaluation_batches(
-        evals["test_intra"],
-        seed=runner.EVAL_SEED,
-        noise=base.noise,
-        rotate=base.train.rotate,
-        encoding=base.model.encoding,
-    )
-    want = []
-    for batch, _ in batches:
-        n, nf = int(batch.graph.n_vertex_per_graph[0]), int(batch.graph.n_face_per_graph[0])
-        faces = np.asarray(batch.graph.faces[:nf])
-        want.append(mesh_metrics(np.asarray(batch.noisy[:n]), np.asarray(batch.clean[:n]), faces))
+    want = _noisy_metrics(base, evals["test_intra"])
     for key in ("vertex_per_coord", "normal_deg", "chamfer"):
         np.testing.assert_allclose(
             ident["per_mesh"][f"test_intra/{key}"], [w[key] for w in want], rtol=1e-5
         )
     # Taubin smooths the noisy spheres: lower normal error than the input.
     assert taubin["test_intra/normal_deg"] < ident["test_intra/normal_deg"]
+
+
+def test_references_are_computed_once_with_the_untrained_base(
+    monkeypatch, tmp_path, base, sphere_examples
+):
+    """The untrained normal-first model (its zero head averages the candidate normals)
+    is no identity: its row differs from the noisy input's. `ensure_references` keeps
+    its file."""
+    assert base.model.head == "normal"
+    evals = {"test_intra": list(sphere_examples), "test_inter": []}
+    monkeypatch.setattr(runner, "CLASSIC_REFERENCES", ("taubin",))
+    refs = runner.ensure_references(tmp_path, base, evals)
+    assert set(refs) == {"taubin", "untrained"}
+    noisy = runner.classic_references(base, evals, methods=("taubin",))
+    assert refs["taubin"] == noisy["taubin"]
+    untrained = refs["untrained"]
+    assert len(untrained["per_mesh"]["test_intra/normal_deg"]) == 2
+    ident = _noisy_metrics(base, evals["test_intra"])
+    got = np.array(untrained["per_mesh"]["test_intra/normal_deg"])
+    assert np.all(np.isfinite(got)) and np.all(got < 90)
+    assert np.all(np.abs(got - [m["normal_deg"] for m in ident]) > 0.1)
+
+    def boom(*args, **kwargs):
+        raise AssertionError("recomputed")
+
+    monkeypatch.setattr(runner, "classic_references", boom)
+    monkeypatch.setattr(runner, "untrained_reference", boom)
+    assert runner.ensure_references(tmp_path, base, evals) == json.loads(
+        (tmp_path / runner.REFERENCES_FILE).read_text()
+    )
 
 
 def test_rotation_test_of_the_identity_is_zero(identity_bundle, sphere_examples):
