@@ -83,6 +83,12 @@ print(f"{len(sv)} vertices; normal error: max {angle.max():.2e} degrees")
 for name, x in [("κ_H", kh), ("signed κ_H", kh_signed), ("κ_G", kg)]:
     print(f"{name:10s} mean {x.mean():.4f}  min {x.min():.4f}  max {x.max():.4f}  (exact 1)")
 
+# What the text below says: normals within a fraction of a degree, κ_H exact to 1e-3,
+# κ_G about 0.1 % high everywhere.
+assert angle.max() < 1.0
+assert np.abs(kh - 1).max() < 1e-3 and np.abs(kh_signed - 1).max() < 1e-3
+assert 1.0005 < kg.min() and kg.max() < 1.002
+
 # %% [markdown]
 # All vertices of an icosphere lie on the sphere, but its triangles are not all alike:
 # the area-weighted normals tilt by a fraction of a degree where the triangle sizes
@@ -122,6 +128,12 @@ print(
     f"(range of H: {exact_h.min():.3f} to {exact_h.max():.3f})"
 )
 print(f"max |κ_H - |H||          = {np.abs(kh - np.abs(exact_h)).max():.4f}")
+# "Follow the closed forms": within 2 % of each quantity's range, including the sign
+# of H on both sides of the circles where it changes (φ = ±0.81π).
+assert np.abs(kg - exact_kg).max() < 0.02 * np.ptp(exact_kg)
+assert np.abs(kh_signed - exact_h).max() < 0.02 * np.ptp(exact_h)
+assert np.all(kh_signed[np.abs(phi) > 0.85 * np.pi] < 0)
+assert np.all(kh_signed[np.abs(phi) < 0.77 * np.pi] > 0)
 
 order = np.argsort(phi)
 fig, axes = plt.subplots(1, 2, figsize=(8, 2.8), sharex=True)
@@ -161,6 +173,7 @@ for name, (v, f) in {
     total = float(jax.jit(geometry.angle_defect)(jnp.asarray(v), jnp.asarray(f)).sum())
     chi = euler_characteristic(v, f)
     print(f"{name:8s} χ = {chi:3d}: Σ angle defect = {total:9.5f}, 2πχ = {2 * np.pi * chi:9.5f}")
+    assert abs(total - 2 * np.pi * chi) < 1e-8, name  # exact, whatever the triangulation
 
 # %% [markdown]
 # ## A CAD part: sharp edges
@@ -197,6 +210,11 @@ for name, x in [
 ]:
     print(f"{name:13s}" + "".join(f"{v:10.3g}" for v in np.percentile(x, [50, 90, 99, 100])))
 
+# The text's reading of this table: flat faces have zero curvature, edge vertices a large
+# κ_H; κ_G vanishes along straight edges (the sharp median) and is large at corners.
+assert np.median(kh[~sharp]) < 1e-9 and np.median(kh[sharp]) > 10
+assert np.median(np.abs(kg[sharp])) < 1e-6 and np.abs(kg[sharp]).max() > 100
+
 # %% [markdown]
 # ## Colour maps
 #
@@ -226,6 +244,18 @@ for name, values in fields.items():
         panel_size=2.2,
     )
 
+# The text below: the sphere is one colour (κ_H = 2, κ_G = 4 at diameter 1); the torus is
+# positive outside and negative inside in both quantities; the bracket's edges have
+# both signs of κ_H (convex and concave).
+_, _, h_s, k_s = curvatures(canonical_frame(sv).apply(sv), sf)
+assert np.allclose(h_s, 2, rtol=2e-3) and np.allclose(k_s, 4, rtol=3e-3)
+_, _, h_t, k_t = curvatures(canonical_frame(tv).apply(tv), tf)
+outer, inner = np.abs(phi) < 0.1 * np.pi, np.abs(phi) > 0.9 * np.pi
+assert np.all(h_t[outer] > 0) and np.all(k_t[outer] > 0)
+assert np.all(h_t[inner] < 0) and np.all(k_t[inner] < 0)
+_, _, h_b, _ = curvatures(cv, cf)
+assert h_b[sharp].min() < -1 and h_b[sharp].max() > 1
+
 # %% [markdown]
 # In the canonical frame the sphere has diameter 1, so $\kappa_H = 2$ and
 # $\kappa_G = 4$ everywhere (one colour). The torus is bright outside and dark inside
@@ -254,6 +284,9 @@ for label, (v, f) in zip(["sphere", "torus", "bracket"], meshes, strict=True):
             f"   {names[j]}: min {x.min():10.3g}  median {np.median(x):10.3g}  max {x.max():10.3g}"
             f"   asinh: min {np.arcsinh(x).min():6.2f}  max {np.arcsinh(x).max():6.2f}"
         )
+    assert np.allclose(np.linalg.norm(target[:, :3], axis=1), 1, atol=1e-6)
+    if label == "bracket":  # "several orders of magnitude": |κ_G| from ~0 to over 1000
+        assert np.median(np.abs(target[:, 4])) < 1e-6 and np.abs(target[:, 4]).max() > 1e3
 
 # %% [markdown]
 # The normals are unit vectors, but the curvature columns of a CAD part span several
