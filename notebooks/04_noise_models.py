@@ -83,6 +83,17 @@ for ax, kind in zip(axes, KINDS, strict=True):
 fig.tight_layout()
 plt.show()
 
+# %%
+# The text below: second moments as tabulated, gamma never zero, impulse zero 70 % of the
+# time and exactly ±1 otherwise.
+for kind in KINDS:
+    x = np.asarray(noise.unit_noise(jax.random.fold_in(key, KINDS.index(kind)), (200_000,), kind))
+    assert abs(np.mean(x**2) / SECOND_MOMENT[kind] - 1) < 0.02, kind
+    if kind == "gamma":
+        assert np.mean(x == 0) == 0
+    if kind == "impulse":
+        assert abs(np.mean(x == 0) - 0.7) < 0.01 and np.all(np.abs(x[x != 0]) == 1)
+
 # %% [markdown]
 # Gamma noise has no mass near zero (the magnitude is $\Gamma(2, 2)$, mean 1) and a long
 # tail; impulse noise leaves 70 % of the coordinates alone and moves the others by
@@ -118,6 +129,13 @@ for kind in KINDS:
             f"{format_metric(VERTEX, m[VERTEX.key]):>15s} {format_metric(VERTEX, predicted):>21s}"
         )
 
+# "Match to within sampling noise, the ratio the same along a kind's rows": within 5 %,
+# and one ratio per kind.
+for kind in KINDS:
+    ratios = [m[VERTEX.key] / (lv**2 * SECOND_MOMENT[kind]) for k, lv, m in rows if k == kind]
+    assert all(abs(r - 1) < 0.05 for r in ratios), (kind, ratios)
+    assert np.ptp(ratios) < 1e-5 * ratios[0], (kind, ratios)
+
 # %% [markdown]
 # The measured errors match the prediction to within sampling noise (one draw over a
 # few thousand coordinates; the same key is used at every level, so the ratio is the
@@ -147,6 +165,14 @@ show_render(
     value_range=(0, 60),
     panel_size=1.8,
 )
+
+# The text below: at a matched RMS the four kinds disturb the normals alike (within 10 %
+# of their mean), and impulse noise moves about two thirds of the vertices (0.7³ of
+# them keep all three coordinates; float32 round-off aside).
+kind_errors = np.array([e.mean() for e in errors[1:]])
+assert np.all(np.abs(kind_errors / kind_errors.mean() - 1) < 0.1), kind_errors
+moved = np.mean(np.any(np.abs(panels[-1][0] - blob_v) > 1e-6, axis=1))
+assert abs(moved - (1 - 0.7**3)) < 0.05, moved
 
 # %% [markdown]
 # At a matched RMS the four kinds look much alike on the surface, even impulse noise:
@@ -208,6 +234,13 @@ for name in resolutions:
         f"canonical σ 0.01 = {0.01 / edge[name]:.2f} edge lengths"
     )
 
+# The text below: at each canonical σ the fine mesh's normal error is at least twice
+# the coarse mesh's; at each edge level the two are within 10 % of each other.
+coarse, fine = (np.array(normal_error[n, "canonical"]) for n in ("coarse", "fine"))
+assert np.all(fine > 2 * coarse), (coarse, fine)
+coarse, fine = (np.array(normal_error[n, "edge"]) for n in ("coarse", "fine"))
+assert np.all(np.abs(fine / coarse - 1) < 0.1), (coarse, fine)
+
 # %% [markdown]
 # Left: at one canonical $\sigma$ the fine mesh's normals are far more disturbed than
 # the coarse mesh's. Right: in edge units the two curves nearly coincide. Training
@@ -263,6 +296,32 @@ axes[2].set_yscale("log")
 axes[0].legend(fontsize=7)
 fig.tight_layout()
 plt.show()
+
+# %%
+# What the bullets below say, checked on these numbers.
+blob_edge = mean_edge_length(blob_v, blob_f)
+for kind in KINDS:
+    vertex = np.array([m[VERTEX.key] for m in response[kind]])
+    normal = np.array([m[NORMAL.key] for m in response[kind]])
+    chamfer = np.array([m["chamfer"] for m in response[kind]])
+    # Vertex error on the RMS² line (one draw per point: within 10 %).
+    assert np.all(np.abs(vertex / rms_grid**2 - 1) < 0.1), kind
+    # Normal error roughly proportional to the RMS up to a tenth of an edge (slope of
+    # log-log between 0.8 and 1.2), about 10° there, near 90° (over 70°) at one edge.
+    small = rms_grid <= 0.1 * blob_edge
+    slope = np.polyfit(np.log(rms_grid[small]), np.log(normal[small]), 1)[0]
+    assert 0.8 < slope < 1.2, (kind, slope)
+    assert 7 < np.interp(0.1 * blob_edge, rms_grid, normal) < 13, kind
+    assert np.interp(blob_edge, rms_grid, normal) > 70, kind
+    # Chamfer on the 6 RMS² line while the noise is small, below it at an edge length.
+    assert np.all(np.abs(chamfer[small] / (6 * rms_grid[small] ** 2) - 1) < 0.1), kind
+    assert chamfer[-1] < 0.5 * 6 * rms_grid[-1] ** 2, kind
+# "Nearly indistinguishable at a matched RMS": every metric within 10 % across kinds
+# while the RMS is below a third of an edge.
+for key in (VERTEX.key, NORMAL.key, "chamfer"):
+    table = np.array([[m[key] for m in response[kind]] for kind in KINDS])
+    table = table[:, rms_grid < blob_edge / 3]
+    assert np.all(np.abs(table / table.mean(0) - 1) < 0.1), key
 
 # %% [markdown]
 # * **Vertex error** is the noise energy itself: every kind lies on the dashed RMS²
