@@ -319,3 +319,15 @@ def evaluation_batches(
         )
         out.append((collate([n], [c], [ex.graph], sizes), spec))
     return out
+
+
+def unpadded_mesh(batch: Batch) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The one mesh of a single-mesh batch without its padding.
+
+    Returns:
+      `(noisy [n_vertex, 3] float64, clean [n_vertex, 3] float64, faces [n_face, 3])`.
+    """
+    n = int(batch.graph.n_vertex_per_graph[0])
+    nf = int(batch.graph.n_face_per_graph[0])
+    faces = np.asarray(batch.graph.faces[:nf])
+    return np.asarray(batch.noisy[:n], np.float64), np.asarray(batch.clean[:n], np.float64), faces

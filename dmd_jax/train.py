@@ -60,6 +60,7 @@ from dmd_jax.pipeline import (
     evaluation_batches,
     largest_sizes,
     training_batch,
+    unpadded_mesh,
 )
 
 FE_PREFIX = "feature_extractor"
@@ -324,12 +325,8 @@ class Trainer:
         rows = []
         for batch, _ in batches:
             out, _ = self.predict(params, batch)
-            n = int(batch.graph.n_vertex_per_graph[0])
-            nf = int(batch.graph.n_face_per_graph[0])
-            faces = np.asarray(batch.graph.faces[:nf])
-            clean = np.asarray(batch.clean[:n], np.float64)
-            pred = np.asarray(out[:n], np.float64)
-            noisy = np.asarray(batch.noisy[:n], np.float64)
+            noisy, clean, faces = unpadded_mesh(batch)
+            pred = np.asarray(out[: noisy.shape[0]], np.float64)
             # Padded to the batch's rows: one metric program per evaluation shape.
             padded = batch.noisy.shape[0]
             m = metrics.mesh_metrics(pred, clean, faces, min_rows=padded)

@@ -40,6 +40,7 @@ from dmd_jax.pipeline import (
     evaluation_batches,
     split_slots,
     training_batch,
+    unpadded_mesh,
 )
 from dmd_jax.train import Trainer, make_train_step, merge_params, phase_of
 
@@ -118,12 +119,9 @@ def evaluate_per_mesh(trainer: Trainer, params, batches) -> list[dict[str, float
     rows = []
     for batch, _ in batches:
         out, _ = trainer.predict(params, batch)
-        n = int(batch.graph.n_vertex_per_graph[0])
-        nf = int(batch.graph.n_face_per_graph[0])
-        faces = np.asarray(batch.graph.faces[:nf])
-        clean = np.asarray(batch.clean[:n], np.float64)
-        m = metrics.mesh_metrics(np.asarray(out[:n], np.float64), clean, faces)
-        r = metrics.mesh_metrics(np.asarray(batch.noisy[:n], np.float64), clean, faces)
+        noisy, clean, faces = unpadded_mesh(batch)
+        m = metrics.mesh_metrics(np.asarray(out[: noisy.shape[0]], np.float64), clean, faces)
+        r = metrics.mesh_metrics(noisy, clean, faces)
         rows.append({**m, **{f"noisy_{k}": v for k, v in r.items()}})
     return rows
 

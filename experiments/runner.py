@@ -287,20 +287,22 @@ def _mean_dicts(rows: Sequence[dict]) -> dict:
     return {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
 
 
-def evaluate_checkpoint(cfg, checkpoint_dir, eval_sets) -> tuple[dict, dict]:
-    """The test metrics of a saved checkpoint, with the sweep's evaluation noise.
+def sweep_scores(cfg, eval_sets, score: Callable) -> tuple[dict, dict]:
+    """Scores something on the noisy test meshes every row of a sweep is scored on.
+
+    The meshes are `evaluation_batches` of each split with `EVAL_SEED` and `cfg`'s
+    noise, rotation and encoding: the same for every row, seed and reference.
+
+    Args:
+      cfg: an `ExperimentConfig` (its noise, rotation and encoding).
+      eval_sets: `{"test_intra": [MeshExample], "test_inter": [...]}`.
+      score: `score(batches) -> [metrics dict per mesh]`.
 
     Returns:
-      `(means, per_mesh)`: `<split>/<metric>` means and lists (one value per test mesh),
-      as `multiseed.train_seeds` reports them.
+      `(means, per_mesh)`: `<split>/<metric>` means and lists (one value per test mesh).
     """
-    from dmd_jax.checkpoints import load_params
     from dmd_jax.pipeline import evaluation_batches
-    from dmd_jax.train import Trainer
-    from experiments.multiseed import evaluate_per_mesh
 
-    params, _ = load_params(checkpoint_dir)
-    trainer = Trainer(cfg)
     means, per_mesh = {}, {}
     for name, examples in eval_sets.items():
         if not examples:
@@ -312,19 +314,38 @@ def evaluate_checkpoint(cfg, checkpoint_dir, eval_sets) -> tuple[dict, dict]:
             rotate=cfg.train.rotate,
             encoding=cfg.model.encoding,
         )
-        rows = evaluate_per_mesh(trainer, params, batches)
-        for k in rows[0]:
-            per_mesh[f"{name}/{k}"] = [float(r[k]) for r in rows]
-            means[f"{name}/{k}"] = float(np.mean(per_mesh[f"{name}/{k}"]))
+        for k, values in _columns_of(score(batches)).items():
+            per_mesh[f"{name}/{k}"] = values
+            means[f"{name}/{k}"] = float(np.mean(values))
     return means, per_mesh
+
+
+def _columns_of(rows: Sequence[dict]) -> dict[str, list[float]]:
+    return {k: [float(r[k]) for r in rows] for k in rows[0]} if rows else {}
+
+
+def evaluate_checkpoint(cfg, checkpoint_dir, eval_sets) -> tuple[dict, dict]:
+    """The test metrics of a saved checkpoint, with the sweep's evaluation noise.
+
+    Returns:
+      `(means, per_mesh)`: `<split>/<metric>` means and lists (one value per test mesh),
+      as `multiseed.train_seeds` reports them.
+    """
+    from dmd_jax.checkpoints import load_params
+    from dmd_jax.train import Trainer
+    from experiments.multiseed import evaluate_per_mesh
+
+    params, _ = load_params(checkpoint_dir)
+    trainer = Trainer(cfg)
+    return sweep_scores(cfg, eval_sets, lambda b: evaluate_per_mesh(trainer, params, b))
 
 
 def classic_references(cfg, eval_sets, methods: Sequence[str] = CLASSIC_REFERENCES) -> dict:
     """Classic denoisers on the sweep's noisy test meshes, as reference rows of the tables.
 
-    The meshes are the ones every training-study row is scored on (`evaluation_batches`
-    with `EVAL_SEED` and the base config's noise, rotation and encoding), so a study's
-    rows can be read against, e.g., Taubin smoothing, not only against the noisy input.
+    The meshes are the ones every training-study row is scored on (`sweep_scores`), so
+    a study's rows can be read against, e.g., Taubin smoothing, not only against the
+    noisy input.
 
     Args:
       cfg: the sweep's base `ExperimentConfig`.
@@ -336,32 +357,21 @@ def classic_references(cfg, eval_sets, methods: Sequence[str] = CLASSIC_REFERENC
     """
     from dmd_jax.api import denoise_with
     from dmd_jax.metrics import mesh_metrics
-    from dmd_jax.pipeline import evaluation_batches
+    from dmd_jax.pipeline import unpadded_mesh
+
+    def scorer(method):
+        def score(batches):
+            rows = []
+            for batch, _ in batches:
+                noisy, clean, faces = unpadded_mesh(batch)
+                rows.append(mesh_metrics(denoise_with(method, noisy, faces), clean, faces))
+            return rows
+
+        return score
 
     out = {}
     for method in methods:
-        means, per_mesh = {}, {}
-        for name, examples in eval_sets.items():
-            if not examples:
-                continue
-            batches = evaluation_batches(
-                examples,
-                seed=EVAL_SEED,
-                noise=cfg.noise,
-                rotate=cfg.train.rotate,
-                encoding=cfg.model.encoding,
-            )
-            rows = []
-            for batch, _ in batches:
-                n = int(batch.graph.n_vertex_per_graph[0])
-                nf = int(batch.graph.n_face_per_graph[0])
-                faces = np.asarray(batch.graph.faces[:nf])
-                noisy = np.asarray(batch.noisy[:n], np.float64)
-                clean = np.asarray(batch.clean[:n], np.float64)
-                rows.append(mesh_metrics(denoise_with(method, noisy, faces), clean, faces))
-            for k in rows[0]:
-                per_mesh[f"{name}/{k}"] = [float(r[k]) for r in rows]
-                means[f"{name}/{k}"] = float(np.mean(per_mesh[f"{name}/{k}"]))
+        means, per_mesh = sweep_scores(cfg, eval_sets, scorer(method))
         out[method] = {**means, "per_mesh": per_mesh}
     return out
 
@@ -381,7 +391,6 @@ def untrained_reference(cfg, eval_sets) -> dict:
     import jax
 
     from dmd_jax.model import init_params
-    from dmd_jax.pipeline import evaluation_batches
     from dmd_jax.train import Trainer
     from experiments.multiseed import evaluate_per_mesh
 
@@ -389,23 +398,12 @@ def untrained_reference(cfg, eval_sets) -> dict:
         return {}
     params = jax.jit(lambda key: init_params(cfg.model, key))(jax.random.PRNGKey(cfg.train.seed))
     trainer = Trainer(cfg)
-    means, per_mesh = {}, {}
-    for name, examples in eval_sets.items():
-        if not examples:
-            continue
-        batches = evaluation_batches(
-            examples,
-            seed=EVAL_SEED,
-            noise=cfg.noise,
-            rotate=cfg.train.rotate,
-            encoding=cfg.model.encoding,
-        )
+
+    def score(batches):
         rows = evaluate_per_mesh(trainer, params, batches)
-        for k in rows[0]:
-            if k.startswith("noisy_"):
-                continue
-            per_mesh[f"{name}/{k}"] = [float(r[k]) for r in rows]
-            means[f"{name}/{k}"] = float(np.mean(per_mesh[f"{name}/{k}"]))
+        return [{k: v for k, v in r.items() if not k.startswith("noisy_")} for r in rows]
+
+    means, per_mesh = sweep_scores(cfg, eval_sets, score)
     return {**means, "per_mesh": per_mesh}
 
 

@@ -180,7 +180,7 @@ def test_noise_evaluation_of_the_identity_equals_the_reference(identity_bundle, 
 
 def _noisy_metrics(cfg, examples):
     """Metrics of the noisy test meshes every row is scored on (`EVAL_SEED`)."""
-    from dmd_jax.pipeline import evaluation_batches
+    from dmd_jax.pipeline import evaluation_batches, unpadded_mesh
 
     batches = evaluation_batches(
         examples,
@@ -189,12 +189,7 @@ def _noisy_metrics(cfg, examples):
         rotate=cfg.train.rotate,
         encoding=cfg.model.encoding,
     )
-    out = []
-    for batch, _ in batches:
-        n, nf = int(batch.graph.n_vertex_per_graph[0]), int(batch.graph.n_face_per_graph[0])
-        faces = np.asarray(batch.graph.faces[:nf])
-        out.append(mesh_metrics(np.asarray(batch.noisy[:n]), np.asarray(batch.clean[:n]), faces))
-    return out
+    return [mesh_metrics(*unpadded_mesh(batch)) for batch, _ in batches]
 
 
 def test_classic_references_score_the_meshes_every_row_is_scored_on(
