@@ -39,11 +39,10 @@ def zero_head(params):
 
 
 def main(argv=None) -> int:
-    from sota_lite import crop
+    from relax_validation import validation_crops
 
     import dmd_jax
     from dmd_jax.checkpoints import ModelBundle
-    from dmd_jax.data.real import load_meshes, mesh_files
     from dmd_jax.metrics import mesh_metrics
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -54,12 +53,7 @@ def main(argv=None) -> int:
     if bundle.config.model.head != "normal":
         raise SystemExit("the bundled model has no normal-first head")
     mean_bundle = ModelBundle(params=zero_head(bundle.params), config=bundle.config, meta={})
-    meshes = []
-    for path in mesh_files(args.train_meshes, "val")[::2]:
-        v, f = load_meshes([path])[0]
-        if f.shape[0] > 8000:
-            v, f = crop(v, f, 8000)
-        meshes.append((path.name, v, f))
+    meshes = validation_crops(args.train_meshes)
     start = time.perf_counter()
     header = ["input", "noisy", "candidate mean (head zeroed)", "bundled model", "trained share"]
     lines = ["| " + " | ".join(header) + " |", "|---" + "|---:" * (len(header) - 1) + "|"]

@@ -25,11 +25,24 @@ CONDITIONS = (("clean", 0.0), ("normal", 0.1), ("normal", 0.3), ("isotropic", 0.
 RATIOS = (0.05, 0.2, 1.0)
 
 
-def main(argv=None) -> int:
+def validation_crops(train_meshes: Path, max_faces: int = 8000):
+    """`(name, vertices, faces)` of every other validation file, cropped to a connected
+    patch of at most `max_faces` faces (`sota_lite.crop`)."""
     from sota_lite import crop
 
-    import dmd_jax
     from dmd_jax.data.real import load_meshes, mesh_files
+
+    meshes = []
+    for path in mesh_files(train_meshes, "val")[::2]:
+        v, f = load_meshes([path])[0]
+        if f.shape[0] > max_faces:
+            v, f = crop(v, f, max_faces)
+        meshes.append((path.name, v, f))
+    return meshes
+
+
+def main(argv=None) -> int:
+    import dmd_jax
     from dmd_jax.metrics import mesh_metrics
     from dmd_jax.relax import relax_tangential
 
@@ -39,12 +52,7 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, default=HERE / "results" / "relax_validation.md")
     args = p.parse_args(argv)
     bundle = dmd_jax.load_pretrained()
-    meshes = []
-    for path in mesh_files(args.train_meshes, "val")[::2]:
-        v, f = load_meshes([path])[0]
-        if f.shape[0] > 8000:
-            v, f = crop(v, f, 8000)
-        meshes.append((path.name, v, f))
+    meshes = validation_crops(args.train_meshes)
     start = time.perf_counter()
     header = ["input", "network only"] + [f"+ relax {args.steps}, ratio {r}" for r in RATIOS]
     lines = ["| " + " | ".join(header) + " |", "|---" + "|---:" * (len(header) - 1) + "|"]
