@@ -1057,14 +1057,22 @@ def _preset_readme(out_dir: Path, plan: dict, summary: dict, sections: list[str]
     return "\n".join(lines) + "\n"
 
 
-NOTES = """`cpu/` was run with the `cpu` preset *before* the `small` recipe (which `cpu` builds on)
-became the resolution-free, normal-first one (2026-11-30); rerunning `make ablate` now
-trains every study on the new recipe. `cpu-recipe/` holds the two studies that are not in
-the paper, input encoding (xyz vs local) and output head (offset vs normal-first), run on
-the new recipe (`python -m experiments run --preset cpu --studies encoding head --out
-experiments/results/cpu-recipe`; one seed, 3 trainings). `cpu-quick/` is `make
-ablate-quick`: four studies (encoding, head, attention, STN) on the new recipe at 300
-steps, 3 seeds per row, 8 test meshes per split, a first look before the full sweep.
+NOTES = """`cpu/` is `make ablate`: every study on the resolution-free, normal-first `small`
+recipe (width 32, 1,000 steps), 3 seeds per row, all 34 procedural test meshes, with
+Taubin, BNF and the untrained base as reference rows. `cpu-quick/` is `make
+ablate-quick`: four studies (encoding, head, attention, STN) at 300 steps, 3 seeds per
+row, 8 test meshes per split, a first look. `cpu-recipe/` holds the encoding and head
+studies at one seed from before the multi-seed sweeps (`python -m experiments run --preset
+cpu --studies encoding head --out experiments/results/cpu-recipe`).
+
+How to read the training studies: the normal-first head averages ten fixed candidate
+normals (the noisy one and bilateral pre-filtered ones) before any training (the
+*untrained base* row), and the learnt network only re-weights and corrects them. Most
+of the error reduction is therefore already in the untrained row (`cpu/`, test-intra
+normal error: noisy 20.6°, untrained 14.2°, trained base 11.5°), and rows that change
+only the learnt network's shape (attention, STN, depth, structure) differ by tenths or
+hundredths of a degree: an *undecided* verdict there means "no effect this sweep can
+resolve", not a failed run.
 
 ## How these sweeps differ from the paper, and how to read them
 
