@@ -84,10 +84,15 @@ HOST_BYTES_PER_PADDED_VERTEX = 5000
 # padded vertices = 7.8 kB.
 WHOLE_HOST_BYTES_PER_PADDED_VERTEX = 7800
 # Whole-mesh state of the patch path per vertex and face: the validated copies, positions
-# in the frame (float64), the result, the Morton order, the vertex-face incidence and the
-# BFS stamps (see `_mesh_bytes`).
-MESH_BYTES_PER_VERTEX = 120
+# in the frame (float64), the result, the Morton order, the partition into owned sets,
+# the vertex-face incidence and the BFS stamps (see `_mesh_bytes`).
+MESH_BYTES_PER_VERTEX = 128
 MESH_BYTES_PER_FACE = 40
+# Owned sets are graph Voronoi cells of a target size (`patches.compact_partition`); on
+# noisy grids of 5M faces, cells of 100k-200k vertices spanned 0.65-1.5 times the target
+# with a median of 0.95. The patch size is chosen so that a cell this many times the
+# target still fits the budget; larger ones are split.
+CELL_SLACK = 1.25
 # What the patch path holds besides patches and the mesh: compiled programs (a handful:
 # one per rung of patch shapes and pass) and XLA's compiler working memory. Measured: a
 # 300k-face run with a 1 GiB budget peaked 0.34 GiB above it with 16 programs compiled.
@@ -391,7 +396,7 @@ def denoise(
     mapped back, so the result is translation- and scale-equivariant.
 
     A mesh whose whole-mesh run fits `max_memory` runs at once. A larger one runs patch
-    by patch (`dmd_jax.patches`): owned vertex sets of a Morton order, each grown by a
+    by patch (`dmd_jax.patches`): compact owned vertex sets (graph Voronoi cells), each grown by a
     halo as deep as the network's receptive field; the per-mesh pools of the transformer
     (and STN) are computed first over all patches. The result equals the whole-mesh run
     up to float32 summation order (`tests/test_patches.py`: within 2e-5 mean edge
@@ -581,6 +586,7 @@ class _PatchRunner:
         self.max_padded_vertices = None  # None: no limit (a forced patch_size)
         self.budget = None
         self.order = None
+        self.partition = None  # (patch_size, patches.Partition)
         self._params = {}
         self._shapes = {}  # padded sizes compiled so far -> their ELL table widths
         self.reference = None  # padded vertices of a typical full patch (the ladder's top)
@@ -591,10 +597,12 @@ class _PatchRunner:
         """Chooses the owned vertices per patch so that a padded patch fits `budget`.
 
         Starts from a disc of owned vertices on a remeshed surface (radius r rings: about
-        3 r^2 vertices) whose halo keeps the patch at 3/4 of the limit, then halves or
-        doubles it while the first chunk of the Morton order (grown by the output halo)
-        is over the limit or its double still under it. Patches found too large later
-        are split as they come (`_patches`).
+        3 r^2 vertices) whose halo keeps the patch at 3/4 of the limit, then shrinks it
+        by 4/5 while a disc of that many vertices from the middle of the mesh (grown by
+        the output halo) is over the limit, or grows it by 5/4 while the next step still
+        fits. The disc is made `CELL_SLACK` times the size: the owned sets are graph
+        Voronoi cells (`patches.compact_partition`), most of them within that factor of
+        their target. A cell found too large later is split (`_patches`).
 
         Args:
           x: `[n_vertex, 3]` positions (for the Morton order).
@@ -619,24 +627,34 @@ class _PatchRunner:
         limit = self.max_padded_vertices
         r0 = max(math.sqrt(0.75 * limit / 3.0) - self.halo.output, 1.0)
         size = min(max(int(3.0 * r0 * r0), 1), self.n_vertex)
+        # The middle of the Morton order: away from the mesh's corners, whose patches
+        # lose part of their halo and come out smaller.
+        seed = int(self.order[self.n_vertex // 2])
 
         def padded(k: int) -> int:
-            # A chunk from the middle of the Morton order: away from the mesh's corners,
-            # whose patches lose part of their halo and come out smaller.
-            start = max(min(self.n_vertex // 2, self.n_vertex - k), 0)
-            patch = self.grower.grow(self.order[start : start + k], self.halo.output)
+            owned = self.grower.disc(seed, max(int(CELL_SLACK * k), 1))
+            patch = self.grower.grow(owned, self.halo.output)
             return padded_sizes_for(build_mesh_graph(patch.faces, patch.vertices.size)).n_vertex
 
         while size > 1 and padded(size) > limit:
-            size //= 2
-        while size < self.n_vertex and padded(min(2 * size, self.n_vertex)) <= limit:
-            size = min(2 * size, self.n_vertex)
+            size = max(size * 4 // 5, 1)
+        while size < self.n_vertex and padded(min(size * 5 // 4 + 1, self.n_vertex)) <= limit:
+            size = min(size * 5 // 4 + 1, self.n_vertex)
         self.patch_size = size
         self.reference = padded(size)
 
     def _ensure_order(self, x: np.ndarray) -> None:
         if self.order is None:
             self.order = patch_lib.morton_order(x)
+
+    def _ensure_partition(self, x: np.ndarray) -> None:
+        """The owned sets for `patch_size` (kept over passes and iterations)."""
+        self._ensure_order(x)
+        if self.partition is None or self.partition[0] != self.patch_size:
+            part = patch_lib.compact_partition(
+                x, self.faces, self.grower.incidence, self.order, self.patch_size
+            )
+            self.partition = (self.patch_size, part)
 
     # ----------------------------------------------------------------------------------
 
@@ -646,24 +664,25 @@ class _PatchRunner:
         return self._params[device]
 
     def _chunks(self):
-        """Owned vertex sets, `patch_size` consecutive vertices of the Morton order."""
-        for start in range(0, self.n_vertex, self.patch_size):
-            yield self.order[start : start + self.patch_size]
+        """The owned vertex sets: compact cells of about `patch_size` vertices."""
+        yield from self.partition[1].sets()
 
     def _shaped_graph(self, graph, natural):
         """The padded graph of a patch's `graph` (natural sizes `natural`).
 
         Patches are padded to a ladder of shapes, the reference patch's padded vertex
-        count halved as often as needed (`self.reference`), so a sweep compiles about
+        count times 1, 3/4, 1/2, 3/8, ... (`self.reference`), so a sweep compiles about
         one program per rung instead of one per bucket that patch sizes happen to hit;
         a patch above the reference keeps its own bucket. ELL tables are widened to the
         width the shape first had.
         """
         sizes = natural
         if self.reference is not None and natural.n_vertex <= self.reference:
-            rung = self.reference
-            while rung // 2 >= max(natural.n_vertex, 1024):
-                rung //= 2
+            rungs, r = [self.reference], self.reference
+            while r // 2 >= 1024:  # 1, 3/4, 1/2, 3/8, ... of it: at most a third wasted
+                rungs += [r * 3 // 4, r // 2]
+                r //= 2
+            rung = min(r for r in rungs if r >= natural.n_vertex)
             sizes = sizes_for_vertices(rung - 1, 0, 0, 0, natural.n_graph - 1)
             if any(a < b for a, b in zip(sizes, natural, strict=True)):
                 sizes = natural
@@ -694,9 +713,7 @@ class _PatchRunner:
                         f"{patch.vertices.size} vertices ({n_padded.n_vertex} padded, "
                         f"{limit} fit); raise max_memory / --max-memory"
                     )
-                half = owned.size // 2
-                # Later chunks are as large: halve them all from here on.
-                self.patch_size = max(half, 1)
+                half = owned.size // 2  # in Morton order: two halves compact in space
                 todo.appendleft(owned[half:])
                 todo.appendleft(owned[:half])
                 continue
@@ -751,7 +768,7 @@ class _PatchRunner:
 
     def run(self, x: np.ndarray) -> np.ndarray:
         """One pass of the network: `[n_vertex, 3]` frame positions in, out."""
-        self._ensure_order(x)
+        self._ensure_partition(x)
         self.patches_run = 0
         params_dtype = np.float64 if self.cfg.dtype == "float64" else np.float32
         pooled: dict = {}

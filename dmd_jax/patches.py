@@ -3,7 +3,7 @@
 DMD-Net is local except for its per-mesh pools (`model.pooled_names`): the output at a
 vertex depends only on the mesh within `receptive_field(config).output` vertex rings of
 it, once the pools are known. So a mesh too large to run at once is cut into disjoint
-*owned* vertex sets (chunks of a Morton order: compact in space, equal in size), each
+*owned* vertex sets (`compact_partition`: graph Voronoi cells, close to discs), each
 grown by a halo of `halo_rings` rings (breadth-first over the vertex–face incidence,
 vectorised per ring); the network runs on each patch and only its owned vertices are
 kept. The pools are computed first, by the same patches with the pool masks restricted
@@ -14,13 +14,14 @@ Ring counting (`receptive_field`). A vertex quantity has reach `r` when it depen
 vertices within `r` rings of its vertex; a face quantity, within `r` rings of any of its
 three vertices. Then P2D (face from its vertices) keeps the reach, D2P (vertex from its
 incident faces, whose vertices are one ring away) adds 1, one GCN aggregation on the
-vertex graph adds 1, one on the face graph (faces sharing an edge: the third vertex is
-one ring from the shared two) adds 1, one bilateral pre-filter pass adds 1, one
-iteration of the normal-driven vertex update adds 1. A patch of halo `h` has complete
-vertex stars (degrees, incident faces, face adjacency) within `h - 1` rings of its
-owned vertices, so an owned vertex is exact when `h >= reach + 1` (`halo_rings`).
-`tests/test_patches.py` checks both: perturbing one vertex moves nothing beyond the
-reach, and patches with that halo reproduce the whole-mesh output.
+vertex graph adds 1, `k` consecutive hops on the face graph (faces sharing an edge:
+GCN aggregations of the dual stream, bilateral pre-filter passes) add `ceil(k / 2)`
+(`dual_rings`), one iteration of the normal-driven vertex update adds 1. A patch of
+halo `h` has complete vertex stars (degrees, incident faces, face adjacency) within
+`h - 1` rings of its owned vertices, so an owned vertex is exact when
+`h >= reach + 1` (`halo_rings`). `tests/test_patches.py` checks both: perturbing one
+vertex moves nothing beyond the reach, and patches with that halo reproduce the
+whole-mesh output.
 """
 
 from __future__ import annotations
@@ -47,6 +48,20 @@ class ReceptiveField(NamedTuple):
     pools: tuple[int, ...]
 
 
+def dual_rings(hops: int) -> int:
+    """Vertex rings reached by `hops` consecutive hops between faces sharing an edge.
+
+    `ceil(hops / 2)`: measure a face's vertices by their ring distance from a start
+    face's vertices. A hop keeps the shared edge and adds a vertex adjacent to both of
+    its ends, so one ring beyond the nearer end at most; the maximum over the face can
+    therefore grow only by crossing an edge whose two ends both hold it, and the new
+    face then holds the new maximum at one vertex only, so the next hop cannot grow it.
+    Counting a hop as a whole ring, as a vertex aggregation, would make the 60-pass
+    pre-filters of the bundled model a 60-ring halo instead of 30.
+    """
+    return (int(hops) + 1) // 2
+
+
 def receptive_field(config: ModelConfig) -> ReceptiveField:
     """The receptive field of `DMDNet(config)` in vertex rings, counted hop by hop.
 
@@ -69,7 +84,7 @@ def receptive_field(config: ModelConfig) -> ReceptiveField:
     """
     cfg = config
     if cfg.encoding == "local":
-        face_in = max(snapshot_passes(cfg.filter_iterations))  # pre-filtered normals
+        face_in = dual_rings(max(snapshot_passes(cfg.filter_iterations)))  # pre-filters
         vertex_in = face_in + 1  # their vertex averages (D2P); Laplacian, normals: 1
         stn_in = 1  # the STN sees the Laplacian coordinates
     else:
@@ -80,7 +95,7 @@ def receptive_field(config: ModelConfig) -> ReceptiveField:
         p = r + cfg.n_agg
         if not two:
             return p, None
-        d = max(r, face_in) + cfg.n_agg  # P2D keeps the reach; face_x joins it
+        d = max(r, face_in) + dual_rings(cfg.n_agg)  # P2D keeps the reach; face_x joins
         fused = max(p, d)  # DAP: a face and its own vertices
         return fused + 1, fused  # D2P
 
@@ -178,16 +193,125 @@ def vertex_faces(faces: np.ndarray, n_vertex: int) -> Incidence:
     return Incidence(start, face)
 
 
-def _rows(inc: Incidence, vertices: np.ndarray) -> np.ndarray:
-    """The incident faces of every vertex in `vertices`, concatenated (with repeats)."""
+def _rows(inc: Incidence, vertices: np.ndarray, *, with_row: bool = False):
+    """The incident faces of every vertex in `vertices`, concatenated (with repeats).
+
+    With `with_row`, also the position in `vertices` each face came from.
+    """
     begin = inc.start[vertices]
     count = inc.start[vertices + 1] - begin
     total = int(count.sum())
     if total == 0:
-        return np.empty(0, np.int32)
+        empty = np.empty(0, np.int32)
+        return (empty, np.empty(0, np.int64)) if with_row else empty
     # Position of each output entry: its row's start plus its offset within the row.
     offset = np.arange(total) - np.repeat(np.cumsum(count) - count, count)
-    return inc.face[np.repeat(begin, count) + offset]
+    face = inc.face[np.repeat(begin, count) + offset]
+    if with_row:
+        return face, np.repeat(np.arange(vertices.size), count)
+    return face
+
+
+class Partition(NamedTuple):
+    """Disjoint owned vertex sets covering a mesh: set `c` is `vertices[start[c]:start[c+1]]`."""
+
+    vertices: np.ndarray  # [n_vertex] int64, set by set
+    start: np.ndarray  # [n_set + 1] int64
+
+    def sets(self):
+        """Yields the owned sets, `[k]` int64 vertex indices each."""
+        for c in range(self.start.size - 1):
+            yield self.vertices[self.start[c] : self.start[c + 1]]
+
+
+def _grow_cells(faces, incidence: Incidence, label: np.ndarray, seeds: np.ndarray) -> None:
+    """Breadth-first from all `seeds` at once (already labelled): every unlabelled vertex
+    they reach takes the label of a seed fewest rings away. Vectorised per ring."""
+    frontier = seeds
+    while frontier.size:
+        f, row = _rows(incidence, frontier, with_row=True)
+        nb = faces[f].reshape(-1).astype(np.int64)
+        nb_label = np.repeat(label[frontier][row], 3)
+        free = label[nb] < 0
+        nb, nb_label = nb[free], nb_label[free]
+        # A vertex reached from two cells in the same ring joins the first listed.
+        frontier, first = np.unique(nb, return_index=True)
+        label[frontier] = nb_label[first]
+
+
+def compact_partition(
+    vertices: np.ndarray, faces: np.ndarray, incidence: Incidence, order: np.ndarray, size: int
+) -> Partition:
+    """Owned sets of about `size` vertices each, compact on the surface (graph Voronoi).
+
+    Consecutive runs of a Morton order are compact in space but not on a surface: a run
+    is a union of boxes, and a box cuts a curved sheet into strips, whose halos hold
+    several times their own vertices. Here every `size`-th vertex of `order` (the middle
+    of its run) seeds a cell, a breadth-first search from all seeds at once gives each
+    vertex the cell of a seed fewest rings away, and one Lloyd step (each cell reseeded
+    at its vertex nearest its centroid, then grown again) evens out the cell sizes:
+    cells close to discs, whose halos are the smallest for their size. Components that
+    no seed reaches are seeded from their own vertices, ever more densely; cells smaller
+    than `size` then join their successors in seed order while the sum stays within
+    `size`. Within a cell, vertices keep `order`'s order (so halving a cell that is too
+    large splits it in space).
+
+    Args:
+      vertices: `[n_vertex, 3]` positions.
+      faces: `[n_face, 3]` faces.
+      incidence: `vertex_faces(faces, n_vertex)`.
+      order: `[n_vertex]` a permutation of the vertices (e.g. `morton_order`).
+      size: target vertices per set (>= 1).
+
+    Returns:
+      A `Partition`.
+    """
+    if size < 1:
+        raise ValueError(f"a patch needs at least one owned vertex, got size {size}")
+    n = order.size
+    label = np.full(n, -1, np.int64)
+    seeds = order[min(size // 2, n - 1) :: size]
+    label[seeds] = np.arange(seeds.size)
+    _grow_cells(faces, incidence, label, seeds)
+    # Lloyd step over the reached vertices: the vertex nearest its cell's centroid.
+    reached = np.flatnonzero(label >= 0)
+    cell = label[reached]
+    count = np.bincount(cell, minlength=seeds.size).astype(np.float64)[:, None]
+    x = np.asarray(vertices, np.float64)[reached]
+    centre = np.stack([np.bincount(cell, x[:, i], seeds.size) for i in range(3)], 1) / count
+    d2 = ((x - centre[cell]) ** 2).sum(axis=1)
+    del x
+    by = np.lexsort((d2, cell))
+    first = np.r_[True, cell[by][1:] != cell[by][:-1]]
+    seeds = reached[by[first]]
+    del reached, cell, d2, by, first
+    label[:] = -1
+    label[seeds] = np.arange(seeds.size)
+    n_cell = seeds.size
+    _grow_cells(faces, incidence, label, seeds)
+    todo, stride = order[label[order] < 0], size
+    while todo.size:
+        # Components no seed reached (and vertices without faces), seeded ever more
+        # densely: at most log2(size) + 1 rounds however many components there are.
+        seeds = todo[min(stride // 2, todo.size - 1) :: stride]
+        label[seeds] = np.arange(n_cell, n_cell + seeds.size)
+        n_cell += seeds.size
+        _grow_cells(faces, incidence, label, seeds)
+        todo = todo[label[todo] < 0]
+        stride = max(stride // 2, 1)
+    count = np.bincount(label, minlength=n_cell)
+    group = np.empty(n_cell, np.int64)
+    g, total = 0, 0
+    for c, k in enumerate(count.tolist()):
+        if total and total + k > size:
+            g, total = g + 1, 0
+        group[c] = g
+        total += k
+    label = group[label]
+    by_cell = order[np.argsort(label[order], kind="stable")]
+    start = np.zeros(g + 2, np.int64)
+    np.cumsum(np.bincount(label, minlength=g + 1), out=start[1:])
+    return Partition(by_cell, start)
 
 
 class Patch(NamedTuple):
@@ -224,6 +348,26 @@ class PatchGrower:
         self._vertex_stamp = np.zeros(n_vertex, np.int32)
         self._face_stamp = np.zeros(self.faces.shape[0], np.int32)
         self._stamp = 0
+
+    def disc(self, seed: int, size: int) -> np.ndarray:
+        """`size` vertices around `seed`, ring by ring (fewer if its component is smaller).
+
+        Returns:
+          `[k]` int64 global vertex indices, `k <= size`, in ring order.
+        """
+        self._stamp += 1
+        stamp, vs = self._stamp, self._vertex_stamp
+        frontier = np.array([seed], np.int64)
+        vs[frontier] = stamp
+        layers, total = [frontier], 1
+        while total < size and frontier.size:
+            nb = self.faces[_rows(self.incidence, frontier)].reshape(-1).astype(np.int64)
+            nb = np.unique(nb[vs[nb] != stamp])
+            vs[nb] = stamp
+            layers.append(nb)
+            total += nb.size
+            frontier = nb
+        return np.concatenate(layers)[:size]
 
     def grow(self, owned: np.ndarray, rings: int) -> Patch:
         """The patch of `owned` (global vertex indices) with a halo of `rings` rings.

@@ -3,7 +3,7 @@
 The receptive field is checked empirically (a perturbed vertex moves nothing beyond it,
 and, for small configs, something at its edge), and patch-wise results are compared with
 whole-mesh ones on meshes that fit in memory. The meshes are long noisy strips, so halos
-really are cut (a strip 300 columns long holds no patch of 88 rings around 100 columns).
+really are cut (a strip 300 columns long holds no patch of 58 rings around 100 columns).
 
 Tolerance: float32 networks, where the two paths differ only in summation order (the
 pools are sums over patches instead of one segment sum): measured up to 1.9e-5 mean
@@ -80,10 +80,11 @@ def ring_distance(faces: np.ndarray, n: int, source: int) -> np.ndarray:
 
 
 def test_receptive_field_of_the_presets():
-    # small: pre-filters 60 passes (+1 to vertices), FE 2 x (3 + 1), transformer 3 + 1 to
-    # the pool / 1 to the output, denoiser 2 x 4 - 1 to the last dual stream, 10 updates.
-    assert patches.receptive_field(preset("small").model) == (87, (73,))
-    assert patches.halo_rings(preset("small").model) == (88, (74,))
+    # small: pre-filters 60 face hops = 30 rings (+1 to vertices), FE 2 x (3 + 1),
+    # transformer 3 + 1 to the pool / 1 to the output, denoiser 2 x 4 - 1 to the last
+    # dual stream, 10 updates.
+    assert patches.receptive_field(preset("small").model) == (57, (43,))
+    assert patches.halo_rings(preset("small").model) == (58, (44,))
     # paper: xyz, offset head: FE 2 x 4, transformer 1, denoiser 2 x 4.
     assert patches.receptive_field(preset("paper").model) == (17, (12,))
 
@@ -132,6 +133,48 @@ def test_a_perturbed_vertex_moves_nothing_beyond_the_receptive_field(edits):
     assert reach >= rf - 1
 
 
+def test_face_hops_reach_half_as_many_vertex_rings():
+    # An irregular mesh (Delaunay of random points: valences 3 to 10 or so): the faces
+    # within k hops across shared edges of a face have their vertices within
+    # ceil(k / 2) rings of its vertices, and some face reaches exactly that.
+    from scipy.spatial import Delaunay
+
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(size=(400, 2))
+    f = Delaunay(pts).simplices.astype(np.int32)
+    n = pts.shape[0]
+    edge_face: dict = {}
+    for i, tri in enumerate(f):
+        for a, b in ((0, 1), (1, 2), (2, 0)):
+            edge_face.setdefault(tuple(sorted((tri[a], tri[b]))), []).append(i)
+    adj = [[] for _ in range(f.shape[0])]
+    for pair in edge_face.values():
+        for a in pair:
+            adj[a] += [b for b in pair if b != a]
+    dist = shortest_path(
+        sp.coo_matrix(
+            (
+                np.ones(6 * len(f)),
+                (f[:, [0, 1, 2, 1, 2, 0]].ravel(), f[:, [1, 2, 0, 0, 1, 2]].ravel()),
+            ),
+            shape=(n, n),
+        ).tocsr(),
+        unweighted=True,
+        directed=False,
+    )
+    worst = {}
+    for start in rng.choice(f.shape[0], 60, replace=False):
+        ring = dist[f[start]].min(axis=0)  # vertex rings from the start face's vertices
+        seen, frontier = {int(start)}, [int(start)]
+        for k in range(1, 9):
+            frontier = [b for a in frontier for b in adj[a] if b not in seen]
+            seen.update(frontier)
+            reach = int(ring[f[sorted(seen)]].max())
+            assert reach <= patches.dual_rings(k), (start, k, reach)
+            worst[k] = max(worst.get(k, 0), reach)
+    assert all(worst[k] == patches.dual_rings(k) for k in worst)
+
+
 def test_grown_patch_is_the_ring_ball_with_its_incident_faces():
     v, f = strip(40, 7)
     grower = patches.PatchGrower(f, v.shape[0])
@@ -145,6 +188,49 @@ def test_grown_patch_is_the_ring_ball_with_its_incident_faces():
     np.testing.assert_array_equal(patch.vertices[patch.owned], np.sort(owned))
     with pytest.raises(ValueError, match="ring"):
         grower.grow(owned, 0)
+
+
+def test_compact_partition_covers_every_vertex_once():
+    # A strip, three small separate pieces and two vertices without faces.
+    v, f = strip(40, 12)
+    pieces = [f]
+    for k in range(3):
+        pv, pf = strip(3, 3, seed=k)
+        pieces.append(pf + v.shape[0])
+        v = np.concatenate([v, pv + [100.0 + 10 * k, 0, 0]])
+    v = np.concatenate([v, [[-5.0, 0, 0], [-6.0, 0, 0]]])
+    f = np.concatenate(pieces)
+    inc = patches.vertex_faces(f, v.shape[0])
+    part = patches.compact_partition(v, f, inc, patches.morton_order(v), 60)
+    sets = list(part.sets())
+    np.testing.assert_array_equal(np.sort(np.concatenate(sets)), np.arange(v.shape[0]))
+    sizes = np.array([s.size for s in sets])
+    assert sizes.min() >= 1 and sizes.max() <= 2 * 60
+    # Small cells are merged: about n / size sets, not one per piece and lone vertex.
+    assert len(sets) <= 2 * v.shape[0] // 60
+    with pytest.raises(ValueError, match="owned vertex"):
+        patches.compact_partition(v, f, inc, patches.morton_order(v), 0)
+
+
+def test_compact_cells_have_smaller_halos_than_morton_runs():
+    side = 160
+    t = np.linspace(0.0, 1.0, side)
+    x, y = (a.ravel() for a in np.meshgrid(t, t, indexing="ij"))
+    v = np.stack([x, y, 0.1 * np.sin(3 * np.pi * x) * np.sin(2 * np.pi * y)], 1)
+    i, j = np.meshgrid(np.arange(side - 1), np.arange(side - 1), indexing="ij")
+    a = (i * side + j).ravel()
+    f = np.concatenate(
+        [np.stack([a, a + side, a + 1], 1), np.stack([a + 1, a + side, a + side + 1], 1)]
+    )
+    grower = patches.PatchGrower(f.astype(np.int32), v.shape[0])
+    order = patches.morton_order(v)
+    size, rings = 1600, 12
+    part = patches.compact_partition(v, grower.faces, grower.incidence, order, size)
+    cells = sum(grower.grow(s, rings).vertices.size for s in part.sets())
+    runs = sum(
+        grower.grow(order[k : k + size], rings).vertices.size for k in range(0, v.shape[0], size)
+    )
+    assert cells < 0.85 * runs, (cells, runs)
 
 
 def test_morton_order_is_a_permutation():
@@ -168,7 +254,7 @@ def test_lean_frame_equals_mesh_frame(encoding):
 
 
 def test_bundled_model_patchwise_equals_whole_mesh():
-    v, f = strip(300, 6)  # 3,290 faces; halo 88 rings, patches of 100 columns
+    v, f = strip(300, 6)  # 3,290 faces; halo 58 rings, patches of 100 columns
     bundle = dmd_jax.load_pretrained()
     whole = dmd_jax.denoise(v, f, bundle)
     patched = dmd_jax.denoise(v, f, bundle, patch_size=600)
