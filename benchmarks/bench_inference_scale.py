@@ -8,7 +8,7 @@ to a FRESH worker process as `.npy` files, so the worker's peak resident memory
 (`model.init_params`; the cost does not depend on their values).
 
 Each worker times ONE `denoise` call, as a user runs it: the first call, so it includes
-compilation (one program per patch shape and pass), the Morton order, the halos and
+compilation (one program per patch shape and pass), the partition, the halos and
 the host-side graphs. Modes:
 
 * `default`: `denoise(v, f, bundle, max_memory=BUDGET)`: whole mesh when it fits the
