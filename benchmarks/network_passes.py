@@ -5,9 +5,10 @@ This script records, on crops of the *training* files of `../shared/meshes/train
 validation split stays untouched for judging the result), the mean face-normal error
 after each of `--passes` passes and the mean angle each pass turned the face normals
 by, for Gaussian noise along normals (the benchmark protocol) and per coordinate, from
-light to the paper's heavy regime (several edge lengths). A stopping rule for
-`iterations="auto"` is read off it: stop when a pass turned the normals by less than a
-threshold. Writes `benchmarks/results/network_passes.md` and `.json`.
+light to the paper's heavy regime (several edge lengths): how many passes each noise
+needs, and whether the first pass's turn could choose the count for the user (see
+`docs/design-decisions.md`, "Network passes"). Writes
+`benchmarks/results/network_passes.md` and `.json`.
 
     python benchmarks/network_passes.py
 """
@@ -38,14 +39,23 @@ CONDITIONS = (
 )
 
 
-def training_crops(train_meshes: Path, every: int, max_faces: int):
-    """`(name, vertices, faces)` of every `every`-th training file, cropped."""
+# The rule read off the training split: one pass while the first turned the normals by
+# less than 18 degrees, two below 36, else four (`rule_passes`).
+RULE = ((18.0, 1), (36.0, 2), (float("inf"), 4))
+
+
+def rule_passes(first_turn: float) -> int:
+    return next(p for bound, p in RULE if first_turn < bound)
+
+
+def crops(train_meshes: Path, split: str, every: int, max_faces: int):
+    """`(name, vertices, faces)` of every `every`-th file of a split, cropped."""
     from sota_lite import crop
 
     from dmd_jax.data.real import load_meshes, mesh_files
 
     out = []
-    for path in mesh_files(train_meshes, "train")[::every]:
+    for path in mesh_files(train_meshes, split)[::every]:
         v, f = load_meshes([path])[0]
         if f.shape[0] > max_faces:
             v, f = crop(v, f, max_faces)
@@ -71,16 +81,21 @@ def main(argv=None) -> int:
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--train-meshes", type=Path, default=HERE.parent.parent / "shared/meshes/train")
-    p.add_argument("--every", type=int, default=5, help="every n-th training file")
+    p.add_argument("--split", default="train", choices=("train", "val"))
+    p.add_argument("--every", type=int, default=5, help="every n-th file of the split")
+    p.add_argument("--conditions", nargs="+", default=None, help="e.g. normal:0.1 (default: all)")
     p.add_argument("--max-faces", type=int, default=6000)
     p.add_argument("--passes", type=int, default=6)
     p.add_argument("--out", type=Path, default=HERE / "results" / "network_passes")
     args = p.parse_args(argv)
     bundle = dmd_jax.load_pretrained()
-    meshes = training_crops(args.train_meshes, args.every, args.max_faces)
+    meshes = crops(args.train_meshes, args.split, args.every, args.max_faces)
+    conditions = CONDITIONS
+    if args.conditions:
+        conditions = [(c.split(":")[0], float(c.split(":")[1])) for c in args.conditions]
     start = time.perf_counter()
     records = []
-    for direction, level in CONDITIONS:
+    for direction, level in conditions:
         for i, (name, clean, f) in enumerate(meshes):
             if level:
                 noisy = gaussian_edge_noise(clean, f, level, 1000 + i, direction)
@@ -108,12 +123,13 @@ def main(argv=None) -> int:
 
 def report(records, args, n_mesh: int, wall: float) -> None:
     k = args.passes
+    which = "every file" if args.every == 1 else f"every {args.every}th file"
     head = ["noise", "input"] + [f"{j} pass{'es' if j > 1 else ''}" for j in range(1, k + 1)]
     lines = [
-        "# Mean face-normal error after each network pass (training split)",
+        f"# Mean face-normal error after each network pass ({args.split} split)",
         "",
-        f"`python benchmarks/network_passes.py` — {n_mesh} training files (every "
-        f"{args.every}th of `train/`, validation split excluded), crops of at most "
+        f"`python benchmarks/network_passes.py {' '.join(sys.argv[1:])}` — {n_mesh} files "
+        f"({which} of the {args.split} split of `train/`), crops of at most "
         f"{args.max_faces:,} faces, bundled weights; noise σ in mean edge lengths, one "
         f"seed per mesh. {wall:.0f} s.",
         "",
@@ -138,6 +154,20 @@ def report(records, args, n_mesh: int, wall: float) -> None:
         rs = [r for r in records if (r["direction"], r["level"]) == (d, lv)]
         t = np.mean([r["turns"] for r in rs], axis=0)
         lines.append(f"| {d} {lv:g} | " + " | ".join(f"{x:.2f}" for x in t) + " |")
+    lines += [
+        "",
+        "The rule read off the training split (1 pass below a first turn of 18°, 2 below "
+        "36°, else 4; capped at the passes run) against one pass:",
+        "",
+        "| noise | 1 pass | rule | mean passes of the rule |",
+        "|---|---:|---:|---:|",
+    ]
+    for d, lv in conds:
+        rs = [r for r in records if (r["direction"], r["level"]) == (d, lv)]
+        ks = [min(rule_passes(r["turns"][0]), k) for r in rs]
+        rule = np.mean([r["errors"][j] for r, j in zip(rs, ks, strict=True)])
+        one = np.mean([r["errors"][1] for r in rs])
+        lines.append(f"| {d} {lv:g} | {one:.2f} | {rule:.2f} | {np.mean(ks):.1f} |")
     args.out.with_suffix(".md").write_text("\n".join(lines) + "\n")
 
 
