@@ -211,6 +211,35 @@ def pretrained_path() -> Path:
     return Path(str(resources.files("dmd_jax") / "weights" / PRETRAINED_NAME))
 
 
+def graft_params(fresh, trained):
+    """`fresh` with every parameter `trained` has copied in (fine-tuning a grown model).
+
+    Args:
+      fresh: the params of the new model (e.g. `model.init_params`).
+      trained: params of a model whose every parameter the new one has, same shape.
+
+    Raises:
+      ValueError: a parameter of `trained` is missing from `fresh` or has another shape.
+    """
+    flat = {jax.tree_util.keystr(p): v for p, v in jax.tree_util.tree_flatten_with_path(trained)[0]}
+    seen = set()
+
+    def take(path, leaf):
+        key = jax.tree_util.keystr(path)
+        if key not in flat:
+            return leaf
+        if np.shape(flat[key]) != np.shape(leaf):
+            raise ValueError(f"{key}: shape {np.shape(flat[key])} cannot replace {np.shape(leaf)}")
+        seen.add(key)
+        return jnp.asarray(flat[key], leaf.dtype)
+
+    out = jax.tree_util.tree_map_with_path(take, fresh)
+    missing = sorted(set(flat) - seen)
+    if missing:
+        raise ValueError(f"the new model has no parameter {missing[0]} ({len(missing)} missing)")
+    return out
+
+
 def load_pretrained() -> ModelBundle:
     """The bundled `small`-preset model (see README, "Bundled weights")."""
     path = pretrained_path()

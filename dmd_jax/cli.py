@@ -542,7 +542,17 @@ def _cmd_train(args: argparse.Namespace) -> int:
         from dmd_jax.checkpoints import load_params
 
         init, init_cfg = load_params(args.init_from)
-        if init_cfg.model != cfg.model:
+        if init_cfg.model.replace(head_consistency=True) == cfg.model and not (
+            init_cfg.model.head_consistency
+        ):
+            # Adding the consistency input to a trained head: its Dense layer starts at
+            # zero, so the run starts from the trained model's outputs.
+            from dmd_jax.checkpoints import graft_params
+            from dmd_jax.model import init_params
+
+            fresh = init_params(cfg.model, jax.random.PRNGKey(cfg.train.seed))
+            init = graft_params(fresh, init)
+        elif init_cfg.model != cfg.model:
             raise ValueError(f"{args.init_from}: its model config differs from this run's")
     pad_to = args.pad
     if pad_to == "auto":

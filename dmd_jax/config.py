@@ -308,6 +308,10 @@ class ModelConfig(_ConfigMixin):
       filter_iterations: passes of the longest bilateral pre-filter run of the `"local"`
         encoding (fields are also kept after 2/15 and 1/2 of it:
         `encoding.snapshot_passes`).
+      head_consistency: the normal-first head also sees, per candidate normal, how
+        smooth it is over the face's neighbours and how far it is from the noisy normal
+        (`encoding.candidate_consistency`), through its own zero-initialised Dense layer
+        (so weights trained without it load with the same outputs).
     """
 
     width: int = _static(64)
@@ -331,6 +335,7 @@ class ModelConfig(_ConfigMixin):
     head: str = _static("offset")
     vertex_iterations: int = _static(10)
     filter_iterations: int = _static(60)
+    head_consistency: bool = _static(False)
 
     def __post_init__(self):
         _check_positive_int("width", self.width)
@@ -360,6 +365,10 @@ class ModelConfig(_ConfigMixin):
         )
         _check_positive_int("vertex_iterations", self.vertex_iterations)
         _check_positive_int("filter_iterations", self.filter_iterations)
+        _check(
+            not self.head_consistency or self.head == "normal",
+            "head_consistency needs head='normal' (it describes the candidate normals)",
+        )
 
     # Derived structure, one place for every variant's switches.
     @property

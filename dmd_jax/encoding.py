@@ -166,6 +166,33 @@ def bilateral_face_normals(x, graph, normals, *, sigma_r: float, iterations):
     return out
 
 
+def candidate_consistency(candidates, graph):
+    """Per candidate normal of every face: its roughness and its distance from the noisy one.
+
+    The quantities classic filters trade off when they pick a normal: roughness
+    `mean_g (1 - n_k(f) · n_k(g))` over the faces `g` sharing an edge with `f`, and
+    fidelity `1 - n_k(f) · n_0(f)` to the noisy normal `n_0 = candidates[:, 0]`. Both are
+    dimensionless, in [0, 2], and invariant to rotations, translations and scale.
+
+    Args:
+      candidates: `[n_face, K, 3]` unit normals (`local_features`), noisy one first.
+      graph: the `MeshGraph` (its dual edge lists; weight-0 padding edges and self loops
+        are left out).
+
+    Returns:
+      `[n_face, 2 K]`: the K roughness values, then the K fidelity values.
+    """
+    s, r = graph.face_senders, graph.face_receivers
+    real = ((graph.face_edge_weight > 0) & (s != r)).astype(candidates.dtype)
+    agree = jnp.sum(candidates[s] * candidates[r], axis=-1)  # [n_face_edge, K]
+    n_face = candidates.shape[0]
+    rough = jax.ops.segment_sum(real[:, None] * (1.0 - agree), r, num_segments=n_face)
+    count = jax.ops.segment_sum(real, r, num_segments=n_face)
+    rough = rough / jnp.maximum(count, 1.0)[:, None]
+    fidelity = 1.0 - jnp.sum(candidates * candidates[:, :1], axis=-1)
+    return jnp.concatenate([rough, fidelity], axis=-1)
+
+
 def local_features(x, graph, *, filter_iterations: int):
     """The `"local"` encoding's inputs (see the module docstring).
 

@@ -533,6 +533,15 @@ class Denoiser(nn.Module):
             d = nn.relu(nn.Dense(cfg.width, param_dtype=pd, name="dual_out")(d_in))
         k = candidates.shape[1]
         out = nn.Dense(k + 3, kernel_init=nn.initializers.zeros, param_dtype=pd, name="head")(d)
+        if cfg.head_consistency:
+            extra = encoding.candidate_consistency(candidates.astype(out.dtype), graph)
+            out = out + nn.Dense(
+                k + 3,
+                kernel_init=nn.initializers.zeros,
+                use_bias=False,
+                param_dtype=pd,
+                name="head_consistency",
+            )(extra)
         weights = jax.nn.softmax(out[:, :k], axis=-1)
         mixed = jnp.einsum("fk,fkc->fc", weights, candidates.astype(out.dtype))
         return safe_normalize(mixed + out[:, k:])

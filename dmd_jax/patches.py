@@ -124,6 +124,8 @@ def receptive_field(config: ModelConfig) -> ReceptiveField:
     if face is None:  # single-stream denoiser: a Dense of [P2D(primal) ‖ face_x]
         face = r
     face = max(face, face_in)  # mixed with the pre-filtered candidates
+    if cfg.head_consistency:  # the candidates' roughness: one face hop more
+        face = max(face, face_in + dual_rings(1))
     # Each vertex update reads the normals and centroids of the incident faces.
     return ReceptiveField(face + cfg.vertex_iterations, tuple(pools))
 

@@ -359,3 +359,57 @@ def test_bilateral_pre_filter_ell_path_equals_edge_lists():
     b = encoding.bilateral_face_normals(x, ell, n0, sigma_r=0.35, iterations=(3, 9))
     for p, q in zip(a, b, strict=True):
         np.testing.assert_allclose(np.asarray(q), np.asarray(p), atol=1e-6)
+
+
+def test_candidate_consistency_matches_loop_reference():
+    v, f = icosphere(1)
+    v = v + np.random.default_rng(0).normal(0, 0.02, v.shape)
+    graph = build_mesh_graph(f, v.shape[0])
+    x = jnp.asarray(v / 0.3)
+    _, _, cand = encoding.local_features(x, graph, filter_iterations=4)
+    padded = pad_mesh_graph(graph, padded_sizes_for(graph))
+    got = np.asarray(encoding.candidate_consistency(cand, graph))
+    cand = np.asarray(cand, np.float64)
+    k = cand.shape[1]
+    edges = {}
+    for i, tri in enumerate(f):
+        for a, b in ((0, 1), (1, 2), (2, 0)):
+            edges.setdefault(frozenset((tri[a], tri[b])), []).append(i)
+    for i in range(f.shape[0]):
+        nbrs = [j for pair in edges.values() if i in pair for j in pair if j != i]
+        rough = [np.mean([1 - cand[i, c] @ cand[j, c] for j in nbrs]) for c in range(k)]
+        fid = [1 - cand[i, c] @ cand[i, 0] for c in range(k)]
+        np.testing.assert_allclose(got[i], rough + fid, atol=2e-6)
+    np.testing.assert_allclose(got[:, k], 0.0, atol=1e-6)  # the noisy normal vs itself
+    # Padding (weight-0 edges, degenerate faces) changes no real face's values.
+    cand_p = jnp.zeros((padded.n_face, k, 3)).at[: f.shape[0]].set(cand)
+    got_p = np.asarray(encoding.candidate_consistency(cand_p, padded))[: f.shape[0]]
+    np.testing.assert_allclose(got_p, got, atol=1e-6)
+
+
+def test_head_consistency_needs_the_normal_head():
+    with pytest.raises(ValueError, match="head_consistency"):
+        ModelConfig(encoding="local", head="offset", head_consistency=True)
+
+
+def test_grafted_consistency_head_starts_as_the_trained_model():
+    import dmd_jax
+    from dmd_jax.checkpoints import ModelBundle, graft_params
+    from dmd_jax.demo import gaussian_edge_noise
+    from dmd_jax.model import init_params
+
+    bundle = dmd_jax.load_pretrained()
+    cfg = bundle.config.replace(model=bundle.config.model.replace(head_consistency=True))
+    params = graft_params(init_params(cfg.model, jax.random.PRNGKey(0)), bundle.params)
+    assert "head_consistency" in params["denoiser"]
+    v, f = icosphere(2)
+    noisy = gaussian_edge_noise(v, f, 0.2, seed=0)
+    np.testing.assert_array_equal(
+        denoise(noisy, f, ModelBundle(params, cfg, {})), denoise(noisy, f, bundle)
+    )
+    with pytest.raises(ValueError, match="no parameter"):
+        graft_params(bundle.params, params)  # the old model lacks the new layer
+    bad = jax.tree.map(lambda a: a, params)
+    bad["denoiser"]["head"]["kernel"] = jnp.zeros((3, 3))
+    with pytest.raises(ValueError, match="shape"):
+        graft_params(params, bad)
