@@ -396,8 +396,8 @@ def denoise(
     mapped back, so the result is translation- and scale-equivariant.
 
     A mesh whose whole-mesh run fits `max_memory` runs at once. A larger one runs patch
-    by patch (`dmd_jax.patches`): compact owned vertex sets (graph Voronoi cells), each grown by a
-    halo as deep as the network's receptive field; the per-mesh pools of the transformer
+    by patch (`dmd_jax.patches`): compact owned vertex sets (graph Voronoi cells), each
+    grown by a halo as deep as the network's receptive field; the per-mesh pools of the transformer
     (and STN) are computed first over all patches. The result equals the whole-mesh run
     up to float32 summation order (`tests/test_patches.py`: within 2e-5 mean edge
     lengths for the bundled model).
@@ -586,7 +586,7 @@ class _PatchRunner:
         self.max_padded_vertices = None  # None: no limit (a forced patch_size)
         self.budget = None
         self.order = None
-        self.partition = None  # (patch_size, patches.Partition)
+        self.partition = None  # patches.Partition of `patch_size`
         self._params = {}
         self._shapes = {}  # padded sizes compiled so far -> their ELL table widths
         self.reference = None  # padded vertices of a typical full patch (the ladder's top)
@@ -648,13 +648,13 @@ class _PatchRunner:
             self.order = patch_lib.morton_order(x)
 
     def _ensure_partition(self, x: np.ndarray) -> None:
-        """The owned sets for `patch_size` (kept over passes and iterations)."""
+        """The owned sets for `patch_size`, made once (passes and iterations share them:
+        `patch_size` is fixed before the first pass)."""
         self._ensure_order(x)
-        if self.partition is None or self.partition[0] != self.patch_size:
-            part = patch_lib.compact_partition(
+        if self.partition is None:
+            self.partition = patch_lib.compact_partition(
                 x, self.faces, self.grower.incidence, self.order, self.patch_size
             )
-            self.partition = (self.patch_size, part)
 
     # ----------------------------------------------------------------------------------
 
@@ -662,10 +662,6 @@ class _PatchRunner:
         if device not in self._params:
             self._params[device] = jax.device_put(self.bundle.params, device)
         return self._params[device]
-
-    def _chunks(self):
-        """The owned vertex sets: compact cells of about `patch_size` vertices."""
-        yield from self.partition[1].sets()
 
     def _shaped_graph(self, graph, natural):
         """The padded graph of a patch's `graph` (natural sizes `natural`).
@@ -698,7 +694,7 @@ class _PatchRunner:
 
     def _patches(self, rings: int):
         """Yields `(patch, padded graph)`; splits owned sets whose patch is too large."""
-        todo = deque(self._chunks())
+        todo = deque(self.partition.sets())
         while todo:
             owned = todo.popleft()
             patch = self.grower.grow(owned, rings)

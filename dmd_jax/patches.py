@@ -351,24 +351,36 @@ class PatchGrower:
         self._face_stamp = np.zeros(self.faces.shape[0], np.int32)
         self._stamp = 0
 
+    def _ring(self, frontier: np.ndarray, stamp: int) -> tuple[np.ndarray, np.ndarray]:
+        """`(faces, vertices)` one ring out from `frontier`, neither stamped before; stamps
+        both with `stamp`."""
+        f = _rows(self.incidence, frontier)
+        f = np.unique(f[self._face_stamp[f] != stamp])
+        self._face_stamp[f] = stamp
+        nb = self.faces[f].reshape(-1).astype(np.int64)
+        nb = np.unique(nb[self._vertex_stamp[nb] != stamp])
+        self._vertex_stamp[nb] = stamp
+        return f, nb
+
+    def _start(self, vertices: np.ndarray) -> int:
+        """A fresh stamp, with `vertices` stamped."""
+        self._stamp += 1
+        self._vertex_stamp[vertices] = self._stamp
+        return self._stamp
+
     def disc(self, seed: int, size: int) -> np.ndarray:
         """`size` vertices around `seed`, ring by ring (fewer if its component is smaller).
 
         Returns:
           `[k]` int64 global vertex indices, `k <= size`, in ring order.
         """
-        self._stamp += 1
-        stamp, vs = self._stamp, self._vertex_stamp
         frontier = np.array([seed], np.int64)
-        vs[frontier] = stamp
+        stamp = self._start(frontier)
         layers, total = [frontier], 1
         while total < size and frontier.size:
-            nb = self.faces[_rows(self.incidence, frontier)].reshape(-1).astype(np.int64)
-            nb = np.unique(nb[vs[nb] != stamp])
-            vs[nb] = stamp
-            layers.append(nb)
-            total += nb.size
-            frontier = nb
+            _, frontier = self._ring(frontier, stamp)
+            layers.append(frontier)
+            total += frontier.size
         return np.concatenate(layers)[:size]
 
     def grow(self, owned: np.ndarray, rings: int) -> Patch:
@@ -383,24 +395,14 @@ class PatchGrower:
         """
         if rings < 1:
             raise ValueError(f"a halo needs at least one ring, got {rings}")
-        self._stamp += 1
-        stamp, vs, fs = self._stamp, self._vertex_stamp, self._face_stamp
         frontier = np.asarray(owned, np.int64)
-        vs[frontier] = stamp
+        stamp = self._start(frontier)
         layers, face_parts = [frontier], []
         for _ in range(rings):
-            f = _rows(self.incidence, frontier)
-            f = f[fs[f] != stamp]
-            f = np.unique(f)
-            fs[f] = stamp
+            f, frontier = self._ring(frontier, stamp)
             face_parts.append(f)
-            nb = self.faces[f].reshape(-1).astype(np.int64)
-            nb = nb[vs[nb] != stamp]
-            nb = np.unique(nb)
-            vs[nb] = stamp
-            layers.append(nb)
-            frontier = nb
-            if nb.size == 0:
+            layers.append(frontier)
+            if frontier.size == 0:
                 break
         verts = np.sort(np.concatenate(layers))
         face_ids = np.sort(np.concatenate(face_parts))
