@@ -48,33 +48,16 @@ def rule_passes(first_turn: float) -> int:
     return next(p for bound, p in RULE if first_turn < bound)
 
 
-def crops(train_meshes: Path, split: str, every: int, max_faces: int):
-    """`(name, vertices, faces)` of every `every`-th file of a split, cropped."""
-    from sota_lite import crop
-
-    from dmd_jax.data.real import load_meshes, mesh_files
-
-    out = []
-    for path in mesh_files(train_meshes, split)[::every]:
-        v, f = load_meshes([path])[0]
-        if f.shape[0] > max_faces:
-            v, f = crop(v, f, max_faces)
-        out.append((path.name, v, f))
-    return out
-
-
-def face_normals(v, f):
-    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
-
-
 def turn_deg(a, b, f) -> float:
-    """Mean angle (degrees) between the face normals of two vertex sets."""
-    c = np.clip((face_normals(a, f) * face_normals(b, f)).sum(1), -1.0, 1.0)
-    return float(np.degrees(np.arccos(c)).mean())
+    """Mean angle (degrees) between the face normals of two positions of a mesh."""
+    from dmd_jax.metrics import face_normal_errors_deg
+
+    return float(face_normal_errors_deg(b, a, f).mean())
 
 
 def main(argv=None) -> int:
+    from relax_validation import validation_crops
+
     import dmd_jax
     from dmd_jax.demo import gaussian_edge_noise
     from dmd_jax.metrics import mesh_metrics
@@ -89,7 +72,7 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, default=HERE / "results" / "network_passes")
     args = p.parse_args(argv)
     bundle = dmd_jax.load_pretrained()
-    meshes = crops(args.train_meshes, args.split, args.every, args.max_faces)
+    meshes = validation_crops(args.train_meshes, args.max_faces, split=args.split, every=args.every)
     conditions = CONDITIONS
     if args.conditions:
         conditions = [(c.split(":")[0], float(c.split(":")[1])) for c in args.conditions]
@@ -128,7 +111,7 @@ def report(records, args, n_mesh: int, wall: float) -> None:
     lines = [
         f"# Mean face-normal error after each network pass ({args.split} split)",
         "",
-        f"`python benchmarks/network_passes.py {' '.join(sys.argv[1:])}` — {n_mesh} files "
+        f"`{' '.join(['python benchmarks/network_passes.py', *sys.argv[1:]])}` — {n_mesh} files "
         f"({which} of the {args.split} split of `train/`), crops of at most "
         f"{args.max_faces:,} faces, bundled weights; noise σ in mean edge lengths, one "
         f"seed per mesh. {wall:.0f} s.",

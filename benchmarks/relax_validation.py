@@ -25,15 +25,18 @@ CONDITIONS = (("clean", 0.0), ("normal", 0.1), ("normal", 0.3), ("isotropic", 0.
 RATIOS = (0.05, 0.2, 1.0)
 
 
-def validation_crops(train_meshes: Path, max_faces: int = 8000):
-    """`(name, vertices, faces)` of every other validation file, cropped to a connected
-    patch of at most `max_faces` faces (`sota_lite.crop`)."""
+def validation_crops(
+    train_meshes: Path, max_faces: int = 8000, *, split: str = "val", every: int = 2
+):
+    """`(name, vertices, faces)` of every `every`-th file of a split of `train_meshes`
+    (default: every other validation file), cropped to a connected patch of at most
+    `max_faces` faces (`sota_lite.crop`)."""
     from sota_lite import crop
 
     from dmd_jax.data.real import load_meshes, mesh_files
 
     meshes = []
-    for path in mesh_files(train_meshes, "val")[::2]:
+    for path in mesh_files(train_meshes, split)[::every]:
         v, f = load_meshes([path])[0]
         if f.shape[0] > max_faces:
             v, f = crop(v, f, max_faces)
