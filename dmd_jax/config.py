@@ -39,7 +39,7 @@ from typing import Any
 
 from flax import struct
 
-from dmd_jax.encoding import ENCODINGS, LOCAL_VERTEX_DIM
+from dmd_jax.encoding import ENCODINGS, local_dims
 from dmd_jax.noise import NOISE_KINDS
 
 VARIANT_NAMES = ("fgt8", "fgt3", "wo_t", "mt", "do_2s", "do_1s", "fgt_1s")
@@ -312,6 +312,9 @@ class ModelConfig(_ConfigMixin):
         smooth it is over the face's neighbours and how far it is from the noisy normal
         (`encoding.candidate_consistency`), through its own zero-initialised Dense layer
         (so weights trained without it load with the same outputs).
+      taubin_iterations: λ|μ pairs of Taubin smoothing whose results (kept after 3/10
+        of them and after all) add candidate normals and vertex displacements to the
+        `"local"` encoding (`encoding.taubin_snapshots`); 0 (default) adds none.
     """
 
     width: int = _static(64)
@@ -336,6 +339,7 @@ class ModelConfig(_ConfigMixin):
     vertex_iterations: int = _static(10)
     filter_iterations: int = _static(60)
     head_consistency: bool = _static(False)
+    taubin_iterations: int = _static(0)
 
     def __post_init__(self):
         _check_positive_int("width", self.width)
@@ -365,6 +369,11 @@ class ModelConfig(_ConfigMixin):
         )
         _check_positive_int("vertex_iterations", self.vertex_iterations)
         _check_positive_int("filter_iterations", self.filter_iterations)
+        _check_positive_int("taubin_iterations", self.taubin_iterations, minimum=0)
+        _check(
+            self.taubin_iterations == 0 or self.encoding == "local",
+            "taubin_iterations needs encoding='local' (its candidates are local inputs)",
+        )
         _check(
             not self.head_consistency or self.head == "normal",
             "head_consistency needs head='normal' (it describes the candidate normals)",
@@ -389,8 +398,8 @@ class ModelConfig(_ConfigMixin):
 
     @property
     def vertex_in_dim(self) -> int:
-        """Columns of the primal input: 3 (xyz) or `encoding.LOCAL_VERTEX_DIM` (local)."""
-        return 3 if self.encoding == "xyz" else LOCAL_VERTEX_DIM
+        """Columns of the primal input: 3 (xyz) or `encoding.local_dims(...)[0]` (local)."""
+        return 3 if self.encoding == "xyz" else local_dims(self.taubin_iterations)[0]
 
     @property
     def transform_in_dim(self) -> int:

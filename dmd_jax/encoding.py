@@ -19,6 +19,15 @@ Two encodings, chosen by `ModelConfig.encoding`:
     face normal (3) and the pre-filtered face normals (3 each), which also makes the
     winding of every face visible to the network (P2D alone is blind to it, audit D).
 
+  With `ModelConfig.taubin_iterations > 0` the mesh is also Taubin-smoothed (λ|μ
+  umbrella steps, pymeshlab's factors) and kept after each of `taubin_snapshots`: every
+  smoothed mesh adds its face normals as one more candidate (3 face columns, and their
+  vertex average, 3 vertex columns) and its displacement `x − x_smooth` (3 vertex
+  columns), a per-vertex measure of how rough the surface is. The bilateral filters move
+  normals across the dual graph only (3 neighbours a face); on coarse organic meshes at
+  0.3 edges of noise none of their fields is as smooth as Taubin's result
+  (`docs/design-decisions.md`).
+
 The pre-filters are bilateral normal filters (Zheng et al. 2011) over the dual graph
 (faces sharing an edge) with a spatial σ of one edge and the range σs of
 `FILTER_RANGE_SIGMAS`, each kept after several numbers of passes (`snapshot_passes` of
@@ -50,6 +59,12 @@ FILTER_RANGE_SIGMAS = (0.2, 0.35, 0.6)
 FILTER_SNAPSHOTS = (2 / 15, 1 / 2, 1.0)
 # Spatial σ of the pre-filters, in mean edge lengths (the frame's unit).
 FILTER_SPATIAL_SIGMA = 1.0
+# Taubin smoothing of the optional smoothed-mesh candidates: pymeshlab's λ and μ, kept
+# after these fractions of `ModelConfig.taubin_iterations` λ|μ pairs.
+TAUBIN_LAMBDA_MU = (0.5, -0.53)
+TAUBIN_SNAPSHOTS = (3 / 10, 1.0)
+# Without Taubin candidates (`taubin_iterations=0`); `n_candidates` and `local_dims`
+# count them in.
 N_CANDIDATES = 1 + len(FILTER_RANGE_SIGMAS) * len(FILTER_SNAPSHOTS)
 LOCAL_FACE_DIM = 3 * N_CANDIDATES
 LOCAL_VERTEX_DIM = 6 + 3 * (N_CANDIDATES - 1)
@@ -101,12 +116,57 @@ def laplacian_coordinates(x, graph):
     return jnp.where(count[:, None] > 0, x - mean, 0.0)
 
 
+def _snapshots(fractions, iterations: int) -> tuple[int, ...]:
+    out = []
+    for frac in fractions:
+        out.append(max(round(frac * iterations), out[-1] + 1 if out else 1))
+    return tuple(out)
+
+
 def snapshot_passes(filter_iterations: int) -> tuple[int, ...]:
     """The pass counts after which each pre-filter's normals are kept (increasing)."""
-    out = []
-    for frac in FILTER_SNAPSHOTS:
-        out.append(max(round(frac * filter_iterations), out[-1] + 1 if out else 1))
-    return tuple(out)
+    return _snapshots(FILTER_SNAPSHOTS, filter_iterations)
+
+
+def taubin_snapshots(taubin_iterations: int) -> tuple[int, ...]:
+    """The λ|μ pair counts after which the Taubin-smoothed mesh is kept; `()` for 0."""
+    return _snapshots(TAUBIN_SNAPSHOTS, taubin_iterations) if taubin_iterations else ()
+
+
+def n_candidates(taubin_iterations: int = 0) -> int:
+    """Candidate normals of the normal-first head: noisy, pre-filtered, Taubin-smoothed."""
+    return N_CANDIDATES + len(taubin_snapshots(taubin_iterations))
+
+
+def local_dims(taubin_iterations: int = 0) -> tuple[int, int]:
+    """`(vertex columns, face columns)` of `local_features`."""
+    k = n_candidates(taubin_iterations)
+    return 6 + 3 * (k - 1) + 3 * len(taubin_snapshots(taubin_iterations)), 3 * k
+
+
+def taubin_smooth(x, graph, iterations):
+    """Taubin λ|μ smoothing (`TAUBIN_LAMBDA_MU`, uniform umbrella over `graph`'s edges).
+
+    Args:
+      x: `[n_vertex, 3]` positions.
+      graph: a `MeshGraph` (padding edges are ignored; isolated vertices stay put).
+      iterations: an increasing tuple of λ|μ pair counts (static).
+
+    Returns:
+      A list of `[n_vertex, 3]` positions, one per entry of `iterations`.
+    """
+    lam, mu = TAUBIN_LAMBDA_MU
+
+    def pair(_, y):
+        y = y - lam * laplacian_coordinates(y, graph)
+        return y - mu * laplacian_coordinates(y, graph)
+
+    out, done, y = [], 0, x
+    for pairs in iterations:
+        y = jax.lax.fori_loop(done, pairs, pair, y)
+        out.append(y)
+        done = pairs
+    return out
 
 
 def bilateral_face_normals(x, graph, normals, *, sigma_r: float, iterations):
@@ -193,19 +253,21 @@ def candidate_consistency(candidates, graph):
     return jnp.concatenate([rough, fidelity], axis=-1)
 
 
-def local_features(x, graph, *, filter_iterations: int):
+def local_features(x, graph, *, filter_iterations: int, taubin_iterations: int = 0):
     """The `"local"` encoding's inputs (see the module docstring).
 
     Args:
       x: `[n_vertex, 3]` noisy positions in the edge-unit frame.
       graph: the `MeshGraph`.
       filter_iterations: passes of each bilateral pre-filter.
+      taubin_iterations: λ|μ pairs of the Taubin-smoothed candidates (0: none).
 
     Returns:
-      `(vertex [n_vertex, LOCAL_VERTEX_DIM], face [n_face, LOCAL_FACE_DIM],
-      candidates [n_face, N_CANDIDATES, 3])`: the last holds the noisy face normal and
-      every pre-filtered one (each σ after each of `snapshot_passes`), the normals the
-      normal-first head mixes.
+      `(vertex [n_vertex, V], face [n_face, F], candidates [n_face, K, 3])` with
+      `(V, F) = local_dims(taubin_iterations)` and `K = n_candidates(...)`: the last holds
+      the noisy face normal, every pre-filtered one (each σ after each of
+      `snapshot_passes`) and the Taubin-smoothed ones, the normals the normal-first head
+      mixes.
     """
     faces = graph.faces
     n0 = geometry.face_normals(x, faces)
@@ -213,6 +275,8 @@ def local_features(x, graph, *, filter_iterations: int):
     fields = [n0]
     for sr in FILTER_RANGE_SIGMAS:
         fields += bilateral_face_normals(x, graph, n0, sigma_r=sr, iterations=passes)
+    smoothed = taubin_smooth(x, graph, taubin_snapshots(taubin_iterations))
+    fields += [geometry.face_normals(y, faces) for y in smoothed]
     candidates = jnp.stack(fields, axis=1)
     face = candidates.reshape(candidates.shape[0], -1)
     vertex = [laplacian_coordinates(x, graph), geometry.vertex_normals(x, faces)]
@@ -220,4 +284,5 @@ def local_features(x, graph, *, filter_iterations: int):
         geometry.safe_normalize(ops.dual_to_primal(n, faces, graph.vertex_face_degree))
         for n in fields[1:]
     ]
+    vertex += [x - y for y in smoothed]
     return jnp.concatenate(vertex, axis=-1), face, candidates

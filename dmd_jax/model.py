@@ -582,7 +582,10 @@ class DMDNet(nn.Module):
         face_x = candidates = None
         if cfg.encoding == "local":
             x_in, face_x, candidates = encoding.local_features(
-                xyz, graph, filter_iterations=cfg.filter_iterations
+                xyz,
+                graph,
+                filter_iterations=cfg.filter_iterations,
+                taubin_iterations=cfg.taubin_iterations,
             )
         else:
             x_in = xyz

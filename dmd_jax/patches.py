@@ -85,6 +85,8 @@ def receptive_field(config: ModelConfig) -> ReceptiveField:
     cfg = config
     if cfg.encoding == "local":
         face_in = dual_rings(max(snapshot_passes(cfg.filter_iterations)))  # pre-filters
+        # A λ|μ pair is two umbrella steps, a vertex ring each; a face sees its corners.
+        face_in = max(face_in, 2 * cfg.taubin_iterations)
         vertex_in = face_in + 1  # their vertex averages (D2P); Laplacian, normals: 1
         stn_in = 1  # the STN sees the Laplacian coordinates
     else:

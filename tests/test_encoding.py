@@ -413,3 +413,91 @@ def test_grafted_consistency_head_starts_as_the_trained_model():
     bad["denoiser"]["head"]["kernel"] = jnp.zeros((3, 3))
     with pytest.raises(ValueError, match="shape"):
         graft_params(params, bad)
+
+
+# --------------------------------------------------------------------------------------
+# Taubin-smoothed candidates
+# --------------------------------------------------------------------------------------
+
+
+def wavy_grid(n=9, seed=0):
+    """An open, perturbed grid: boundary vertices have fewer neighbours."""
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    v = np.stack([i.ravel(), j.ravel(), np.zeros(n * n)], 1).astype(np.float64)
+    v += 0.2 * np.random.default_rng(seed).normal(size=v.shape)
+    q = (i[:-1, :-1] * n + j[:-1, :-1]).ravel()
+    f = np.concatenate([np.stack([q, q + n, q + 1], 1), np.stack([q + 1, q + n, q + n + 1], 1)])
+    return v, f.astype(np.int32)
+
+
+def test_taubin_smooth_matches_the_library_filter_on_a_closed_mesh():
+    from dmd_jax.baselines import denoise_with
+
+    v, f = bumpy_sphere()
+    got = encoding.taubin_smooth(jnp.asarray(v, jnp.float64), jgraph(f, v.shape[0]), (3, 10))
+    for pairs, y in zip((3, 10), got, strict=True):
+        ref = denoise_with("taubin", v, f, iterations=pairs)
+        np.testing.assert_allclose(np.asarray(y), ref, atol=1e-9)
+
+
+def test_taubin_smooth_matches_the_dense_umbrella_on_an_open_mesh():
+    # Unlike the library's filter (VCG's boundary rule), the encoding's smoothing treats
+    # boundary vertices like any other: a plain uniform umbrella over all edges.
+    v, f = wavy_grid()
+    n = v.shape[0]
+    adj = np.zeros((n, n))
+    for a, b in ((0, 1), (1, 2), (2, 0)):
+        adj[f[:, a], f[:, b]] = adj[f[:, b], f[:, a]] = 1
+    lap = np.eye(n) - adj / adj.sum(1, keepdims=True)
+    y = v.copy()
+    for _ in range(4):
+        y = y - 0.5 * lap @ y
+        y = y + 0.53 * lap @ y
+    got = encoding.taubin_smooth(jnp.asarray(v, jnp.float64), jgraph(f, n), (4,))[0]
+    np.testing.assert_allclose(np.asarray(got), y, atol=1e-9)
+
+
+def test_taubin_candidates_extend_the_local_features():
+    v, f = bumpy_sphere()
+    g = jgraph(f, v.shape[0])
+    x = jnp.asarray(v)
+    base_v, base_f, base_c = encoding.local_features(x, g, filter_iterations=2)
+    vert, face, cand = encoding.local_features(x, g, filter_iterations=2, taubin_iterations=10)
+    assert encoding.taubin_snapshots(10) == (3, 10) and encoding.taubin_snapshots(0) == ()
+    k = encoding.n_candidates(10)
+    assert k == encoding.N_CANDIDATES + 2
+    assert (vert.shape[1], face.shape[1]) == encoding.local_dims(10)
+    assert cand.shape == (f.shape[0], k, 3)
+    assert ModelConfig(encoding="local", taubin_iterations=10).vertex_in_dim == vert.shape[1]
+    # The old columns come first and are unchanged, so the switch only adds inputs.
+    np.testing.assert_allclose(np.asarray(cand[:, : encoding.N_CANDIDATES]), base_c, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(face[:, : base_f.shape[1]]), base_f, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(vert[:, : base_v.shape[1]]), base_v, atol=1e-6)
+    smooth = encoding.taubin_smooth(x, g, (3, 10))
+    np.testing.assert_allclose(
+        np.asarray(cand[:, -1]), np_face_normals(np.asarray(smooth[1]), f), atol=1e-5
+    )
+    np.testing.assert_allclose(np.asarray(vert[:, -3:]), np.asarray(x - smooth[1]), atol=1e-6)
+    # Translation-invariant like every other local input.
+    moved = encoding.local_features(x + 5.0, g, filter_iterations=2, taubin_iterations=10)
+    for a, b in zip((vert, face, cand), moved, strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=2e-5)
+
+
+def test_taubin_candidates_ignore_padding():
+    v, f = bumpy_sphere()
+    n = v.shape[0]
+    g = jgraph(f, n, pad=True)
+    x = np.zeros((g.n_vertex, 3), np.float32)
+    x[:n] = v
+    got = encoding.taubin_smooth(jnp.asarray(x), g, (4,))[0]
+    ref = encoding.taubin_smooth(jnp.asarray(v, jnp.float32), jgraph(f, n), (4,))[0]
+    np.testing.assert_allclose(np.asarray(got[:n]), np.asarray(ref), atol=1e-5)
+    assert np.all(np.asarray(got[n:]) == 0)
+
+
+def test_taubin_iterations_config_errors():
+    with pytest.raises(ValueError, match="taubin_iterations must be an integer >= 0"):
+        ModelConfig(encoding="local", taubin_iterations=-1)
+    with pytest.raises(ValueError, match="taubin_iterations needs encoding='local'"):
+        ModelConfig(encoding="xyz", taubin_iterations=10)

@@ -95,6 +95,8 @@ SLOW = pytest.mark.slow
 PERTURB_CASES = [
     pytest.param(TINY_LOCAL, id="fgt8-local-normal", marks=SLOW),
     pytest.param(dict(TINY_LOCAL, stn=True, variant="mt"), id="mt-stn"),
+    # Taubin candidates reach 2 rings a λ|μ pair, farther than 3 dual pre-filter passes.
+    pytest.param(dict(TINY_LOCAL, taubin_iterations=4), id="taubin-candidates"),
     pytest.param(dict(TINY, encoding="xyz", head="offset"), id="fgt8-xyz-offset", marks=SLOW),
     pytest.param(dict(TINY_LOCAL, variant="fgt_1s"), id="fgt_1s", marks=SLOW),
     pytest.param(dict(TINY_LOCAL, variant="fgt3"), id="fgt3", marks=SLOW),
