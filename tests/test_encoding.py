@@ -286,6 +286,7 @@ def test_denoise_local_model_is_translation_and_scale_equivariant():
 def test_small_preset_is_the_resolution_free_normal_first_recipe():
     cfg = preset("small")
     assert cfg.model.encoding == "local" and cfg.model.head == "normal"
+    assert cfg.model.taubin_iterations == 10  # pymeshlab's default λ|μ pairs
     assert cfg.noise.p_normal > 0 and cfg.noise.p_clean > 0
     assert cfg.loss.face_normal > 0
 

@@ -82,7 +82,8 @@ def ring_distance(faces: np.ndarray, n: int, source: int) -> np.ndarray:
 def test_receptive_field_of_the_presets():
     # small: pre-filters 60 face hops = 30 rings (+1 to vertices), FE 2 x (3 + 1),
     # transformer 3 + 1 to the pool / 1 to the output, denoiser 2 x 4 - 1 to the last
-    # dual stream, 10 updates.
+    # dual stream, 10 updates. Its Taubin candidates (10 λ|μ pairs: 20 rings) reach less
+    # far than the pre-filters.
     assert patches.receptive_field(preset("small").model) == (57, (43,))
     assert patches.halo_rings(preset("small").model) == (58, (44,))
     # paper: xyz, offset head: FE 2 x 4, transformer 1, denoiser 2 x 4.
