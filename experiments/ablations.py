@@ -65,6 +65,10 @@ ABLATIONS: dict[str, dict[str, dict[str, Any]]] = {
     "head": {
         "offset": {"model": {"encoding": "local", "head": "offset"}},
         "normal-first": {"model": {"encoding": "local", "head": "normal"}},
+        # The bundled recipe: Taubin-smoothed meshes join the candidates (issue 14).
+        "normal-first + Taubin candidates": {
+            "model": {"encoding": "local", "head": "normal", "taubin_iterations": 10}
+        },
     },
     # Loss table columns λ_V, λ_N, λ_κ, λ_C; λ_FE stays 1.
     "loss": {
