@@ -360,6 +360,13 @@ def test_bilateral_pre_filter_ell_path_equals_edge_lists():
     b = encoding.bilateral_face_normals(x, ell, n0, sigma_r=0.35, iterations=(3, 9))
     for p, q in zip(a, b, strict=True):
         np.testing.assert_allclose(np.asarray(q), np.asarray(p), atol=1e-6)
+    # The Laplacian coordinates and the Taubin smoothing built on them, padding included.
+    assert ell.vertex_ell is not None
+    for fn in (
+        lambda g: encoding.laplacian_coordinates(x, g),
+        lambda g: encoding.taubin_smooth(x, g, (4,))[0],
+    ):
+        np.testing.assert_allclose(np.asarray(fn(ell)), np.asarray(fn(seg)), atol=1e-9)
 
 
 def test_candidate_consistency_matches_loop_reference():
