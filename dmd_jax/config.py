@@ -21,9 +21,10 @@ Presets (`preset(name)`):
   connected aggregators, wider projections. We do not invent layers to reach 30 M.
 * `small`: the recipe of the bundled weights, sized for a 2-core CPU: width 32, FGT-8,
   the resolution-free `"local"` encoding with Taubin-smoothed candidates and the
-  normal-first head (`dmd_jax.encoding`, `docs/design-decisions.md`), edge-unit noise mostly along normals with clean draws,
-  losses in edge units. (Before 2026-11-30 `small` was width 48 on absolute
-  bounding-box coordinates; those weights still load, their config travels with them.)
+  normal-first head (`dmd_jax.encoding`, `docs/design-decisions.md`), edge-unit noise
+  mostly along normals with clean draws, losses in edge units. (Before 2026-11-30
+  `small` was width 48 on absolute bounding-box coordinates; those weights still load,
+  their config travels with them.)
 * `test`: the `small` recipe at width 8 and 40 steps: a run on a tiny dataset in under
   a minute on 2 cores (`dmd-jax train --preset test`), and the model of unit tests.
 """
