@@ -315,7 +315,9 @@ class ModelConfig(_ConfigMixin):
         (so weights trained without it load with the same outputs).
       taubin_iterations: λ|μ pairs of Taubin smoothing whose results (kept after 3/10
         of them and after all) add candidate normals and vertex displacements to the
-        `"local"` encoding (`encoding.taubin_snapshots`); 0 (default) adds none.
+        `"local"` encoding (`encoding.taubin_snapshots`); 0 (default) adds none. Like
+        `filter_iterations`, ignored by the `"xyz"` encoding (so a `small`-derived config
+        can switch to `"xyz"` with one edit).
     """
 
     width: int = _static(64)
@@ -371,10 +373,6 @@ class ModelConfig(_ConfigMixin):
         _check_positive_int("vertex_iterations", self.vertex_iterations)
         _check_positive_int("filter_iterations", self.filter_iterations)
         _check_positive_int("taubin_iterations", self.taubin_iterations, minimum=0)
-        _check(
-            self.taubin_iterations == 0 or self.encoding == "local",
-            "taubin_iterations needs encoding='local' (its candidates are local inputs)",
-        )
         _check(
             not self.head_consistency or self.head == "normal",
             "head_consistency needs head='normal' (it describes the candidate normals)",

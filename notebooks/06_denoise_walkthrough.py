@@ -183,7 +183,8 @@ display(HTML(viewer.to_html(include_plotlyjs=True, full_html=False)))
 # even it out. The cell below measures the error on the faces along the clean part's
 # creases (a dihedral angle over 30°) and on the rest: of the three, Taubin is lowest
 # on both, and DMD-Net with its tangential relaxation option (`relax=3`, README
-# "Tangential relaxation") is lower still, on both.
+# "Tangential relaxation") is lower still on the faces away from the creases and within
+# 1.5° of Taubin on the creases.
 
 # %%
 fn = np.cross(clean[faces[:, 1]] - clean[faces[:, 0]], clean[faces[:, 2]] - clean[faces[:, 0]])
@@ -204,7 +205,8 @@ for name, (crease, flat) in by_region.items():
 print(f"{on_crease.sum()} of {len(faces)} faces touch a crease")
 for region in (0, 1):
     assert by_region["Taubin"][region] < min(by_region[m][region] for m in ("DMD-Net", "BNF"))
-    assert by_region["DMD-Net, relax=3"][region] < by_region["Taubin"][region]
+assert by_region["DMD-Net, relax=3"][1] < by_region["Taubin"][1]
+assert by_region["DMD-Net, relax=3"][0] < by_region["Taubin"][0] + 1.5
 
 # %% [markdown]
 # ## 6. More passes

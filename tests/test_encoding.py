@@ -507,5 +507,5 @@ def test_taubin_candidates_ignore_padding():
 def test_taubin_iterations_config_errors():
     with pytest.raises(ValueError, match="taubin_iterations must be an integer >= 0"):
         ModelConfig(encoding="local", taubin_iterations=-1)
-    with pytest.raises(ValueError, match="taubin_iterations needs encoding='local'"):
-        ModelConfig(encoding="xyz", taubin_iterations=10)
+    # Ignored by the xyz encoding, like filter_iterations: no extra inputs.
+    assert ModelConfig(encoding="xyz", taubin_iterations=10).vertex_in_dim == 3

@@ -449,8 +449,13 @@ def expected_param_count(cfg: ModelConfig) -> int:
 
     w, t = cfg.width, cfg.hidden_transformer_width
     local = cfg.encoding == "local"
-    v_in = encoding.LOCAL_VERTEX_DIM if local else 3
-    f_in = encoding.LOCAL_FACE_DIM if local else 0  # face features on every dual input
+    # Candidates: the noisy normal, 3 filters x 3 snapshots, and one per Taubin snapshot.
+    n_taubin = len(encoding.taubin_snapshots(cfg.taubin_iterations)) if local else 0
+    k = 1 + 9 + n_taubin
+    # Vertex: Laplacian coordinates, normal, each smoothed field's vertex average and each
+    # Taubin displacement (3 columns each); face: every candidate (3 each).
+    v_in = 6 + 3 * (k - 1) + 3 * n_taubin if local else 3
+    f_in = 3 * k if local else 0  # face features on every dual input
 
     def dense(i, o, bias=True):
         return i * o + (o if bias else 0)
@@ -485,7 +490,6 @@ def expected_param_count(cfg: ModelConfig) -> int:
     if cfg.head == "offset":
         total += dense(w, 3)
     else:
-        k = encoding.N_CANDIDATES
         if cfg.denoiser_two_stream:  # head on [d ‖ DAP(p, d)]
             total += dense(2 * w, k + 3)
         else:  # face features from Dense([P2D(p) ‖ face_x])
