@@ -432,13 +432,18 @@ class Transformer(nn.Module):
             h = Aggregator(hidden, name="agg", **agg)(
                 jnp.concatenate(outs, axis=-1), *edges, deterministic=deterministic, ell=ell
             )
+            # FAP of an affine head is the head of the FAP: pool the hidden features, then
+            # apply each head once per mesh. Never materialises the per-vertex
+            # `[n_vertex, rows * cols]` matrices (1,600 floats a vertex for `small`, the
+            # largest buffer of the pooling pass); a mesh with no vertex still gets zeros.
+            pooled_h = ops.feature_average_pool(h, graph.vertex_graph, n_graph, graph.vertex_mask)
+            nonempty = ops.feature_average_pool(
+                jnp.ones_like(h[:, :1]), graph.vertex_graph, n_graph, graph.vertex_mask
+            )
             mats = []
             for k, (rows, cols) in enumerate(shapes):
                 head = "fc_out" if k == len(shapes) - 1 else f"fc_cascade{k}"
-                flat = nn.Dense(rows * cols, param_dtype=pd, name=head)(h)
-                mean = ops.feature_average_pool(
-                    flat, graph.vertex_graph, n_graph, graph.vertex_mask
-                )
+                mean = nn.Dense(rows * cols, param_dtype=pd, name=head)(pooled_h) * nonempty
                 # Recorded only when the caller makes "intermediates" mutable (patch-wise
                 # inference sums these over patches); a no-op otherwise.
                 self.sow("intermediates", names[k], mean)
