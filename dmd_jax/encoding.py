@@ -154,6 +154,16 @@ def local_dims(taubin_iterations: int = 0) -> tuple[int, int]:
     return 6 + 3 * (k - 1) + 3 * len(taubin_snapshots(taubin_iterations)), 3 * k
 
 
+def _kept_after(step, x, counts):
+    """Runs `x ← step(i, x)` up to `max(counts)` times; the states after each count."""
+    out, done = [], 0
+    for count in counts:
+        x = jax.lax.fori_loop(done, count, step, x)
+        out.append(x)
+        done = count
+    return out
+
+
 def taubin_smooth(x, graph, iterations):
     """Taubin λ|μ smoothing (`TAUBIN_LAMBDA_MU`, uniform umbrella over `graph`'s edges).
 
@@ -171,12 +181,7 @@ def taubin_smooth(x, graph, iterations):
         y = y - lam * laplacian_coordinates(y, graph)
         return y - mu * laplacian_coordinates(y, graph)
 
-    out, done, y = [], 0, x
-    for pairs in iterations:
-        y = jax.lax.fori_loop(done, pairs, pair, y)
-        out.append(y)
-        done = pairs
-    return out
+    return _kept_after(pair, x, iterations)
 
 
 def bilateral_face_normals(x, graph, normals, *, sigma_r: float, iterations):
@@ -228,12 +233,7 @@ def bilateral_face_normals(x, graph, normals, *, sigma_r: float, iterations):
 
     if isinstance(iterations, int):
         return jax.lax.fori_loop(0, iterations, step, normals)
-    out, done, n = [], 0, normals
-    for passes in iterations:
-        n = jax.lax.fori_loop(done, passes, step, n)
-        out.append(n)
-        done = passes
-    return out
+    return _kept_after(step, normals, iterations)
 
 
 def candidate_consistency(candidates, graph):
