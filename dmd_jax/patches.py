@@ -31,7 +31,7 @@ from typing import NamedTuple
 import numpy as np
 
 from dmd_jax.config import ModelConfig
-from dmd_jax.encoding import snapshot_passes
+from dmd_jax.encoding import snapshot_passes, taubin_snapshots
 
 
 class ReceptiveField(NamedTuple):
@@ -86,7 +86,7 @@ def receptive_field(config: ModelConfig) -> ReceptiveField:
     if cfg.encoding == "local":
         face_in = dual_rings(max(snapshot_passes(cfg.filter_iterations)))  # pre-filters
         # A λ|μ pair is two umbrella steps, a vertex ring each; a face sees its corners.
-        face_in = max(face_in, 2 * cfg.taubin_iterations)
+        face_in = max(face_in, 2 * max(taubin_snapshots(cfg.taubin_iterations), default=0))
         vertex_in = face_in + 1  # their vertex averages (D2P); Laplacian, normals: 1
         stn_in = 1  # the STN sees the Laplacian coordinates
     else:

@@ -98,6 +98,8 @@ PERTURB_CASES = [
     pytest.param(dict(TINY_LOCAL, stn=True, variant="mt"), id="mt-stn"),
     # Taubin candidates reach 2 rings a λ|μ pair, farther than 3 dual pre-filter passes.
     pytest.param(dict(TINY_LOCAL, taubin_iterations=4), id="taubin-candidates"),
+    # One pair is kept after 1 and 2 pairs (snapshots stay distinct): the reach is 2 pairs.
+    pytest.param(dict(TINY_LOCAL, taubin_iterations=1), id="taubin-one-pair", marks=SLOW),
     pytest.param(dict(TINY, encoding="xyz", head="offset"), id="fgt8-xyz-offset", marks=SLOW),
     pytest.param(dict(TINY_LOCAL, variant="fgt_1s"), id="fgt_1s", marks=SLOW),
     pytest.param(dict(TINY_LOCAL, variant="fgt3"), id="fgt3", marks=SLOW),
