@@ -66,8 +66,6 @@ TAUBIN_SNAPSHOTS = (3 / 10, 1.0)
 # Without Taubin candidates (`taubin_iterations=0`); `n_candidates` and `local_dims`
 # count them in.
 N_CANDIDATES = 1 + len(FILTER_RANGE_SIGMAS) * len(FILTER_SNAPSHOTS)
-LOCAL_FACE_DIM = 3 * N_CANDIDATES
-LOCAL_VERTEX_DIM = 6 + 3 * (N_CANDIDATES - 1)
 
 
 def mesh_frame(encoding: str, vertices, faces) -> CanonicalFrame:
@@ -116,12 +114,13 @@ def laplacian_coordinates(x, graph):
         keep = ((nbr != rows) & (graph.vertex_ell.weights > 0)).astype(x.dtype)
         total = jnp.einsum("vk,vkc->vc", keep, x[nbr])
         count = jnp.sum(keep, axis=1)
-        mean = total / jnp.maximum(count, 1.0)[:, None]
-        return jnp.where(count[:, None] > 0, x - mean, 0.0)
-    s, r = graph.vertex_senders, graph.vertex_receivers
-    keep = ((s != r) & (graph.vertex_edge_weight > 0)).astype(x.dtype)
-    total = jax.ops.segment_sum(x[s] * keep[:, None], r, num_segments=n, indices_are_sorted=True)
-    count = jax.ops.segment_sum(keep, r, num_segments=n, indices_are_sorted=True)
+    else:
+        s, r = graph.vertex_senders, graph.vertex_receivers
+        keep = ((s != r) & (graph.vertex_edge_weight > 0)).astype(x.dtype)
+        total = jax.ops.segment_sum(
+            x[s] * keep[:, None], r, num_segments=n, indices_are_sorted=True
+        )
+        count = jax.ops.segment_sum(keep, r, num_segments=n, indices_are_sorted=True)
     mean = total / jnp.maximum(count, 1.0)[:, None]
     return jnp.where(count[:, None] > 0, x - mean, 0.0)
 
@@ -152,6 +151,10 @@ def local_dims(taubin_iterations: int = 0) -> tuple[int, int]:
     """`(vertex columns, face columns)` of `local_features`."""
     k = n_candidates(taubin_iterations)
     return 6 + 3 * (k - 1) + 3 * len(taubin_snapshots(taubin_iterations)), 3 * k
+
+
+# Columns of `local_features` without Taubin candidates.
+LOCAL_VERTEX_DIM, LOCAL_FACE_DIM = local_dims(0)
 
 
 def _kept_after(step, x, counts):
