@@ -40,11 +40,11 @@ def main(argv=None) -> int:
     import jax
     import jax.numpy as jnp
     from common import environment, markdown_table, write_report
-    from sota_lite import MAX_FACES, crop, noise_seed
+    from relax_validation import validation_crops
+    from sota_lite import MAX_FACES, noise_seed
 
     import dmd_jax
     from dmd_jax import baselines, encoding, geometry
-    from dmd_jax.data.real import validation_names
     from dmd_jax.demo import gaussian_edge_noise
     from dmd_jax.graph import build_mesh_graph
     from dmd_jax.metrics import face_normal_errors_deg
@@ -77,10 +77,7 @@ def main(argv=None) -> int:
 
     start = time.perf_counter()
     rows, table = [], []
-    for name in validation_names(args.train_meshes):
-        clean, faces = dmd_jax.load_mesh(args.train_meshes / name)
-        if faces.shape[0] > MAX_FACES:
-            clean, faces = crop(clean, faces, MAX_FACES)
+    for name, clean, faces in validation_crops(args.train_meshes, MAX_FACES, every=1):
         noisy = gaussian_edge_noise(clean, faces, args.level, noise_seed(name, args.level))
         frame = encoding.mesh_frame("local", noisy, faces)
         x = jnp.asarray(frame.apply(noisy), jnp.float32)

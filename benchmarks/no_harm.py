@@ -26,7 +26,7 @@ METHODS = ("dmd", "cnr", "bnf", "taubin")
 
 def main(argv=None) -> int:
     from common import environment, markdown_table, write_report
-    from sota_lite import MAX_FACES, MESH_SUFFIXES, crop
+    from sota_lite import MAX_FACES, crop, mesh_files
 
     import dmd_jax
     from dmd_jax import baselines
@@ -39,14 +39,11 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, default=HERE / "results" / "no_harm.md")
     args = p.parse_args(argv)
     bundle = dmd_jax.load_weights(args.weights) if args.weights else dmd_jax.load_pretrained()
-    paths = sorted(
-        q for q in args.meshes.iterdir() if q.is_file() and q.suffix.lower() in MESH_SUFFIXES
-    )
     start = time.perf_counter()
     turn = {m: [] for m in METHODS}
     move = {m: [] for m in METHODS}
     rows = []
-    for path in paths:
+    for path in mesh_files(args.meshes):
         v, f = dmd_jax.load_mesh(path)
         if f.shape[0] > MAX_FACES:
             v, f = crop(v, f, MAX_FACES)
