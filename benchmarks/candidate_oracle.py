@@ -26,11 +26,11 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 
-def candidate_names(filter_iterations: int, taubin_iterations: int) -> list[str]:
+def candidate_names(filter_iterations: int, taubin_iterations: int, filter_sigmas) -> list[str]:
     from dmd_jax import encoding
 
     names = ["noisy"]
-    for sr in encoding.FILTER_RANGE_SIGMAS:
+    for sr in filter_sigmas:
         names += [f"bil σr {sr} ×{p}" for p in encoding.snapshot_passes(filter_iterations)]
     names += [f"Taubin ×{p}" for p in encoding.taubin_snapshots(taubin_iterations)]
     return names
@@ -63,12 +63,16 @@ def main(argv=None) -> int:
     bundle = dmd_jax.load_pretrained()
     mcfg = bundle.config.model
     taubin = mcfg.taubin_iterations if args.taubin_iterations is None else args.taubin_iterations
-    names = candidate_names(mcfg.filter_iterations, taubin)
+    names = candidate_names(mcfg.filter_iterations, taubin, mcfg.filter_sigmas)
 
     @jax.jit
     def candidates(x, graph):
         _, _, c = encoding.local_features(
-            x, graph, filter_iterations=mcfg.filter_iterations, taubin_iterations=taubin
+            x,
+            graph,
+            filter_iterations=mcfg.filter_iterations,
+            taubin_iterations=taubin,
+            filter_sigmas=mcfg.filter_sigmas,
         )
         return c
 

@@ -30,8 +30,9 @@ Two encodings, chosen by `ModelConfig.encoding`:
 
 The pre-filters are bilateral normal filters (Zheng et al. 2011) over the dual graph
 (faces sharing an edge) with a spatial σ of one edge and the range σs of
-`FILTER_RANGE_SIGMAS`, each kept after several numbers of passes (`snapshot_passes` of
-`ModelConfig.filter_iterations`): the same kind of multi-scale filtered-normal
+`ModelConfig.filter_sigmas` (default `FILTER_RANGE_SIGMAS`), each kept after several
+numbers of passes (`snapshot_passes` of `ModelConfig.filter_iterations`): the same kind
+of multi-scale filtered-normal
 descriptor CNR regresses from, and, among them, fields as smooth as BNF's. They have no
 parameters, so the model stays one function of the noisy mesh, the same in training and
 inference.
@@ -47,8 +48,9 @@ from dmd_jax import geometry, ops
 from dmd_jax.mesh import CanonicalFrame, canonical_frame, mean_edge_length
 
 ENCODINGS = ("xyz", "local")
-# Range σ of the bilateral pre-filters on |n_i − n_j| (unit normals): from edge
-# preserving (0.2: neighbours more than ~25° apart barely mix) to smoothing.
+# Default range σs of the bilateral pre-filters on |n_i − n_j| (unit normals), one filter
+# each (`ModelConfig.filter_sigmas`): from edge preserving (0.2: neighbours more than ~25°
+# apart barely mix) to smoothing.
 FILTER_RANGE_SIGMAS = (0.2, 0.35, 0.6)
 # Each filter's normals are kept after these fractions of `filter_iterations` passes.
 # The dual graph gives a face only 3 neighbours (BNF's vertex ring ~12), so it takes
@@ -63,8 +65,8 @@ FILTER_SPATIAL_SIGMA = 1.0
 # after these fractions of `ModelConfig.taubin_iterations` λ|μ pairs.
 TAUBIN_LAMBDA_MU = (0.5, -0.53)
 TAUBIN_SNAPSHOTS = (3 / 10, 1.0)
-# Without Taubin candidates (`taubin_iterations=0`); `n_candidates` and `local_dims`
-# count them in.
+# With the default filters and without Taubin candidates; `n_candidates` and `local_dims`
+# count any other choice.
 N_CANDIDATES = 1 + len(FILTER_RANGE_SIGMAS) * len(FILTER_SNAPSHOTS)
 
 
@@ -142,18 +144,19 @@ def taubin_snapshots(taubin_iterations: int) -> tuple[int, ...]:
     return _snapshots(TAUBIN_SNAPSHOTS, taubin_iterations) if taubin_iterations else ()
 
 
-def n_candidates(taubin_iterations: int = 0) -> int:
+def n_candidates(taubin_iterations: int = 0, filter_sigmas=FILTER_RANGE_SIGMAS) -> int:
     """Candidate normals of the normal-first head: noisy, pre-filtered, Taubin-smoothed."""
-    return N_CANDIDATES + len(taubin_snapshots(taubin_iterations))
+    filtered = len(filter_sigmas) * len(FILTER_SNAPSHOTS)
+    return 1 + filtered + len(taubin_snapshots(taubin_iterations))
 
 
-def local_dims(taubin_iterations: int = 0) -> tuple[int, int]:
+def local_dims(taubin_iterations: int = 0, filter_sigmas=FILTER_RANGE_SIGMAS) -> tuple[int, int]:
     """`(vertex columns, face columns)` of `local_features`."""
-    k = n_candidates(taubin_iterations)
+    k = n_candidates(taubin_iterations, filter_sigmas)
     return 6 + 3 * (k - 1) + 3 * len(taubin_snapshots(taubin_iterations)), 3 * k
 
 
-# Columns of `local_features` without Taubin candidates.
+# Columns of `local_features` with the default filters and without Taubin candidates.
 LOCAL_VERTEX_DIM, LOCAL_FACE_DIM = local_dims(0)
 
 
@@ -266,7 +269,14 @@ def candidate_consistency(candidates, graph):
     return jnp.concatenate([rough, fidelity], axis=-1)
 
 
-def local_features(x, graph, *, filter_iterations: int, taubin_iterations: int = 0):
+def local_features(
+    x,
+    graph,
+    *,
+    filter_iterations: int,
+    taubin_iterations: int = 0,
+    filter_sigmas: tuple[float, ...] = FILTER_RANGE_SIGMAS,
+):
     """The `"local"` encoding's inputs (see the module docstring).
 
     Args:
@@ -274,10 +284,12 @@ def local_features(x, graph, *, filter_iterations: int, taubin_iterations: int =
       graph: the `MeshGraph`.
       filter_iterations: passes of each bilateral pre-filter.
       taubin_iterations: λ|μ pairs of the Taubin-smoothed candidates (0: none).
+      filter_sigmas: the range σ of each bilateral pre-filter (static).
 
     Returns:
       `(vertex [n_vertex, V], face [n_face, F], candidates [n_face, K, 3])` with
-      `(V, F) = local_dims(taubin_iterations)` and `K = n_candidates(...)`: the last holds
+      `(V, F) = local_dims(taubin_iterations, filter_sigmas)` and
+      `K = n_candidates(...)`: the last holds
       the noisy face normal, every pre-filtered one (each σ after each of
       `snapshot_passes`) and the Taubin-smoothed ones, the normals the normal-first head
       mixes.
@@ -286,7 +298,7 @@ def local_features(x, graph, *, filter_iterations: int, taubin_iterations: int =
     n0 = geometry.face_normals(x, faces)
     passes = snapshot_passes(filter_iterations)
     fields = [n0]
-    for sr in FILTER_RANGE_SIGMAS:
+    for sr in filter_sigmas:
         fields += bilateral_face_normals(x, graph, n0, sigma_r=sr, iterations=passes)
     smoothed = taubin_smooth(x, graph, taubin_snapshots(taubin_iterations))
     fields += [geometry.face_normals(y, faces) for y in smoothed]

@@ -591,6 +591,7 @@ class DMDNet(nn.Module):
                 graph,
                 filter_iterations=cfg.filter_iterations,
                 taubin_iterations=cfg.taubin_iterations,
+                filter_sigmas=cfg.filter_sigmas,
             )
         else:
             x_in = xyz

@@ -447,7 +447,11 @@ def _digest(payload: Any, length: int = 10) -> str:
 
 # Model switches added after results were recorded, at the value that leaves the model as
 # it was: left out of the hashes, so finished runs keep their ids and are not retrained.
-_LATER_MODEL_FIELDS = {"head_consistency": False, "taubin_iterations": 0}
+_LATER_MODEL_FIELDS = {
+    "head_consistency": False,
+    "taubin_iterations": 0,
+    "filter_sigmas": [0.2, 0.35, 0.6],  # as `to_dict` writes the default tuple
+}
 
 
 def _hashed(cfg: ExperimentConfig) -> dict:

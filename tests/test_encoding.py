@@ -509,3 +509,44 @@ def test_taubin_iterations_config_errors():
         ModelConfig(encoding="local", taubin_iterations=-1)
     # Ignored by the xyz encoding, like filter_iterations: no extra inputs.
     assert ModelConfig(encoding="xyz", taubin_iterations=10).vertex_in_dim == 3
+
+
+def test_filter_sigmas_choose_which_pre_filters_run():
+    v, f = bumpy_sphere()
+    g = jgraph(f, v.shape[0])
+    x = jnp.asarray(v)
+    _, _, full = encoding.local_features(x, g, filter_iterations=3, taubin_iterations=10)
+    sigmas = (0.35, 0.6)
+    vert, face, cand = encoding.local_features(
+        x, g, filter_iterations=3, taubin_iterations=10, filter_sigmas=sigmas
+    )
+    k = encoding.n_candidates(10, sigmas)
+    assert k == encoding.n_candidates(10) - len(encoding.FILTER_SNAPSHOTS)
+    assert cand.shape == (f.shape[0], k, 3)
+    assert (vert.shape[1], face.shape[1]) == encoding.local_dims(10, sigmas)
+    cfg = ModelConfig(encoding="local", taubin_iterations=10, filter_sigmas=sigmas)
+    assert cfg.vertex_in_dim == vert.shape[1]
+    # The same fields as the default run's, less the σ 0.2 filter's snapshots.
+    s = len(encoding.FILTER_SNAPSHOTS)
+    keep = [0, *range(1 + s, full.shape[1])]
+    np.testing.assert_allclose(np.asarray(cand), np.asarray(full[:, keep]), atol=1e-6)
+    # Each filter alone equals bilateral_face_normals with its σ.
+    alone = encoding.bilateral_face_normals(
+        x, g, cand[:, 0], sigma_r=0.6, iterations=encoding.snapshot_passes(3)
+    )
+    got = np.asarray(cand[:, 1 + s : 1 + 2 * s])
+    np.testing.assert_allclose(got, np.stack(alone, 1), atol=1e-6)
+
+
+def test_filter_sigmas_config():
+    with pytest.raises(ValueError, match="filter_sigmas must be a non-empty tuple"):
+        ModelConfig(encoding="local", filter_sigmas=())
+    with pytest.raises(ValueError, match="filter_sigmas must be a non-empty tuple"):
+        ModelConfig(encoding="local", filter_sigmas=(0.3, -1.0))
+    cfg = ModelConfig(encoding="local", filter_sigmas=(0.35, 0.6))
+    assert ModelConfig.from_dict(cfg.to_dict()) == cfg
+    # A config saved before the field existed loads with the three default filters.
+    old = cfg.to_dict()
+    old.pop("filter_sigmas")
+    assert ModelConfig.from_dict(old).filter_sigmas == encoding.FILTER_RANGE_SIGMAS
+    assert cfg.with_edits({"filter_sigmas": [0.5]}).filter_sigmas == (0.5,)
