@@ -320,7 +320,7 @@ class ModelConfig(_ConfigMixin):
         can switch to `"xyz"` with one edit).
       filter_sigmas: the range σ of each bilateral pre-filter of the `"local"` encoding,
         one filter (and `len(encoding.FILTER_SNAPSHOTS)` candidates) each; the filters'
-        passes are most of the encoding's cost (about 3.6 ms a pass at 100k faces on 2
+        passes are most of the encoding's cost (about 2.3 ms a pass at 100k faces on 2
         CPU cores), so fewer filters buy speed.
     """
 
