@@ -143,7 +143,7 @@ class Method(NamedTuple):
     status: str
 
 
-def _dmd_method(key: str, label: str, path: Path | None) -> Method:
+def _dmd_method(key: str, label: str, path: Path | None, passes: int = 1) -> Method:
     from dmd_jax import inference
     from dmd_jax.checkpoints import load_model
 
@@ -152,11 +152,12 @@ def _dmd_method(key: str, label: str, path: Path | None) -> Method:
     bundle = load_model(path)
     steps = bundle.meta.get("steps")
     trained = f", {steps} training steps" if steps else ""
+    repeated = f", {passes} passes (denoise(..., iterations={passes}))" if passes > 1 else ""
     return Method(
         key,
         label,
-        lambda v, f: inference.denoise(v, f, bundle),
-        f"weights {Path(path).name}{trained}",
+        lambda v, f: inference.denoise(v, f, bundle, iterations=passes),
+        f"weights {Path(path).name}{trained}{repeated}",
     )
 
 
@@ -166,6 +167,7 @@ def build_methods(
     dmd_weights: Path | None = None,
     cnr_weights: Path | None = None,
     extra_weights: Sequence[tuple[str, Path]] = (),
+    dmd_passes: Sequence[int] = (),
 ) -> list[Method]:
     """The methods to run, in table order.
 
@@ -174,6 +176,8 @@ def build_methods(
       dmd_weights: DMD-Net weights for ``dmd``; default the bundled file.
       cnr_weights: CNR weights for ``cnr``; default the bundled file.
       extra_weights: further DMD-Net checkpoints as `(label, path)`.
+      dmd_passes: further columns of the ``dmd`` weights run for this many passes each
+        (`denoise(..., iterations=n)`), for noise heavier than one pass removes.
     """
     from dmd_jax import baselines
     from dmd_jax.baselines import cascaded_regression
@@ -225,6 +229,8 @@ def build_methods(
         elif name == "dmd":
             path = Path(dmd_weights) if dmd_weights else pretrained_path()
             out.append(_dmd_method("dmd", label, path))
+            for n in dmd_passes:
+                out.append(_dmd_method(f"dmd:x{n}", f"{label} ×{n}", path, passes=n))
     for label, path in extra_weights:
         out.append(_dmd_method(f"dmd:{label}", f"DMD-Net ({label})", Path(path)))
     return out
@@ -660,6 +666,14 @@ def _parse(argv):
         metavar="LABEL=PATH",
         help="another DMD-Net (weights file or checkpoint directory) as a column (repeatable)",
     )
+    p.add_argument(
+        "--dmd-passes",
+        type=int,
+        nargs="+",
+        default=[],
+        metavar="N",
+        help="also run DMD-Net for N passes each (denoise(..., iterations=N)), one column each",
+    )
     p.add_argument("--repeat", type=int, default=1, help="calls per method; time = fastest")
     p.add_argument("--no-figure", action="store_true")
     p.add_argument("--data", type=Path, default=DEFAULT_DATA, help="dataset for --table cnr")
@@ -690,6 +704,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             dmd_weights=args.dmd_weights,
             cnr_weights=args.cnr_weights,
             extra_weights=args.extra_weights,
+            dmd_passes=args.dmd_passes,
         )
         rows, renders = run_sota(cases, methods, meshes_dir=args.meshes_dir, repeat=args.repeat)
         md = sota_markdown(

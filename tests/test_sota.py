@@ -84,3 +84,15 @@ def test_extra_checkpoints_become_columns(sota, tmp_path):
     assert [m.key for m in methods] == ["taubin", "dmd:late"]
     assert methods[1].fn is None and methods[1].status.startswith("missing")
     assert "iterations=10" in methods[0].status
+
+
+def test_dmd_passes_become_columns(sota):
+    import dmd_jax
+
+    methods = sota.build_methods(["dmd"], dmd_passes=[3])
+    assert [m.key for m in methods] == ["dmd", "dmd:x3"]
+    assert [m.label for m in methods] == ["DMD-Net", "DMD-Net ×3"]
+    assert "3 passes" in methods[1].status and "passes" not in methods[0].status
+    v, f = load_mesh(shared_mesh_path("decimated-knight.off"))
+    bundle = dmd_jax.load_pretrained()
+    np.testing.assert_array_equal(methods[1].fn(v, f), dmd_jax.denoise(v, f, bundle, iterations=3))
