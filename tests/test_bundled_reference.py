@@ -5,7 +5,8 @@ of 0.02, seed 0), its faces, and what `denoise` with the bundled weights returne
 through both aggregations. Stored when the package was reorganised (the outputs were then
 unchanged) and stored again, for the same inputs, when the bundled weights were replaced
 by the resolution-free model, again when those were fine-tuned, and again when the
-model with Taubin candidates replaced them (all 2026-11-30).
+model with Taubin candidates replaced them (all 2026-11-30), and again when the
+6,000-step retraining of that recipe replaced them (2026-12-01).
 Any change to weight loading, graph building, padding or the network's forward pass
 shows up here.
 """
