@@ -282,20 +282,26 @@ for title, other in [
         print(f"{name:8s}" + "".join(f"{x:9.4f}" for x in row))
 same = similarity["another draw, σ = 0.3"]
 assert np.diag(same).min() > 0.99
-assert same.min() > 0.97
+closed = [CATEGORIES.index(c) for c in ("blob", "torus", "bracket")]
+terrain = CATEGORIES.index("terrain")
+assert same[np.ix_(closed, closed)].min() > 0.99
+off_terrain = np.concatenate([same[terrain, closed], same[closed, terrain]])
+assert 0.95 < off_terrain.min() and off_terrain.max() < 0.98
 twice = similarity["another draw, σ = 0.6"]
-assert np.ptp(twice, axis=1).max() < 0.1
+assert np.ptp(twice[closed], axis=1).max() < 0.05
+assert 0.08 < np.ptp(twice[terrain]) < 0.15
 
 # %% [markdown]
 # The diagonal compares a mesh with itself under new noise, the off-diagonal entries
 # compare different meshes. Under a new draw at the same level every mesh keeps its
-# matrix (diagonal above 0.99), and all four meshes, the open terrain patch included,
-# get nearly the same matrix (similarity above 0.97 for every pair): for the bundled
-# model the transformer acts as one learnt linear map whatever the shape (an earlier
-# bundled model, without the Taubin inputs, still gave terrain a matrix of its own,
-# below 0.9 against blob and torus). At twice the noise level the entries of each row
-# differ by less than 0.1: the matrix tracks the noise a little and the shape hardly
-# at all (the cells assert the figures quoted here).
+# matrix (diagonal above 0.99). The three closed shapes get nearly the same matrix
+# (above 0.99 for every pair) and the open terrain patch a slightly different one
+# (0.95–0.98 against the others): for the bundled model the transformer acts almost as
+# one learnt linear map, with a small correction for an open patch (an earlier bundled
+# model, without the Taubin inputs, gave terrain a matrix of its own, below 0.9 against
+# blob and torus). At twice the noise level the entries of each closed shape's row differ
+# by less than 0.05, the terrain row's by about 0.1: the matrix tracks the noise a
+# little and the shape hardly at all (the cells assert the figures quoted here).
 #
 # ## The feature extractor against the ground truth
 #
@@ -409,14 +415,14 @@ for name, x, w in zip(CATEGORIES, per_mesh(t_in), W, strict=True):
     )
 ratios = [a / b for a, b in parts]
 print("input part / feature part:", " ".join(f"{r:.1f}" for r in ratios))
-assert min(ratios) > 3 and max(ratios) < 5
+assert min(ratios) > 2.5 and max(ratios) < 4.5
 if model_cfg.encoding == "local":
     assert min(ninth) > 0.05  # the product is not limited to eight dimensions
 
 # %% [markdown]
 # The two norms show how much of the bundled model's intermediate representation comes
-# from the primal input and how much from the estimated features: the input part is 3
-# to 5 times larger on every mesh, so the features are a minority but not negligible
+# from the primal input and how much from the estimated features: the input part is 2.5
+# to 4.5 times larger on every mesh, so the features are a minority but not negligible
 # share. The singular values of the (centred) product $t_\text{in}W_{tf}$ over a mesh's
 # vertices show its rank. With the paper's xyz encoding it has at most eight non-zero
 # values (FGT-3 would cut that to three); with the bundled model's 45-column
@@ -470,7 +476,7 @@ print("zeros - FE (normal°): ", np.round(table["zeros"] - fe_row, 2))
 # Every kind of guidance leaves the denoised normals less than 0.8 times as far off as
 # the noisy input's: most of the work does not depend on the guidance. The oracle
 # hardly helps: the clean mesh's features change the normal error by less than 0.5° on
-# every mesh (a tenth of a degree here). The model was trained with its FE's estimates
+# every mesh (at most 0.3° here). The model was trained with its FE's estimates
 # and reads them, not the clean features, so this is no measure of room for a better
 # feature extractor. Zeros in place of the features change it by less than 1°: the
 # bundled model, whose resolution-free inputs already carry the smoothed normals and

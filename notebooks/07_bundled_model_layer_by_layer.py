@@ -204,7 +204,7 @@ assert explained["denoiser (last two-stream)"][0] > 0.25
 #
 # The head predicts, per face, softmax weights over $K = 12$ candidate normals (the
 # noisy face normal, the bilateral pre-filtered normals for each range σ of
-# `encoding.FILTER_RANGE_SIGMAS` after each pass count of `encoding.snapshot_passes`,
+# `ModelConfig.filter_sigmas` after each pass count of `encoding.snapshot_passes`,
 # then the face normals of the Taubin-smoothed mesh after each pair count of
 # `encoding.taubin_snapshots`) plus a small correction. The captured output of
 # `denoiser/head` holds the logits; their softmax is the mixing weight.
@@ -216,13 +216,14 @@ _, _, candidates = encoding.local_features(
     graph,
     filter_iterations=cfg.filter_iterations,
     taubin_iterations=cfg.taubin_iterations,
+    filter_sigmas=cfg.filter_sigmas,
 )
 K = candidates.shape[1]
 LABELS = (
     ["noisy"]
     + [
         f"σ{s} ×{p}"
-        for s in encoding.FILTER_RANGE_SIGMAS
+        for s in cfg.filter_sigmas
         for p in encoding.snapshot_passes(cfg.filter_iterations)
     ]
     + [f"Taubin ×{p}" for p in encoding.taubin_snapshots(cfg.taubin_iterations)]
@@ -236,9 +237,10 @@ for label, w, s in zip(LABELS, weights.mean(0), share, strict=True):
 print(f"mean |correction|: {np.linalg.norm(logits[:, K:], axis=1).mean():.3f}")
 best = int(weights.mean(0).argmax())
 assert K == 12 and LABELS[best] == "σ0.35 ×30"
-assert weights.mean(0)[best] > 0.4 and share[best] > 0.9 and weights.mean(0)[0] < 1 / K
-runner_up = [LABELS[k] for k in np.argsort(weights.mean(0))[::-1][1:3]]
-assert set(runner_up) == {"σ0.6 ×8", "σ0.35 ×8"}
+assert weights.mean(0)[best] > 0.6 and share[best] > 0.9 and weights.mean(0)[0] < 1 / K
+runner_up = [LABELS[k] for k in np.argsort(weights.mean(0))[::-1][1:4]]
+assert set(runner_up) == {"σ0.35 ×8", "Taubin ×10", "σ0.6 ×8"}
+assert all(weights.mean(0)[LABELS.index(r)] < 0.1 for r in runner_up)
 
 fig = plt.figure(figsize=(8, 4))
 draw(
@@ -265,11 +267,11 @@ plt.show()
 
 # %% [markdown]
 # On fandisk the head has one favourite: the middle range σ (0.35) after 30 passes
-# takes more than 40 % of the weight on average and is the largest weight on more than
+# takes more than 60 % of the weight on average and is the largest weight on more than
 # 90 % of the faces; the noisy normal gets less than the uniform share $1/K$. The next
-# weights (σ 0.6 and σ 0.35 after 8 passes; then the Taubin-smoothed mesh after 10
-# pairs, below a tenth) and the correction adjust that choice face by face, which is
-# where the creases in the left picture show.
+# weights (σ 0.35 after 8 passes, the Taubin-smoothed mesh after 10 pairs and σ 0.6
+# after 8 passes, each below a tenth) and the correction adjust that choice face by
+# face, which is where the creases in the left picture show.
 #
 # ## $W_{tf}$ across meshes
 #
@@ -323,7 +325,7 @@ print(
 )
 print(f"crease faces: {crease.mean():.1%} of all, {crease[worst].mean():.1%} of the worst 1 %")
 print(f"mean error on creases {err[crease].mean():.1f}°, elsewhere {err[~crease].mean():.2f}°")
-assert crease[worst].mean() > 5 * crease.mean()
+assert crease[worst].mean() > 4 * crease.mean()
 assert 1.5 * err[~crease].mean() < err[crease].mean() < 3 * err[~crease].mean()
 
 fig = plt.figure(figsize=(8, 4))
@@ -352,7 +354,7 @@ plt.show()
 
 # %% [markdown]
 # The failures concentrate on the creases: the worst 1 % of faces lie on a crease more
-# than five times as often as faces in general, and the mean error on crease faces is
+# than four times as often as faces in general, and the mean error on crease faces is
 # between 1.5 and 3 times that elsewhere (the figures are printed above). Most of the
 # mean error, though, is spread over the many flat faces (residual noise of a few
 # degrees); the worst faces are few and sit where the clean surface bends sharply.
