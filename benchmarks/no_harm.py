@@ -44,9 +44,7 @@ def main(argv=None) -> int:
     move = {m: [] for m in METHODS}
     rows = []
     for path in mesh_files(args.meshes):
-        v, f = dmd_jax.load_mesh(path)
-        if f.shape[0] > MAX_FACES:
-            v, f = crop(v, f, MAX_FACES)
+        v, f = crop(*dmd_jax.load_mesh(path), MAX_FACES)
         h = mean_edge_length(v, f)
         row = [path.name]
         for m in METHODS:

@@ -37,10 +37,7 @@ def validation_crops(
 
     meshes = []
     for path in mesh_files(train_meshes, split)[::every]:
-        v, f = load_meshes([path])[0]
-        if f.shape[0] > max_faces:
-            v, f = crop(v, f, max_faces)
-        meshes.append((path.name, v, f))
+        meshes.append((path.name, *crop(*load_meshes([path])[0], max_faces)))
     return meshes
 
 

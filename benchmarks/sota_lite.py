@@ -130,9 +130,12 @@ def _runner(method: str, faces, bundle):
 
 def crop(vertices, faces, max_faces: int):
     """The connected `max_faces`-face patch grown breadth-first from face 0, re-indexed
-    (deterministic, so every method and run sees the same patch)."""
+    (deterministic, so every method and run sees the same patch); a mesh of at most
+    `max_faces` faces, or any mesh when `max_faces` is 0, comes back as it is."""
     from dmd_jax.data.real import patch_mesh
 
+    if not max_faces or faces.shape[0] <= max_faces:
+        return vertices, faces
     return patch_mesh(vertices, faces, 0, max_faces)
 
 
@@ -175,8 +178,7 @@ def evaluate_mesh(
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         clean, faces = load_mesh(path)
-    if max_faces and faces.shape[0] > max_faces:
-        clean, faces = crop(clean, faces, max_faces)
+    clean, faces = crop(clean, faces, max_faces)
     notes = [
         str(w.message).replace(str(path), path.name)
         for w in caught
