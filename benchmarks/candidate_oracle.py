@@ -26,16 +26,6 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 
-def candidate_names(filter_iterations: int, taubin_iterations: int, filter_sigmas) -> list[str]:
-    from dmd_jax import encoding
-
-    names = ["noisy"]
-    for sr in filter_sigmas:
-        names += [f"bil σr {sr} ×{p}" for p in encoding.snapshot_passes(filter_iterations)]
-    names += [f"Taubin ×{p}" for p in encoding.taubin_snapshots(taubin_iterations)]
-    return names
-
-
 def main(argv=None) -> int:
     import jax
     import jax.numpy as jnp
@@ -63,7 +53,7 @@ def main(argv=None) -> int:
     bundle = dmd_jax.load_pretrained()
     mcfg = bundle.config.model
     taubin = mcfg.taubin_iterations if args.taubin_iterations is None else args.taubin_iterations
-    names = candidate_names(mcfg.filter_iterations, taubin, mcfg.filter_sigmas)
+    names = encoding.candidate_labels(mcfg.filter_iterations, taubin, mcfg.filter_sigmas)
 
     @jax.jit
     def candidates(x, graph):

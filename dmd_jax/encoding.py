@@ -65,9 +65,6 @@ FILTER_SPATIAL_SIGMA = 1.0
 # after these fractions of `ModelConfig.taubin_iterations` λ|μ pairs.
 TAUBIN_LAMBDA_MU = (0.5, -0.53)
 TAUBIN_SNAPSHOTS = (3 / 10, 1.0)
-# With the default filters and without Taubin candidates; `n_candidates` and `local_dims`
-# count any other choice.
-N_CANDIDATES = 1 + len(FILTER_RANGE_SIGMAS) * len(FILTER_SNAPSHOTS)
 
 
 def mesh_frame(encoding: str, vertices, faces) -> CanonicalFrame:
@@ -150,13 +147,26 @@ def n_candidates(taubin_iterations: int = 0, filter_sigmas=FILTER_RANGE_SIGMAS) 
     return 1 + filtered + len(taubin_snapshots(taubin_iterations))
 
 
+def candidate_labels(
+    filter_iterations: int, taubin_iterations: int = 0, filter_sigmas=FILTER_RANGE_SIGMAS
+) -> list[str]:
+    """Names of the `n_candidates(...)` candidate normals in `local_features`' order:
+    `"noisy"`, then `"σ{range σ} ×{passes}"` per pre-filter and snapshot, then
+    `"Taubin ×{pairs}"` per Taubin snapshot."""
+    passes = snapshot_passes(filter_iterations)
+    labels = ["noisy"] + [f"σ{s} ×{p}" for s in filter_sigmas for p in passes]
+    return labels + [f"Taubin ×{p}" for p in taubin_snapshots(taubin_iterations)]
+
+
 def local_dims(taubin_iterations: int = 0, filter_sigmas=FILTER_RANGE_SIGMAS) -> tuple[int, int]:
     """`(vertex columns, face columns)` of `local_features`."""
     k = n_candidates(taubin_iterations, filter_sigmas)
     return 6 + 3 * (k - 1) + 3 * len(taubin_snapshots(taubin_iterations)), 3 * k
 
 
-# Columns of `local_features` with the default filters and without Taubin candidates.
+# Candidates and columns of `local_features` with the default filters and without
+# Taubin candidates.
+N_CANDIDATES = n_candidates(0)
 LOCAL_VERTEX_DIM, LOCAL_FACE_DIM = local_dims(0)
 
 

@@ -219,15 +219,7 @@ _, _, candidates = encoding.local_features(
     filter_sigmas=cfg.filter_sigmas,
 )
 K = candidates.shape[1]
-LABELS = (
-    ["noisy"]
-    + [
-        f"σ{s} ×{p}"
-        for s in cfg.filter_sigmas
-        for p in encoding.snapshot_passes(cfg.filter_iterations)
-    ]
-    + [f"Taubin ×{p}" for p in encoding.taubin_snapshots(cfg.taubin_iterations)]
-)
+LABELS = encoding.candidate_labels(cfg.filter_iterations, cfg.taubin_iterations, cfg.filter_sigmas)
 weights = np.asarray(jax.nn.softmax(logits[:, :K], axis=-1))
 dominant = weights.argmax(1)
 share = np.bincount(dominant, minlength=K) / len(dominant)

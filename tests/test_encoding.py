@@ -526,6 +526,11 @@ def test_filter_sigmas_choose_which_pre_filters_run():
     assert (vert.shape[1], face.shape[1]) == encoding.local_dims(10, sigmas)
     cfg = ModelConfig(encoding="local", taubin_iterations=10, filter_sigmas=sigmas)
     assert cfg.vertex_in_dim == vert.shape[1]
+    labels = encoding.candidate_labels(3, 10, sigmas)
+    assert len(labels) == k and len(encoding.candidate_labels(3)) == encoding.N_CANDIDATES
+    assert labels == ["noisy", "σ0.35 ×1", "σ0.35 ×2", "σ0.35 ×3"] + [
+        "σ0.6 ×1", "σ0.6 ×2", "σ0.6 ×3", "Taubin ×3", "Taubin ×10"
+    ]  # fmt: skip
     # The same fields as the default run's, less the σ 0.2 filter's snapshots.
     s = len(encoding.FILTER_SNAPSHOTS)
     keep = [0, *range(1 + s, full.shape[1])]
