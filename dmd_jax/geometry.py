@@ -26,15 +26,44 @@ import jax.numpy as jnp
 _TINY = 1e-20
 
 
+def dot3(a, b):
+    """`Σ_c a[..., c] b[..., c]` over a last axis of 3, written out: `[...]`.
+
+    XLA's CPU backend runs a reduction (or `einsum`) over such a tiny axis as a separate,
+    slow kernel; written out, the products join the surrounding elementwise fusion.
+    """
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
+
+
+def corner_sum(values, faces):
+    """Each face's sum of `values` over its three corners, `values[faces].sum(1)`: `[n_face, ...]`.
+
+    One gather per corner, added in one fusion (on CPU the reduction over a gathered
+    `[n_face, 3, ...]` block is a separate, slower kernel).
+    """
+    return values[faces[:, 0]] + values[faces[:, 1]] + values[faces[:, 2]]
+
+
 def safe_norm(x, axis=-1, keepdims=False):
     """Euclidean norm with a finite gradient at zero (the 'double where' trick)."""
-    sq = jnp.sum(x * x, axis=axis, keepdims=keepdims)
+    if x.shape[axis] == 3 and axis in (-1, x.ndim - 1):
+        sq = dot3(x, x)
+        sq = sq[..., None] if keepdims else sq
+    else:
+        sq = jnp.sum(x * x, axis=axis, keepdims=keepdims)
     nonzero = sq > _TINY
     return jnp.where(nonzero, jnp.sqrt(jnp.where(nonzero, sq, 1.0)), 0.0)
 
 
 def safe_normalize(x, axis=-1):
     """`x / |x|`, and 0 where `|x| = 0` (finite gradient)."""
+    if x.shape[axis] == 3 and axis in (-1, x.ndim - 1):
+        # One multiply by a guarded rsqrt: on CPU it fuses with its producer, where the
+        # general form below runs as three separate kernels.
+        sq = dot3(x, x)
+        nonzero = sq > _TINY
+        inverse = jnp.where(nonzero, jax.lax.rsqrt(jnp.where(nonzero, sq, 1.0)), 0.0)
+        return x * inverse[..., None]
     norm = safe_norm(x, axis=axis, keepdims=True)
     return jnp.where(norm > 0, x / jnp.where(norm > 0, norm, 1.0), 0.0)
 
@@ -215,7 +244,7 @@ def vertex_features(vertices, faces):
 
 def face_centroids(vertices, faces):
     """Face centroids `[n_face, 3]`."""
-    return vertices[faces].mean(axis=1)
+    return corner_sum(vertices, faces) / 3.0
 
 
 def fit_vertices_to_normals(vertices, faces, normals, corner_vertex, corner_face, free, iterations):
@@ -248,7 +277,7 @@ def fit_vertices_to_normals(vertices, faces, normals, corner_vertex, corner_face
     def body(_, x):
         c = face_centroids(x, faces)
         d = c[corner_face] - x[corner_vertex]
-        move = nc * jnp.sum(nc * d, axis=-1, keepdims=True)
+        move = nc * dot3(nc, d)[:, None]
         step = jax.ops.segment_sum(move, corner_vertex, num_segments=n_vertex)
         return x + scale[:, None] * step
 

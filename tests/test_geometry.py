@@ -349,6 +349,26 @@ def test_safe_norm_and_normalize_at_zero():
         np.testing.assert_array_equal(grad[0], 0.0)
 
 
+def test_written_out_forms_match_the_reductions():
+    # dot3, corner_sum and the size-3 branch of safe_norm / safe_normalize are the plain
+    # reductions written out for XLA's CPU fusion: same values, same gradients.
+    rng = np.random.default_rng(0)
+    a, b = rng.normal(size=(2, 7, 4, 3))
+    np.testing.assert_allclose(G.dot3(a, b), np.sum(a * b, -1), rtol=1e-12)
+    f = rng.integers(0, 7, size=(5, 3))
+    x = rng.normal(size=(7, 2, 3))
+    np.testing.assert_allclose(G.corner_sum(x, f), x[f].sum(1), rtol=1e-12)
+    x = jnp.asarray(rng.normal(size=(6, 3)))
+    np.testing.assert_allclose(G.safe_norm(x), np.linalg.norm(x, axis=-1), rtol=1e-12)
+    np.testing.assert_allclose(G.safe_norm(x, keepdims=True)[:, 0], G.safe_norm(x))
+    np.testing.assert_allclose(G.safe_norm(x.T, axis=0), G.safe_norm(x), rtol=1e-12)
+    np.testing.assert_allclose(
+        G.safe_normalize(x), x / np.linalg.norm(x, axis=-1, keepdims=True), rtol=1e-12
+    )
+    np.testing.assert_allclose(G.safe_normalize(x.T, axis=0).T, G.safe_normalize(x), rtol=1e-12)
+    check_grads(G.safe_normalize, (x,), order=2, modes=["rev"])
+
+
 # --------------------------------------------------------------------------------------
 # Degenerate faces and gradients
 # --------------------------------------------------------------------------------------
