@@ -154,12 +154,13 @@ def measure(
     # cache then holds it, and `denoise` below does not compile again.
     predict = inference._predictor(cfg)
     x = encoding.mesh_frame(cfg.model.encoding, v, f).apply(v)
-    graph = graph_lib.build_mesh_graph(f, v.shape[0])
-    graph = graph_lib.pad_mesh_graph(graph, graph_lib.padded_sizes_for(graph))
+    # The padded graph exactly as `denoise` builds it (its padding policy and ELL
+    # tables); the same graph without the tables, aggregated by segment sums, is the
+    # comparison.
+    graph = inference._prepared_graph(f, v.shape[0], "auto")
     noisy = jnp.asarray(graph_lib.pad_vertex_array(x.astype(np.float32), graph.n_vertex))
-    # `denoise` aggregates through ELL tables; the segment-sum graph is the comparison.
-    graph_ell = jax.tree.map(jnp.asarray, graph_lib.with_ell_layout(graph))
-    graph_seg = jax.tree.map(jnp.asarray, graph)
+    graph_ell = jax.tree.map(jnp.asarray, graph)
+    graph_seg = jax.tree.map(jnp.asarray, graph._replace(vertex_ell=None, face_ell=None))
     start = time.perf_counter()
     compiled = predict.lower(bundle.params, noisy, graph_ell).compile()
     compile_s = time.perf_counter() - start

@@ -79,8 +79,13 @@ def ell_layout(
         w = w.astype(np.float32)
     # np.sort plus a mask rather than np.unique: the same result, several times faster.
     key = r * n_node + s
-    order = np.argsort(key, kind="stable")
-    key = key[order]
+    # `MeshGraph` edge lists come sorted by (receiver, sender), padding last: then the
+    # stable sort is the identity, and checking for that costs a fraction of it.
+    if np.all(key[1:] >= key[:-1]):
+        order = np.arange(key.size)
+    else:
+        order = np.argsort(key, kind="stable")
+        key = key[order]
     first = np.ones(key.size, bool)
     first[1:] = key[1:] != key[:-1]
     group = np.cumsum(first) - 1
@@ -220,21 +225,42 @@ def vertex_edges(faces: np.ndarray, n_vertex: int) -> tuple[np.ndarray, np.ndarr
     return a, b
 
 
+def undirected_vertex_edges(graph: MeshGraph) -> tuple[np.ndarray, np.ndarray]:
+    """The unique undirected primal edges `(a, b)`, `a < b`, read off a graph's edge lists.
+
+    The same set as `vertex_edges` of its faces, without sorting again (padding edges
+    are self loops and drop out with the real ones).
+    """
+    s, r = np.asarray(graph.vertex_senders), np.asarray(graph.vertex_receivers)
+    keep = s < r
+    return s[keep], r[keep]
+
+
 def face_adjacency(faces: np.ndarray, n_vertex: int) -> tuple[np.ndarray, np.ndarray]:
     """Pairs of faces that share an edge, each unordered pair once (`a < b`).
 
     On a non-manifold edge with k faces all k(k-1)/2 pairs are adjacent.
     """
+    return _adjacent_faces(*_face_edge_groups(faces, n_vertex), np.asarray(faces).shape[0])
+
+
+def _face_edge_groups(faces, n_vertex: int):
+    """Every face's three edges grouped by edge: `(sorted keys, face of each, group starts,
+    group sizes)`, the key of edge `a < b` being `a * n_vertex + b`."""
     f = np.asarray(faces, dtype=np.int64)
-    n_face = f.shape[0]
     e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
     key = e[:, 0] * n_vertex + e[:, 1]
-    face_of = np.tile(np.arange(n_face, dtype=np.int64), 3)
+    face_of = np.tile(np.arange(f.shape[0], dtype=np.int64), 3)
     order = np.argsort(key, kind="stable")
     key, face_of = key[order], face_of[order]
     # Groups of equal keys in the sorted array: where each starts and how long it is.
     start = np.flatnonzero(np.concatenate([[True], key[1:] != key[:-1]])) if key.size else key
     size = np.diff(np.append(start, key.size))
+    return key, face_of, start, size
+
+
+def _adjacent_faces(key, face_of, start, size, n_face: int):
+    """`face_adjacency` from `_face_edge_groups`' output."""
     # Each face-edge entry pairs with every entry of its edge group (vectorised).
     group = np.repeat(np.arange(start.size), size)
     reps = size[group]
@@ -263,9 +289,11 @@ def build_mesh_graph(faces, n_vertex: int) -> MeshGraph:
     if f.size and (f.min() < 0 or f.max() >= n_vertex):
         raise ValueError(f"face indices must lie in [0, {n_vertex}), got [{f.min()}, {f.max()}]")
     n_face = f.shape[0]
-    a, b = vertex_edges(f, n_vertex)
+    # One sort of the face edges gives both the unique edges and the adjacent faces.
+    groups = _face_edge_groups(f, n_vertex)
+    a, b = np.divmod(groups[0][groups[2]], n_vertex)
     vs, vr, vw = _symmetric_with_self_loops(a, b, n_vertex)
-    fa, fb = face_adjacency(f, n_vertex)
+    fa, fb = _adjacent_faces(*groups, n_face)
     fs, fr, fw = _symmetric_with_self_loops(fa, fb, n_face)
     degree = np.bincount(f.ravel(), minlength=n_vertex).astype(np.float32)
     return MeshGraph(
@@ -332,12 +360,16 @@ class PaddedSizes(NamedTuple):
     n_graph: int
 
 
-def bucket_size(n: int, *, minimum: int = 64) -> int:
-    """Rounds `n` up to the next of 2^k · {1, 1.25, 1.5, 1.75}: few shapes, ≤ 25 % waste."""
+def bucket_size(n: int, *, minimum: int = 64, steps: int = 4) -> int:
+    """Rounds `n` up to the next 2^k · (1 + j / steps), j = 0 … steps − 1.
+
+    The default, 2^k · {1, 1.25, 1.5, 1.75}, gives few shapes and ≤ 25 % waste; more
+    `steps` waste less and give more shapes (one compiled program each).
+    """
     n = max(int(n), minimum)
     k = int(np.floor(np.log2(n)))
-    for m in (1.0, 1.25, 1.5, 1.75, 2.0):
-        size = int(np.ceil(m * 2**k))
+    for j in range(steps + 1):
+        size = int(np.ceil((1.0 + j / steps) * 2**k))
         if size >= n:
             return size
     return 2 ** (k + 1)
@@ -393,6 +425,28 @@ def padded_sizes_for(graph: MeshGraph, *, n_graph: int | None = None) -> PaddedS
         graph.vertex_senders.shape[0],
         graph.face_senders.shape[0],
         graph.n_graph if n_graph is None else n_graph - 1,
+    )
+
+
+def fine_padded_sizes_for(graph: MeshGraph, *, steps: int = 16) -> PaddedSizes:
+    """Padded sizes for one large mesh: each count rounded up on its own.
+
+    `padded_sizes_for` derives every size from one coarse vertex bucket, so that patches
+    and batches share few programs; a single mesh then carries up to 2.25x its faces
+    (100k faces: 129k rows). Here vertices, faces and both edge lists each round up by
+    `bucket_size(..., steps=steps)` (≤ 1/steps waste, 6 % by default), with room for the
+    padding vertex and graph: more shapes, each compiled once, and less work per pass.
+
+    Args:
+      graph: an unpadded `MeshGraph`.
+      steps: buckets per doubling (see `bucket_size`).
+    """
+    return PaddedSizes(
+        n_vertex=bucket_size(graph.n_vertex + 1, steps=steps),
+        n_face=bucket_size(graph.n_face + 1, steps=steps),
+        n_vertex_edge=bucket_size(graph.vertex_senders.shape[0] + 1, steps=steps),
+        n_face_edge=bucket_size(graph.face_senders.shape[0] + 1, steps=steps),
+        n_graph=graph.n_graph + 1,
     )
 
 

@@ -29,10 +29,12 @@ from dmd_jax.config import ExperimentConfig, ModelConfig
 from dmd_jax.encoding import mesh_frame
 from dmd_jax.graph import (
     build_mesh_graph,
+    fine_padded_sizes_for,
     pad_mesh_graph,
     pad_vertex_array,
     padded_sizes_for,
     sizes_for_vertices,
+    undirected_vertex_edges,
     with_ell_layout,
 )
 from dmd_jax.mesh import CanonicalFrame, canonical_frame, validate_mesh
@@ -100,6 +102,12 @@ RUNTIME_BYTES = 512 * 2**20
 # Below this many faces a whole-mesh run is taken without measuring the network (a
 # compilation): `paper`, the widest preset, needs about 0.6 GB there.
 _SMALL_MESH_FACES = 20_000
+# From this many faces the whole-mesh path pads each count to within 6 %
+# (`fine_padded_sizes_for`) instead of the shared coarse buckets: at 100k faces those
+# carry 129k face rows, and the network ran 25 % faster on 100k (benchmarks/results/
+# inference_vs_bnf.md). Smaller meshes keep the coarse buckets: there a compilation
+# costs more than the padding, and similar meshes share a program.
+FINE_PADDING_MIN_FACES = 20_000
 _UNITS = {"": 1, "b": 1, "k": 10**3, "m": 10**6, "g": 10**9, "t": 10**12}
 _UNITS.update({"kb": 10**3, "mb": 10**6, "gb": 10**9, "tb": 10**12})
 _UNITS.update({"kib": 2**10, "mib": 2**20, "gib": 2**30, "tib": 2**40})
@@ -306,7 +314,10 @@ def _prepared_graph(faces: np.ndarray, n_vertex: int, aggregation: str):
     """The padded graph `denoise` runs on (edge lists, and ELL tables unless
     `aggregation="segment_sum"`), as NumPy."""
     graph = build_mesh_graph(faces, n_vertex)
-    graph = pad_mesh_graph(graph, padded_sizes_for(graph))
+    if faces.shape[0] >= FINE_PADDING_MIN_FACES:
+        graph = pad_mesh_graph(graph, fine_padded_sizes_for(graph))
+    else:
+        graph = pad_mesh_graph(graph, padded_sizes_for(graph))
     if aggregation != "segment_sum":
         graph = with_ell_layout(graph, max_fill=AUTO_MAX_FILL if aggregation == "auto" else None)
     return graph
@@ -537,11 +548,13 @@ def _denoise_patches(
 
 def _denoise_whole(v, f, bundle, in_dtype, iterations: int, aggregation: str) -> np.ndarray:
     """The whole mesh at once (the path of every mesh that fits the budget)."""
-    frame = mesh_frame(bundle.config.model.encoding, v, f)
-    x = frame.apply(v)
     # The padded graph does not change between passes: build it (edge lists, ELL
     # tables) and move it to the device once, not once per pass.
-    graph = jax.tree.map(jnp.asarray, _prepared_graph(f, v.shape[0], aggregation))
+    graph = _prepared_graph(f, v.shape[0], aggregation)
+    edges = undirected_vertex_edges(graph)
+    frame = mesh_frame(bundle.config.model.encoding, v, f, edges=edges)
+    x = frame.apply(v)
+    graph = jax.tree.map(jnp.asarray, graph)
     predict = _predictor(bundle.config)
     n, n_padded = v.shape[0], graph.n_vertex
     for _ in range(int(iterations)):

@@ -125,8 +125,15 @@ def canonical_frame(vertices) -> CanonicalFrame:
     return CanonicalFrame(centre=(lo + hi) / 2.0, scale=scale)
 
 
-def mean_edge_length(vertices, faces) -> float:
-    """Mean length of the unique undirected edges of a mesh."""
+def mean_edge_length(vertices, faces, *, edges=None) -> float:
+    """Mean length of the unique undirected edges of a mesh.
+
+    Args:
+      vertices: `[n_vertex, 3]`.
+      faces: `[n_face, 3]`.
+      edges: the unique undirected edges `(a, b)` if already known (e.g.
+        `graph.undirected_vertex_edges` of the mesh's graph), to skip their sort.
+    """
     v = np.asarray(vertices, dtype=np.float64)
-    a, b = vertex_edges(faces, v.shape[0])
+    a, b = vertex_edges(faces, v.shape[0]) if edges is None else edges
     return float(np.linalg.norm(v[a] - v[b], axis=1).mean())

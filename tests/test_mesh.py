@@ -24,9 +24,11 @@ from dmd_jax.graph import (
     bucket_size,
     build_mesh_graph,
     face_adjacency,
+    fine_padded_sizes_for,
     pad_mesh_graph,
     pad_vertex_array,
     padded_sizes_for,
+    undirected_vertex_edges,
     vertex_edges,
 )
 from dmd_jax.io import atomic_write, load_mesh, save_mesh
@@ -330,6 +332,42 @@ def test_bucket_sizes():
     assert all(s >= n for n, s in zip(range(1, 5000), sizes, strict=True))
     assert all(s <= 1.25 * n for n, s in zip(range(1, 5000), sizes, strict=True) if n > 64)
     assert len(set(sizes)) <= 4 * 7 + 1  # four buckets per octave from 64 to 8192
+
+
+def test_fine_bucket_sizes_waste_at_most_one_step():
+    ns = range(1, 20000, 7)
+    sizes = [bucket_size(n, steps=16) for n in ns]
+    assert all(n <= s <= max(64, n * (1 + 1 / 16)) for n, s in zip(ns, sizes, strict=True))
+    # The default steps are the four buckets of before.
+    assert [bucket_size(n, steps=4) for n in ns] == [bucket_size(n) for n in ns]
+
+
+def test_fine_padded_sizes_fit_each_count_tightly():
+    v, f = icosphere(4)  # 2,562 vertices, 5,120 faces
+    graph = build_mesh_graph(f, len(v))
+    sizes = fine_padded_sizes_for(graph)
+    padded = pad_mesh_graph(graph, sizes)  # room for the padding vertex and graph
+    counts = [graph.n_vertex, graph.n_face, graph.vertex_senders.size, graph.face_senders.size]
+    for count, size in zip(counts, sizes[:4], strict=True):
+        assert count < size <= (count + 1) * (1 + 1 / 16)
+    assert padded.n_face == sizes.n_face and padded.n_graph == 2
+    coarse = padded_sizes_for(graph)
+    assert sizes.n_face < coarse.n_face
+
+
+def test_undirected_vertex_edges_match_vertex_edges_and_survive_padding():
+    v, f = icosphere(2)
+    graph = build_mesh_graph(f, len(v))
+    a, b = vertex_edges(f, len(v))
+    for g in (graph, pad_mesh_graph(graph, padded_sizes_for(graph))):
+        s, r = undirected_vertex_edges(g)
+        order = np.lexsort((r, s))
+        np.testing.assert_array_equal(np.stack([s[order], r[order]]), np.stack([a, b]))
+    np.testing.assert_allclose(
+        mean_edge_length(v, f, edges=undirected_vertex_edges(graph)),
+        mean_edge_length(v, f),
+        rtol=1e-12,
+    )
 
 
 def test_pad_mesh_graph_sizes_and_errors():
