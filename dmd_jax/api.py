@@ -95,7 +95,7 @@ def add_noise(
 
 
 def denoise_with(
-    method: str, vertices, faces, *, weights=None, iterations: int = 1, **params
+    method: str, vertices, faces, *, weights=None, iterations: int | None = None, **params
 ) -> np.ndarray:
     """Denoises with DMD-Net or any baseline of `dmd_jax.baselines`, one call for all.
 
@@ -106,7 +106,9 @@ def denoise_with(
       weights: DMD-Net or CNR weights: None for the bundled ones, a weights file, a
         checkpoint directory (DMD-Net), or a loaded `ModelBundle`. Classic filters have
         none, and refuse it.
-      iterations: passes of the denoiser, each starting from the last one's output.
+      iterations: passes of the denoiser, each starting from the last one's output;
+        None (default): one for a classic filter, the model's own policy for DMD-Net
+        (`dmd_jax.inference.denoise`).
       **params: parameters of a baseline (`dmd_jax.baselines.DEFAULTS[method]`), or
         `aggregation` for DMD-Net (`dmd_jax.inference.denoise`).
 
@@ -119,15 +121,17 @@ def denoise_with(
     """
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; choose one of: {', '.join(METHODS)}")
-    if isinstance(iterations, bool) or int(iterations) != iterations or iterations < 1:
-        raise ValueError(f"iterations must be a positive integer, got {iterations!r}")
+    if iterations is not None and (
+        isinstance(iterations, bool) or int(iterations) != iterations or iterations < 1
+    ):
+        raise ValueError(f"iterations must be a positive integer or None, got {iterations!r}")
     dtype = _float_dtype(vertices)
     if method == "dmd":
         from dmd_jax.checkpoints import ModelBundle, load_model
         from dmd_jax.inference import denoise
 
         bundle = weights if isinstance(weights, ModelBundle) else load_model(weights)
-        out = denoise(vertices, faces, bundle, iterations=int(iterations), **params)
+        out = denoise(vertices, faces, bundle, iterations=iterations, **params)
         return np.asarray(out).astype(dtype, copy=False)
     from dmd_jax import baselines
 
@@ -136,6 +140,6 @@ def denoise_with(
             raise ValueError(f"{method!r} is a classic filter and takes no weights")
         params = {**params, "weights": weights}
     out = vertices
-    for _ in range(int(iterations)):
+    for _ in range(1 if iterations is None else int(iterations)):
         out = baselines.denoise_with(method, out, faces, **params)
     return np.asarray(out).astype(dtype, copy=False)

@@ -176,7 +176,7 @@ def _cmd_denoise(args: argparse.Namespace) -> int:
     from dmd_jax.api import denoise_with
     from dmd_jax.io import save_mesh
 
-    if args.iterations < 1:
+    if args.iterations is not None and args.iterations < 1:
         raise ValueError(f"--iterations must be at least 1, got {args.iterations}")
     if args.method not in METHODS:
         raise ValueError(f"unknown --method {args.method!r}; choose one of: {', '.join(METHODS)}")
@@ -220,8 +220,10 @@ def _cmd_denoise(args: argparse.Namespace) -> int:
         elapsed = time.perf_counter() - t0
         save_mesh(dst, out, faces, overwrite=args.overwrite, protect=[src])
         how = ""
+        if info.get("passes", 1) > 1:
+            how = f" ({info['passes']} passes)"
         if info.get("path") == "patches":
-            how = f" in {info['patches']} patches of {info['patch_size']:,} vertices"
+            how += f" in {info['patches']} patches of {info['patch_size']:,} vertices"
         print(
             f"denoised {src} ({len(vertices)} vertices, {len(faces)} faces) with "
             f"{args.method}{how} in {elapsed:.2f} s -> {dst}"
@@ -608,6 +610,8 @@ def _cmd_export_weights(args: argparse.Namespace) -> int:
     from dmd_jax.checkpoints import load_params, save_weights
 
     params, cfg = load_params(args.checkpoint)
+    if args.pass_tolerance is not None:
+        cfg = cfg.with_edits({"model": {"pass_tolerance": args.pass_tolerance}})
     step = _latest_step(args.checkpoint)
     meta = {"source": str(args.checkpoint), "platform": platform.platform()}
     if step is not None:
@@ -682,7 +686,14 @@ def build_parser() -> argparse.ArgumentParser:
         + ", ".join(METHODS[1:])
         + " (cnr is learned: it takes --weights too; the others are classic filters)",
     )
-    p.add_argument("--iterations", type=int, default=1, help="passes of the denoiser")
+    p.add_argument(
+        "--iterations",
+        type=int,
+        default=None,
+        help="passes of the denoiser (default: 1 for a classic filter; for dmd the model's "
+        "own policy, for the bundled weights a second pass and more only while a pass "
+        "still moves the mesh by over 0.18 mean edges)",
+    )
     p.add_argument(
         "--max-memory",
         default=None,
@@ -867,6 +878,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("checkpoint", help="an Orbax checkpoint directory (e.g. RUN/checkpoints/best)")
     p.add_argument("-o", "--output", required=True, help="weights file to write (.msgpack)")
     p.add_argument("--meta", default=None, help="JSON object of provenance to store")
+    p.add_argument(
+        "--pass-tolerance",
+        type=float,
+        default=None,
+        help="store this ModelConfig.pass_tolerance (denoise's default number of passes; fit "
+        "it on the validation split with benchmarks/pass_tolerance.py)",
+    )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.set_defaults(func=_cmd_export_weights)
 

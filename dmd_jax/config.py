@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import numbers
 import types
 import typing
@@ -322,6 +323,13 @@ class ModelConfig(_ConfigMixin):
         one filter (and `len(encoding.FILTER_SNAPSHOTS)` candidates) each; the filters'
         passes are most of the encoding's cost (about 2.3 ms a pass at 100k faces on 2
         CPU cores), so fewer filters buy speed.
+      pass_tolerance: what `denoise` does by default (`iterations=None`). 0: one pass.
+        Above 0: passes repeat while the last one moved the vertices by more than this
+        on average, in the units of the model's frame (mean edge lengths of the input
+        for the `"local"` encoding), at most `inference.AUTO_MAX_PASSES`. The amount a
+        pass moves the mesh tells how noisy it was: a second pass helps after heavy
+        noise and hurts after light noise. A property of trained weights, fitted on the
+        validation split (`benchmarks/pass_tolerance.py`), not of the architecture.
     """
 
     width: int = _static(64)
@@ -348,6 +356,7 @@ class ModelConfig(_ConfigMixin):
     head_consistency: bool = _static(False)
     taubin_iterations: int = _static(0)
     filter_sigmas: tuple[float, ...] = _static(FILTER_RANGE_SIGMAS)
+    pass_tolerance: float = _static(0.0)
 
     def __post_init__(self):
         _check_positive_int("width", self.width)
@@ -383,6 +392,13 @@ class ModelConfig(_ConfigMixin):
             and all(isinstance(s, int | float) and s > 0 for s in self.filter_sigmas),
             f"filter_sigmas must be a non-empty tuple of positive numbers, "
             f"got {self.filter_sigmas!r}",
+        )
+        _check(
+            isinstance(self.pass_tolerance, int | float)
+            and not isinstance(self.pass_tolerance, bool)
+            and math.isfinite(self.pass_tolerance)
+            and self.pass_tolerance >= 0,
+            f"pass_tolerance must be a finite number >= 0, got {self.pass_tolerance!r}",
         )
         _check(
             not self.head_consistency or self.head == "normal",

@@ -451,6 +451,7 @@ _LATER_MODEL_FIELDS = {
     "head_consistency": False,
     "taubin_iterations": 0,
     "filter_sigmas": [0.2, 0.35, 0.6],  # as `to_dict` writes the default tuple
+    "pass_tolerance": 0.0,
 }
 
 

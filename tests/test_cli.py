@@ -602,7 +602,7 @@ def test_help_shows_defaults_and_an_example_per_subcommand():
                 shown = " ".join(sub._get_formatter()._expand_help(opt).split())
                 assert "default" in shown, f"{name} {opt.option_strings}: {shown}"
     denoise = " ".join(_subparser(parser, "denoise").format_help().split())
-    assert "(default: dmd)" in denoise and "(default: 1)" in denoise
+    assert "(default: dmd)" in denoise and "(default: 1 for a classic filter;" in denoise
     noise = " ".join(_subparser(parser, "add-noise").format_help().split())
     assert "(default: gaussian)" in noise and "σ for gaussian" in noise
 
@@ -669,6 +669,11 @@ def test_export_weights_says_which_step(capsys, tmp_path):
     assert code == 0, err
     assert "step 7" in out and str(ckpt) in out and "preset test" in out
     assert checkpoints.load_weights(tmp_path / "w.msgpack").meta["step"] == 7
+    assert checkpoints.load_weights(tmp_path / "w.msgpack").config.model.pass_tolerance == 0.0
+    args = ("export-weights", ckpt, "-o", tmp_path / "t.msgpack", "--pass-tolerance", "0.25")
+    code, out, err = run(capsys, *args)
+    assert code == 0, err
+    assert checkpoints.load_weights(tmp_path / "t.msgpack").config.model.pass_tolerance == 0.25
 
 
 def test_readme_python_blocks_run_with_root_level_names(tmp_path, monkeypatch, capsys):

@@ -118,6 +118,40 @@ def test_fine_padding_of_large_meshes_changes_nothing(mesh, bundle, reference, m
     np.testing.assert_allclose(denoise(v, f, bundle), reference, atol=1e-5)
 
 
+def test_pass_tolerance_repeats_passes_while_they_move_the_mesh(mesh, bundle, reference):
+    from dmd_jax import inference
+    from dmd_jax.checkpoints import ModelBundle
+
+    v, f = mesh
+    info = {}
+    # The default policy of a model with pass_tolerance 0: one pass.
+    np.testing.assert_array_equal(denoise(v, f, bundle, info=info), reference)
+    assert info["passes"] == 1
+    moves = []
+    x = v
+    for _ in range(2):
+        y = denoise(x, f, bundle, iterations=1)
+        moves.append(np.linalg.norm(y - x, axis=1).mean() / (v.max(0) - v.min(0)).max())
+        x = y
+    # Passes run while the last one moved the mesh more than the tolerance (bounding-box
+    # units for this model's frame): above the first move, one pass; between the first
+    # and the second, two; a tiny tolerance, the most allowed.
+    mid = (moves[0] + moves[1]) / 2
+    assert moves[1] < mid < moves[0]
+    for tolerance, passes in (
+        (moves[0] * 1.01, 1),
+        (mid, 2),
+        (1e-12, inference.AUTO_MAX_PASSES),
+    ):
+        edited = bundle.config.with_edits({"model": {"pass_tolerance": float(tolerance)}})
+        out = denoise(v, f, ModelBundle(params=bundle.params, config=edited, meta={}), info=info)
+        assert info["passes"] == passes
+        np.testing.assert_allclose(out, denoise(v, f, bundle, iterations=passes), atol=1e-6)
+    for bad in (0, -1, 1.5, True, "2"):
+        with pytest.raises(ValueError, match="iterations must be a positive integer"):
+            denoise(v, f, bundle, iterations=bad)
+
+
 @pytest.mark.parametrize("shift", [(5.0, -3.0, 1e3), (-1e-3, 2e-3, 0.0)])
 def test_translation_equivariance(mesh, bundle, reference, shift):
     v, f = mesh
