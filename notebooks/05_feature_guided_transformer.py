@@ -284,24 +284,27 @@ same = similarity["another draw, σ = 0.3"]
 assert np.diag(same).min() > 0.99
 closed = [CATEGORIES.index(c) for c in ("blob", "torus", "bracket")]
 terrain = CATEGORIES.index("terrain")
-assert same[np.ix_(closed, closed)].min() > 0.99
+assert same[np.ix_(closed, closed)].min() > 0.985
 off_terrain = np.concatenate([same[terrain, closed], same[closed, terrain]])
-assert 0.95 < off_terrain.min() and off_terrain.max() < 0.98
+assert 0.93 < off_terrain.min() and off_terrain.max() < 0.98
 twice = similarity["another draw, σ = 0.6"]
-assert np.ptp(twice[closed], axis=1).max() < 0.05
-assert 0.08 < np.ptp(twice[terrain]) < 0.15
+assert 0.85 < np.diag(twice)[closed].min() and np.diag(twice)[closed].max() < 0.96
+assert twice[terrain, terrain] > 0.99
 
 # %% [markdown]
 # The diagonal compares a mesh with itself under new noise, the off-diagonal entries
 # compare different meshes. Under a new draw at the same level every mesh keeps its
 # matrix (diagonal above 0.99). The three closed shapes get nearly the same matrix
-# (above 0.99 for every pair) and the open terrain patch a slightly different one
-# (0.95–0.98 against the others): for the bundled model the transformer acts almost as
+# (0.99 and above for every pair) and the open terrain patch a slightly different one
+# (0.94–0.98 against the others): at one noise level the transformer acts almost as
 # one learnt linear map, with a small correction for an open patch (an earlier bundled
 # model, without the Taubin inputs, gave terrain a matrix of its own, below 0.9 against
-# blob and torus). At twice the noise level the entries of each closed shape's row differ
-# by less than 0.05, the terrain row's by about 0.1: the matrix tracks the noise a
-# little and the shape hardly at all (the cells assert the figures quoted here).
+# blob and torus). Twice the noise changes the closed shapes' matrices more than any
+# change of shape does: each is only 0.88–0.95 alike to its own matrix at σ = 0.3,
+# while the terrain patch keeps its matrix (above 0.99). The matrix tracks the noise
+# level more than the shape (the cells assert the figures quoted here; the weights
+# fine-tuned with heavier normal losses moved the closed shapes' σ = 0.6 matrices,
+# which the previous bundled ones kept within 0.05).
 #
 # ## The feature extractor against the ground truth
 #
@@ -467,20 +470,20 @@ for name, g in guidance.items():
 noisy_normal = np.array([m["normal_deg"] for m in noisy_scores])
 fe_row = table["FE (normal)"]
 assert all(np.all(row < 0.8 * noisy_normal) for row in table.values())
-assert np.abs(table["oracle (clean)"] - fe_row).max() < 0.5
+assert np.abs(table["oracle (clean)"] - fe_row).max() < 1
 assert np.abs(table["zeros"] - fe_row).max() < 1
 print("oracle - FE (normal°):", np.round(table["oracle (clean)"] - fe_row, 2))
 print("zeros - FE (normal°): ", np.round(table["zeros"] - fe_row, 2))
 
 # %% [markdown]
 # Every kind of guidance leaves the denoised normals less than 0.8 times as far off as
-# the noisy input's: most of the work does not depend on the guidance. The oracle
-# hardly helps: the clean mesh's features change the normal error by less than 0.5° on
-# every mesh (at most 0.3° here). The model was trained with its FE's estimates
-# and reads them, not the clean features, so this is no measure of room for a better
-# feature extractor. Zeros in place of the features change it by less than 1°: the
-# bundled model, whose resolution-free inputs already carry the smoothed normals and
-# the Taubin displacements, relies on its guidance very little (an earlier bundled
-# model moved by up to 4° with zeros). `vertex` is the
-# per-coordinate squared error in the model's frame (edge units for the bundled model),
+# the noisy input's: most of the work does not depend on the guidance. The oracle hardly
+# helps: the clean mesh's features change the normal error by less than 1° on every mesh
+# (here at most 0.7°, a gain on the bracket, and 0.3° worse on the terrain). The model
+# was trained with its FE's estimates and reads them, not the clean features, so this is
+# no measure of room for a better feature extractor. Zeros in place of the features
+# change it by less than 1°: the bundled model, whose resolution-free inputs already
+# carry the smoothed normals and the Taubin displacements, relies on its guidance very
+# little (an earlier bundled model moved by up to 4° with zeros). `vertex` is the per-
+# coordinate squared error in the model's frame (edge units for the bundled model),
 # `normal°` the mean face-normal angle.

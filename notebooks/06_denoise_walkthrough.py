@@ -212,15 +212,20 @@ assert by_region["DMD-Net, relax=3"][0] < by_region["Taubin"][0] + 1.5
 # ## 6. More passes
 #
 # `denoise(..., iterations=k)` feeds the output back in $k$ times. Whether that helps
-# depends on the model: a network trained on one noise level may keep smoothing
-# (lowering the vertex error while the normal error rises again) or stop changing the
-# mesh once the noise is gone.
+# depends on the model and on the noise: a network trained on one noise level may keep
+# smoothing (lowering the vertex error while the normal error rises again) or stop
+# changing the mesh once the noise is gone. Without `iterations`, `denoise` follows the
+# weights' own rule (`ModelConfig.pass_tolerance`): the bundled weights run a second
+# pass, and more, only while the last pass moved the vertices by over 0.18 mean edges
+# on average, which on the validation split happened after heavy noise only
+# (`benchmarks/results/pass_tolerance.md`). `info` reports how many passes ran.
 
 # %%
-for k in (1, 2, 3):
-    m = mesh_metrics(denoise(noisy, faces, bundle, iterations=k), clean, faces)
+for k in (1, 2, 3, None):
+    info = {}
+    m = mesh_metrics(denoise(noisy, faces, bundle, iterations=k, info=info), clean, faces)
     print(
-        f"iterations={k}: "
+        f"iterations={k} ({info['passes']} pass{'es' * (info['passes'] > 1)}): "
         + "  ".join(f"{s.name} {format_metric(s, m[s.key])} ({s.unit})" for s in DEFAULT_METRICS)
     )
 

@@ -6,7 +6,9 @@ through both aggregations. Stored when the package was reorganised (the outputs 
 unchanged) and stored again, for the same inputs, when the bundled weights were replaced
 by the resolution-free model, again when those were fine-tuned, and again when the
 model with Taubin candidates replaced them (all 2026-11-30), and again when the
-6,000-step retraining of that recipe replaced them (2026-12-01).
+6,000-step retraining of that recipe replaced them, and again when its fine-tune with
+heavier normal losses did (both 2026-12-01; one pass here, as `pass_tolerance` gives for
+this light noise).
 Any change to weight loading, graph building, padding or the network's forward pass
 shows up here.
 """
