@@ -147,6 +147,13 @@ def test_pass_tolerance_repeats_passes_while_they_move_the_mesh(mesh, bundle, re
         out = denoise(v, f, ModelBundle(params=bundle.params, config=edited, meta={}), info=info)
         assert info["passes"] == passes
         np.testing.assert_allclose(out, denoise(v, f, bundle, iterations=passes), atol=1e-6)
+    # The patch-by-patch path follows the same rule.
+    edited = bundle.config.with_edits({"model": {"pass_tolerance": float(mid)}})
+    out = denoise(
+        v, f, ModelBundle(params=bundle.params, config=edited, meta={}), patch_size=60, info=info
+    )
+    assert info["path"] == "patches" and info["passes"] == 2
+    np.testing.assert_allclose(out, denoise(v, f, bundle, iterations=2), atol=1e-4)
     for bad in (0, -1, 1.5, True, "2"):
         with pytest.raises(ValueError, match="iterations must be a positive integer"):
             denoise(v, f, bundle, iterations=bad)
