@@ -41,6 +41,7 @@ def corner_sum(values, faces):
     One gather per corner, added in one fusion (on CPU the reduction over a gathered
     `[n_face, 3, ...]` block is a separate, slower kernel).
     """
+    values = jnp.asarray(values)  # NumPy values cannot be indexed by traced faces
     return values[faces[:, 0]] + values[faces[:, 1]] + values[faces[:, 2]]
 
 

@@ -96,6 +96,7 @@ def dual_average_pool(vertex_features, face_features, faces):
       `[n_face, k]` fused dual features.
     """
     # Written out over the three corners: one fusion on CPU, no `[n_face, 3, k]` block.
+    vertex_features = jnp.asarray(vertex_features)  # NumPy cannot take traced indices
     corner = [jnp.abs(vertex_features[faces[:, k]] - face_features) for k in range(3)]
     return (corner[0] + corner[1] + corner[2]) / 3.0
 
