@@ -105,9 +105,9 @@ RUNTIME_BYTES = 512 * 2**20
 _SMALL_MESH_FACES = 20_000
 # From this many faces the whole-mesh path pads each count to within 6 %
 # (`fine_padded_sizes_for`) instead of the shared coarse buckets: at 100k faces those
-# carry 129k face rows, and the network ran 25 % faster on 100k (benchmarks/results/
-# inference_vs_bnf.md). Smaller meshes keep the coarse buckets: there a compilation
-# costs more than the padding, and similar meshes share a program.
+# carry 129k face rows, and the network ran about 25 % faster on 100k rows
+# (docs/design-decisions.md). Smaller meshes keep the coarse buckets: there a
+# compilation costs more than the padding, and similar meshes share a program.
 FINE_PADDING_MIN_FACES = 20_000
 _UNITS = {"": 1, "b": 1, "k": 10**3, "m": 10**6, "g": 10**9, "t": 10**12}
 _UNITS.update({"kb": 10**3, "mb": 10**6, "gb": 10**9, "tb": 10**12})
