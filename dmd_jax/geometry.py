@@ -45,9 +45,14 @@ def corner_sum(values, faces):
     return values[faces[:, 0]] + values[faces[:, 1]] + values[faces[:, 2]]
 
 
+def _last_axis_of_3(x, axis) -> bool:
+    """Whether `axis` is the last axis of `x` and has length 3 (`dot3` applies)."""
+    return x.shape[axis] == 3 and axis in (-1, x.ndim - 1)
+
+
 def safe_norm(x, axis=-1, keepdims=False):
     """Euclidean norm with a finite gradient at zero (the 'double where' trick)."""
-    if x.shape[axis] == 3 and axis in (-1, x.ndim - 1):
+    if _last_axis_of_3(x, axis):
         sq = dot3(x, x)
         sq = sq[..., None] if keepdims else sq
     else:
@@ -58,7 +63,7 @@ def safe_norm(x, axis=-1, keepdims=False):
 
 def safe_normalize(x, axis=-1):
     """`x / |x|`, and 0 where `|x| = 0` (finite gradient)."""
-    if x.shape[axis] == 3 and axis in (-1, x.ndim - 1):
+    if _last_axis_of_3(x, axis):
         # One multiply by a guarded rsqrt: on CPU it fuses with its producer, where the
         # general form below runs as three separate kernels.
         sq = dot3(x, x)

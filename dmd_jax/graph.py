@@ -81,16 +81,14 @@ def ell_layout(
     key = r * n_node + s
     # `MeshGraph` edge lists come sorted by (receiver, sender), padding last: then the
     # stable sort is the identity, and checking for that costs a fraction of it.
-    if np.all(key[1:] >= key[:-1]):
-        order = np.arange(key.size)
-    else:
+    if not np.all(key[1:] >= key[:-1]):
         order = np.argsort(key, kind="stable")
-        key = key[order]
+        key, w = key[order], w[order]
     first = np.ones(key.size, bool)
     first[1:] = key[1:] != key[:-1]
     group = np.cumsum(first) - 1
     key = key[first]
-    weight = np.bincount(group, weights=w[order].astype(np.float64), minlength=key.size)
+    weight = np.bincount(group, weights=w.astype(np.float64), minlength=key.size)
     r, s = np.divmod(key, n_node)
     degree = np.bincount(r, minlength=n_node)
     width = max(int(degree.max()), 1)
@@ -290,10 +288,10 @@ def build_mesh_graph(faces, n_vertex: int) -> MeshGraph:
         raise ValueError(f"face indices must lie in [0, {n_vertex}), got [{f.min()}, {f.max()}]")
     n_face = f.shape[0]
     # One sort of the face edges gives both the unique edges and the adjacent faces.
-    groups = _face_edge_groups(f, n_vertex)
-    a, b = np.divmod(groups[0][groups[2]], n_vertex)
+    key, face_of, start, size = _face_edge_groups(f, n_vertex)
+    a, b = np.divmod(key[start], n_vertex)
     vs, vr, vw = _symmetric_with_self_loops(a, b, n_vertex)
-    fa, fb = _adjacent_faces(*groups, n_face)
+    fa, fb = _adjacent_faces(key, face_of, start, size, n_face)
     fs, fr, fw = _symmetric_with_self_loops(fa, fb, n_face)
     degree = np.bincount(f.ravel(), minlength=n_vertex).astype(np.float32)
     return MeshGraph(

@@ -533,13 +533,14 @@ def _denoise_patches(
     else:
         runner.patch_size = int(patch_size)
     patches_run = 0
-    done, moved = 0, np.inf
-    while done < passes.most and moved > passes.tolerance:
+
+    def one_pass(x):
+        nonlocal patches_run
         out = runner.run(x)
         patches_run += runner.patches_run
-        if not np.all(np.isfinite(out)):
-            raise ValueError("the network produced non-finite vertices (broken weights?)")
-        x, moved, done = out, _mean_move(out, x), done + 1
+        return out
+
+    x, done = _run_passes(one_pass, x, passes)
     if info is not None:
         info.update(
             passes=done,
@@ -580,9 +581,18 @@ def _pass_plan(iterations, model: ModelConfig | None) -> _Passes:
     return _Passes(int(iterations), -1.0)
 
 
-def _mean_move(new: np.ndarray, old: np.ndarray) -> float:
-    """Mean distance the vertices moved in one pass (frame units)."""
-    return float(np.linalg.norm(new - old, axis=1).mean()) if len(new) else 0.0
+def _run_passes(one_pass, x: np.ndarray, passes: _Passes) -> tuple[np.ndarray, int]:
+    """Applies `one_pass` (positions -> positions, frame units) as `passes` says: up to
+    `passes.most` times, stopping after a pass whose mean vertex move is at most
+    `passes.tolerance`. Returns the positions and the passes run."""
+    done, moved = 0, np.inf
+    while done < passes.most and moved > passes.tolerance:
+        out = one_pass(x)
+        if not np.all(np.isfinite(out)):
+            raise ValueError("the network produced non-finite vertices (broken weights?)")
+        moved = float(np.linalg.norm(out - x, axis=1).mean()) if len(out) else 0.0
+        x, done = out, done + 1
+    return x, done
 
 
 def _denoise_whole(v, f, bundle, in_dtype, passes: _Passes, aggregation: str, info) -> np.ndarray:
@@ -596,14 +606,13 @@ def _denoise_whole(v, f, bundle, in_dtype, passes: _Passes, aggregation: str, in
     graph = jax.tree.map(jnp.asarray, graph)
     predict = _predictor(bundle.config)
     n, n_padded = v.shape[0], graph.n_vertex
-    done, moved = 0, np.inf
-    while done < passes.most and moved > passes.tolerance:
+
+    def one_pass(x):
         # As training pads the noisy positions: float32, zeros on padding rows.
         noisy = pad_vertex_array(x.astype(np.float32), n_padded)
-        out = np.asarray(predict(bundle.params, jnp.asarray(noisy), graph)[:n], np.float64)
-        if not np.all(np.isfinite(out)):
-            raise ValueError("the network produced non-finite vertices (broken weights?)")
-        x, moved, done = out, _mean_move(out, x), done + 1
+        return np.asarray(predict(bundle.params, jnp.asarray(noisy), graph)[:n], np.float64)
+
+    x, done = _run_passes(one_pass, x, passes)
     if info is not None:
         info["passes"] = done
     result = frame.invert(x)
