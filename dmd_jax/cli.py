@@ -198,6 +198,12 @@ def _cmd_denoise(args: argparse.Namespace) -> int:
         if args.relax < 0:
             raise ValueError(f"--relax must be 0 or more steps, got {args.relax}")
         extra["relax"] = args.relax
+    if args.presmooth is not None:
+        if args.method != "dmd":
+            raise ValueError("--presmooth is for --method dmd (the network)")
+        if args.presmooth < 0:
+            raise ValueError(f"--presmooth must be 0 or more steps, got {args.presmooth}")
+        extra["presmooth"] = args.presmooth
     pairs = _denoise_inputs(args)
     weights = args.weights
     if args.method == "dmd" and len(pairs) > 1:
@@ -220,8 +226,10 @@ def _cmd_denoise(args: argparse.Namespace) -> int:
         elapsed = time.perf_counter() - t0
         save_mesh(dst, out, faces, overwrite=args.overwrite, protect=[src])
         how = ""
+        if info.get("presmooth_steps"):
+            how = f" after {info['presmooth_steps']} Laplacian steps"
         if info.get("passes", 1) > 1:
-            how = f" ({info['passes']} passes)"
+            how += f" ({info['passes']} passes)"
         if info.get("path") == "patches":
             how += f" in {info['patches']} patches of {info['patch_size']:,} vertices"
         print(
@@ -606,16 +614,28 @@ def _train_summary(result: dict) -> str:
 def _cmd_export_weights(args: argparse.Namespace) -> int:
     import json
     import platform
+    from pathlib import Path
 
-    from dmd_jax.checkpoints import load_params, save_weights
+    from dmd_jax.checkpoints import load_params, load_weights, save_weights
 
-    params, cfg = load_params(args.checkpoint)
+    source = Path(args.checkpoint)
+    if source.is_file():
+        # A weights file: the same params with a newly fitted inference policy.
+        bundle = load_weights(source)
+        params, cfg, meta = bundle.params, bundle.config, dict(bundle.meta)
+        step = meta.get("step")
+        meta["exported_from"] = str(args.checkpoint)
+    else:
+        params, cfg = load_params(source)
+        step = _latest_step(source)
+        meta = {"source": str(args.checkpoint), "platform": platform.platform()}
+        if step is not None:
+            meta["step"] = step
     if args.pass_tolerance is not None:
         cfg = cfg.with_edits({"model": {"pass_tolerance": args.pass_tolerance}})
-    step = _latest_step(args.checkpoint)
-    meta = {"source": str(args.checkpoint), "platform": platform.platform()}
-    if step is not None:
-        meta["step"] = step
+    if args.presmooth is not None:
+        start, per_step = args.presmooth
+        cfg = cfg.with_edits({"model": {"presmooth_start": start, "presmooth_per_step": per_step}})
     if args.meta:
         meta.update(json.loads(args.meta))
     path = save_weights(args.output, params, cfg, meta, overwrite=args.overwrite)
@@ -707,6 +727,15 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="STEPS",
         help="steps of crease-preserving tangential relaxation after the network, for "
         "noise that is not along the normals, e.g. 3 (default: 0, none)",
+    )
+    p.add_argument(
+        "--presmooth",
+        type=int,
+        default=None,
+        metavar="STEPS",
+        help="uniform Laplacian steps before the network (default: the model's own rule, "
+        "for the bundled weights none unless the mesh is rougher than light noise makes it, "
+        "up to 20 for noise of several edge lengths; 0: none)",
     )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.set_defaults(func=_cmd_denoise)
@@ -875,7 +904,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_train)
 
     p = sub.add_parser("export-weights", help="checkpoint directory -> one weights file")
-    p.add_argument("checkpoint", help="an Orbax checkpoint directory (e.g. RUN/checkpoints/best)")
+    p.add_argument(
+        "checkpoint",
+        help="an Orbax checkpoint directory (e.g. RUN/checkpoints/best), or a weights file "
+        "to rewrite with a new --pass-tolerance / --presmooth",
+    )
     p.add_argument("-o", "--output", required=True, help="weights file to write (.msgpack)")
     p.add_argument("--meta", default=None, help="JSON object of provenance to store")
     p.add_argument(
@@ -884,6 +917,16 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="store this ModelConfig.pass_tolerance (denoise's default number of passes; fit "
         "it on the validation split with benchmarks/pass_tolerance.py)",
+    )
+    p.add_argument(
+        "--presmooth",
+        type=float,
+        nargs=2,
+        default=None,
+        metavar=("START", "PER_STEP"),
+        help="store this pre-smoothing rule (ModelConfig.presmooth_start and "
+        "presmooth_per_step, degrees of roughness; fit it on the validation split with "
+        "benchmarks/presmooth_fit.py; START 0 turns it off)",
     )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.set_defaults(func=_cmd_export_weights)

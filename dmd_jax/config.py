@@ -330,6 +330,14 @@ class ModelConfig(_ConfigMixin):
         pass moves the mesh tells how noisy it was: a second pass helps after heavy
         noise and hurts after light noise. A property of trained weights, fitted on the
         validation split (`benchmarks/pass_tolerance.py`), not of the architecture.
+      presmooth_start, presmooth_per_step: the heavy-noise pre-smoothing `denoise` runs
+        by default (`presmooth=None`): `round((roughness − presmooth_start) /
+        presmooth_per_step)` uniform Laplacian steps, clipped to
+        `presmooth.MAX_STEPS`, before the network, where the roughness is the noisy
+        mesh's median angle (degrees) between edge-adjacent face normals
+        (`dmd_jax.presmooth`). `presmooth_start` 0 (default): none. Like
+        `pass_tolerance`, a property of trained weights fitted on the validation split
+        (`benchmarks/presmooth_fit.py`).
     """
 
     width: int = _static(64)
@@ -357,6 +365,8 @@ class ModelConfig(_ConfigMixin):
     taubin_iterations: int = _static(0)
     filter_sigmas: tuple[float, ...] = _static(FILTER_RANGE_SIGMAS)
     pass_tolerance: float = _static(0.0)
+    presmooth_start: float = _static(0.0)
+    presmooth_per_step: float = _static(5.0)
 
     def __post_init__(self):
         _check_positive_int("width", self.width)
@@ -400,6 +410,16 @@ class ModelConfig(_ConfigMixin):
             and self.pass_tolerance >= 0,
             f"pass_tolerance must be a finite number >= 0, got {self.pass_tolerance!r}",
         )
+        for name, low in (("presmooth_start", 0.0), ("presmooth_per_step", None)):
+            value = getattr(self, name)
+            _check(
+                isinstance(value, int | float)
+                and not isinstance(value, bool)
+                and math.isfinite(value)
+                and (value >= low if low is not None else value > 0),
+                f"{name} must be a finite number {'>= 0' if low is not None else '> 0'}, "
+                f"got {value!r}",
+            )
         _check(
             not self.head_consistency or self.head == "normal",
             "head_consistency needs head='normal' (it describes the candidate normals)",

@@ -39,6 +39,7 @@ from dmd_jax.graph import (
     with_ell_layout,
 )
 from dmd_jax.mesh import CanonicalFrame, canonical_frame, validate_mesh
+from dmd_jax.presmooth import laplacian_steps, roughness, steps_for
 from dmd_jax.relax import relax_tangential
 
 AGGREGATIONS = ("auto", "ell", "segment_sum")
@@ -400,6 +401,7 @@ def denoise(
     devices=None,
     info: dict | None = None,
     relax: int = 0,
+    presmooth: int | None = None,
 ) -> np.ndarray:
     """Denoises a triangle mesh with a trained DMD-Net, in bounded memory.
 
@@ -455,6 +457,13 @@ def denoise(
         from 24.2° to 18.4°, at 0.1 / 0.3 edges along normals from 12.5 / 19.8° to
         11.8 / 18.3°, but a clean mesh's from 7.2° to 8.9° (README, "Tangential
         relaxation"). Runs on the whole mesh, about 300 bytes per vertex.
+      presmooth: uniform Laplacian steps run before the network (`dmd_jax.presmooth`),
+        or None (default): the model's own rule (`ModelConfig.presmooth_start`), as
+        many steps as the noisy mesh's roughness asks for. For the bundled weights that
+        is none for noise up to about a third of an edge along the normals and for
+        clean meshes, and up to `presmooth.MAX_STEPS` for noise of several edges
+        (`benchmarks/results/presmooth_fit.md`). 0 gives the network the mesh as it is.
+        The steps run and the roughness are reported in `info`.
 
     Returns:
       `[n_vertex, 3]` denoised vertices in the input frame; float32 for float32 input,
@@ -469,6 +478,12 @@ def denoise(
         _pass_plan(iterations, None)  # a bad count fails before any work
     if isinstance(relax, bool) or int(relax) != relax or relax < 0:
         raise ValueError(f"relax must be a non-negative number of steps, got {relax!r}")
+    if presmooth is not None and (
+        isinstance(presmooth, bool) or int(presmooth) != presmooth or presmooth < 0
+    ):
+        raise ValueError(
+            f"presmooth must be a non-negative number of steps or None, got {presmooth!r}"
+        )
     if aggregation not in AGGREGATIONS:
         raise ValueError(
             f"unknown aggregation {aggregation!r}; choose one of {', '.join(AGGREGATIONS)}"
@@ -481,6 +496,14 @@ def denoise(
     bundle = as_bundle(params, config)
     cfg = bundle.config.model
     passes = _pass_plan(iterations, cfg)
+    rough, steps = None, presmooth
+    if presmooth is None:
+        steps = 0
+        if cfg.presmooth_start > 0:
+            rough = roughness(v, f)
+            steps = steps_for(rough, cfg.presmooth_start, cfg.presmooth_per_step)
+    if steps:
+        v = laplacian_steps(v, f, int(steps))
     n, m = v.shape[0], f.shape[0]
     whole = patch_size is None and budget is None and m < _SMALL_MESH_FACES
     if patch_size is None and not whole:
@@ -496,7 +519,12 @@ def denoise(
         whole = per_vertex * _padded_vertices_estimate(n, m) <= budget
     if info is not None:
         info.clear()
-        info.update(path="whole" if whole else "patches", budget_bytes=budget)
+        info.update(
+            path="whole" if whole else "patches",
+            budget_bytes=budget,
+            presmooth_steps=int(steps),
+            roughness=rough,
+        )
     if whole:
         result = _denoise_whole(v, f, bundle, in_dtype, passes, aggregation, info)
     else:

@@ -452,6 +452,8 @@ _LATER_MODEL_FIELDS = {
     "taubin_iterations": 0,
     "filter_sigmas": [0.2, 0.35, 0.6],  # as `to_dict` writes the default tuple
     "pass_tolerance": 0.0,
+    "presmooth_start": 0.0,
+    "presmooth_per_step": 5.0,
 }
 
 

@@ -12,6 +12,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import jax
 import numpy as np
 import pytest
 from conftest import icosphere, shared_mesh_path
@@ -220,6 +221,33 @@ def test_iterations_flag(files, capsys, tmp_path, weights):
     )
     assert_one_line_error(code, err, "iterations")
     assert not (tmp_path / "dmd0.obj").exists()
+
+
+def test_presmooth_flag(files, capsys, tmp_path, weights):
+    out_path = tmp_path / "smoothed.obj"
+    args = ("denoise", files / "noisy.obj", "-o", out_path, "--weights", weights)
+    code, out, err = run(capsys, *args, "--presmooth", "3")
+    assert code == 0, err
+    assert "after 3 Laplacian steps" in out
+    noisy_v, f = load_mesh(files / "noisy.obj")
+    expected = inference.denoise(noisy_v, f, weights, presmooth=3)
+    np.testing.assert_allclose(load_mesh(out_path)[0], expected, rtol=1e-15, atol=1e-16)
+    bad = ("denoise", files / "noisy.obj", "-o", tmp_path / "bad.obj", "--weights", weights)
+    code, _, err = run(capsys, *bad, "--presmooth", "-1")
+    assert_one_line_error(code, err, "presmooth")
+    code, _, err = run(
+        capsys,
+        "denoise",
+        files / "noisy.obj",
+        "-o",
+        tmp_path / "bnf.obj",
+        "--method",
+        "bnf",
+        "--presmooth",
+        "2",
+    )
+    assert_one_line_error(code, err, "presmooth")
+    assert not (tmp_path / "bad.obj").exists() and not (tmp_path / "bnf.obj").exists()
 
 
 def test_refuses_to_overwrite_the_input(files, capsys, weights):
@@ -674,6 +702,16 @@ def test_export_weights_says_which_step(capsys, tmp_path):
     code, out, err = run(capsys, *args)
     assert code == 0, err
     assert checkpoints.load_weights(tmp_path / "t.msgpack").config.model.pass_tolerance == 0.25
+    # A weights file in: the same params and provenance, a new pre-smoothing rule.
+    args = ("export-weights", tmp_path / "t.msgpack", "-o", tmp_path / "p.msgpack")
+    code, out, err = run(capsys, *args, "--presmooth", "30", "4")
+    assert code == 0, err
+    before, after = (checkpoints.load_weights(tmp_path / n) for n in ("t.msgpack", "p.msgpack"))
+    model = after.config.model
+    assert (model.presmooth_start, model.presmooth_per_step, model.pass_tolerance) == (30, 4, 0.25)
+    assert after.meta["step"] == 7 and after.meta["exported_from"] == str(tmp_path / "t.msgpack")
+    for a, b in zip(jax.tree.leaves(before.params), jax.tree.leaves(after.params), strict=True):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_readme_python_blocks_run_with_root_level_names(tmp_path, monkeypatch, capsys):

@@ -1,0 +1,126 @@
+"""`dmd_jax.presmooth` against independent references, and `denoise`'s use of it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+from conftest import icosphere
+
+from dmd_jax import baselines, load_pretrained
+from dmd_jax.config import ModelConfig
+from dmd_jax.inference import denoise
+from dmd_jax.presmooth import MAX_STEPS, laplacian_steps, roughness, steps_for
+
+
+def _noisy_sphere(sigma: float, seed: int = 0):
+    v, f = icosphere(3)
+    rng = np.random.default_rng(seed)
+    edge = np.linalg.norm(v[f[:, 0]] - v[f[:, 1]], axis=1).mean()
+    return v, v + sigma * edge * rng.standard_normal(v.shape), f
+
+
+@pytest.mark.parametrize("open_boundary", [False, True])
+def test_laplacian_steps_equal_the_laplacian_baseline(open_boundary):
+    _, noisy, f = _noisy_sphere(0.5)
+    if open_boundary:  # a cap removed: boundary vertices average along the boundary only
+        f = f[noisy[f].mean(axis=1)[:, 2] < 0.6]
+    ours = laplacian_steps(noisy, f, 7)
+    reference = np.asarray(baselines.laplacian(noisy, f, lam=0.5, iterations=7), np.float64)
+    np.testing.assert_allclose(ours, reference, atol=1e-6)
+
+
+def test_laplacian_steps_leave_the_input_alone_and_isolated_vertices_in_place():
+    _, noisy, f = _noisy_sphere(0.5)
+    extra = np.vstack([noisy, [[5.0, 5.0, 5.0]]])  # an isolated vertex
+    before = extra.copy()
+    out = laplacian_steps(extra, f, 3)
+    np.testing.assert_array_equal(extra, before)
+    np.testing.assert_array_equal(out[-1], extra[-1])
+    np.testing.assert_array_equal(laplacian_steps(extra, f, 0), extra)
+
+
+def test_roughness_is_trimesh_median_adjacency_angle():
+    _, noisy, f = _noisy_sphere(0.4)
+    mesh = trimesh.Trimesh(noisy, f, process=False)
+    expected = float(np.degrees(np.median(mesh.face_adjacency_angles)))
+    assert roughness(noisy, f) == pytest.approx(expected, abs=1e-6)
+
+
+def test_roughness_is_scale_translation_and_rotation_free():
+    _, noisy, f = _noisy_sphere(0.4)
+    q, _ = np.linalg.qr(np.random.default_rng(1).standard_normal((3, 3)))
+    moved = 37.0 * noisy @ q.T + np.array([3.0, -2.0, 10.0])
+    assert roughness(moved, f) == pytest.approx(roughness(noisy, f), abs=1e-6)
+
+
+def test_roughness_grows_with_noise_and_ignores_degenerate_faces():
+    clean, _, f = _noisy_sphere(0.0)
+    values = [roughness(_noisy_sphere(s)[1], f) for s in (0.0, 0.2, 1.0, 3.0)]
+    assert values == sorted(values) and values[0] < 10 < 60 < values[-1]
+    tri = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
+    assert roughness(tri, np.array([[0, 1, 2]])) == 0.0  # no adjacent pair
+    flat = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [0, 1, 0]])
+    assert roughness(flat, np.array([[0, 1, 2], [0, 2, 3]])) == 0.0  # one face degenerate
+
+
+@pytest.mark.parametrize(
+    "rough, expected",
+    [(10.0, 0), (25.0, 0), (27.4, 0), (27.6, 1), (60.0, 7), (130.0, MAX_STEPS)],
+)
+def test_steps_for_is_a_clipped_straight_line(rough, expected):
+    assert steps_for(rough, 25.0, 5.0) == expected
+    assert steps_for(rough, 0.0, 5.0) == 0  # start 0: no pre-smoothing
+
+
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        ({"presmooth_start": -1.0}, "presmooth_start must be a finite number >= 0"),
+        ({"presmooth_per_step": 0.0}, "presmooth_per_step must be a finite number > 0"),
+        ({"presmooth_start": float("nan")}, "presmooth_start must be a finite"),
+    ],
+)
+def test_config_rejects_bad_rules(edit, message):
+    with pytest.raises(ValueError, match=message):
+        ModelConfig(**edit)
+
+
+@pytest.fixture(scope="module")
+def bundle():
+    return load_pretrained()
+
+
+def test_denoise_follows_the_bundled_rule(bundle):
+    cfg = bundle.config.model
+    assert cfg.presmooth_start > 0  # the bundled weights carry a fitted rule
+    clean, heavy, f = _noisy_sphere(2.0)
+    info = {}
+    denoise(clean, f, bundle, info=info)
+    assert info["presmooth_steps"] == 0  # a clean mesh is left to the network
+    denoise(heavy, f, bundle, info=info)
+    expected = steps_for(roughness(heavy, f), cfg.presmooth_start, cfg.presmooth_per_step)
+    assert info["presmooth_steps"] == expected > 0
+    assert info["roughness"] == pytest.approx(roughness(heavy, f))
+    # The rule's steps are the explicit argument's.
+    np.testing.assert_allclose(
+        denoise(heavy, f, bundle), denoise(heavy, f, bundle, presmooth=expected), atol=1e-6
+    )
+
+
+def test_presmoothing_helps_heavy_noise(bundle):
+    clean, heavy, f = _noisy_sphere(2.0)
+
+    def error(x):
+        a = trimesh.Trimesh(x, f, process=False).face_normals
+        b = trimesh.Trimesh(clean, f, process=False).face_normals
+        return float(np.degrees(np.arccos(np.clip((a * b).sum(1), -1, 1))).mean())
+
+    assert error(denoise(heavy, f, bundle)) < 0.5 * error(denoise(heavy, f, bundle, presmooth=0))
+
+
+@pytest.mark.parametrize("bad", [-1, 1.5, True, "3"])
+def test_denoise_rejects_bad_presmooth(bundle, bad):
+    v, f = icosphere(1)
+    with pytest.raises((ValueError, TypeError), match="presmooth"):
+        denoise(v, f, bundle, presmooth=bad)
