@@ -447,8 +447,11 @@ def denoise(
         terminal and there are several patches).
       devices: the devices patches run on (default `jax.local_devices()`).
       info: a dict to fill with how the call ran: `path` (`"whole"` or `"patches"`),
-        `budget_bytes`, and for patches `patch_size` (owned vertices), `patches` (run
-        over every pass), `largest_padded_vertices`, `halo_rings`, `devices`.
+        `budget_bytes`, `passes`, `presmooth_steps` (Laplacian steps run before the
+        network), `roughness` (the noisy mesh's, in degrees, when the model's rule
+        chose the steps; else None), and for patches `patch_size` (owned vertices),
+        `patches` (run over every pass), `largest_padded_vertices`, `halo_rings`,
+        `devices`.
       relax: steps of feature-preserving tangential relaxation applied to the result
         (`dmd_jax.relax.relax_tangential`; 0, the default, leaves it as the network
         made it). For noise with a tangential part (per-coordinate noise, the paper's
@@ -463,7 +466,8 @@ def denoise(
         is none for noise up to about a third of an edge along the normals and for
         clean meshes, and up to `presmooth.MAX_STEPS` for noise of several edges
         (`benchmarks/results/presmooth_fit.md`). 0 gives the network the mesh as it is.
-        The steps run and the roughness are reported in `info`.
+        The steps are linear in the positions and the roughness is scale free, so the
+        result stays translation- and scale-equivariant.
 
     Returns:
       `[n_vertex, 3]` denoised vertices in the input frame; float32 for float32 input,

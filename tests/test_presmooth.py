@@ -108,6 +108,17 @@ def test_denoise_follows_the_bundled_rule(bundle):
     )
 
 
+def test_presmoothed_denoise_stays_translation_and_scale_equivariant(bundle):
+    _, heavy, f = _noisy_sphere(2.0)
+    info = {}
+    out = denoise(heavy, f, bundle, info=info)
+    assert info["presmooth_steps"] > 0
+    shift, scale = np.array([40.0, -7.0, 3.0]), 250.0
+    moved = denoise(scale * heavy + shift, f, bundle)
+    edge = np.linalg.norm(out[f[:, 0]] - out[f[:, 1]], axis=1).mean()
+    assert np.abs((moved - shift) / scale - out).max() < 1e-4 * edge
+
+
 def test_presmoothing_helps_heavy_noise(bundle):
     clean, heavy, f = _noisy_sphere(2.0)
 
