@@ -26,7 +26,6 @@ import numpy as np
 import scipy.sparse as sp
 
 from dmd_jax.baselines._common import umbrella_weights
-from dmd_jax.graph import face_adjacency
 
 # The most Laplacian steps `denoise` runs before the network (the roughness saturates
 # beyond about two mean edges of noise, so more noise cannot ask for more).
@@ -43,26 +42,67 @@ def _face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return np.where(norm > 0, cross / np.where(norm > 0, norm, 1.0), 0.0)
 
 
-def roughness(vertices, faces, *, adjacency=None) -> float:
+# Up to this many faces the roughness reads every edge; a larger mesh reads a fixed
+# hash-chosen sample of about `SAMPLED_HALF_EDGES / 2` edges, so time and memory stay
+# bounded (a 5M-face grid: 0.2 s and 75 MB sampled, 6 s and 1.9 GB with every edge).
+# The median of ~150k angles is within a few tenths of a degree of the whole mesh's
+# (four hash constants on that noisy grid: 30.12–30.41° against 30.11°), under a tenth of
+# a step of the bundled rule.
+EXACT_MAX_FACES = 100_000
+SAMPLED_HALF_EDGES = 300_000
+_CHUNK_FACES = 1_000_000
+_HASH = np.uint64(0x9E3779B97F4A7C15)  # Fibonacci hashing: spreads nearby keys
+
+
+def _edge_pairs(faces: np.ndarray, n_vertex: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs of faces sharing an edge: all of them for a mesh of at most
+    `EXACT_MAX_FACES` faces, else the pairs of a hash-chosen subset of the edges (both
+    half-edges of an edge have the same key, so a kept edge keeps its pair). Around a
+    non-manifold edge, consecutive faces in sorted order are paired."""
+    m = faces.shape[0]
+    stride = 1 if m <= EXACT_MAX_FACES else -(-3 * m // SAMPLED_HALF_EDGES)
+    keys, owners = [], []
+    for lo_face in range(0, m, _CHUNK_FACES):
+        f = faces[lo_face : lo_face + _CHUNK_FACES].astype(np.int64)
+        ids = np.arange(lo_face, lo_face + f.shape[0], dtype=np.int64)
+        for a, b in ((0, 1), (1, 2), (2, 0)):
+            key = np.minimum(f[:, a], f[:, b]) * n_vertex + np.maximum(f[:, a], f[:, b])
+            if stride > 1:
+                with np.errstate(over="ignore"):
+                    mixed = (key.astype(np.uint64) * _HASH) >> np.uint64(32)
+                keep = mixed % np.uint64(stride) == 0
+                key, face = key[keep], ids[keep]
+            else:
+                face = ids
+            keys.append(key)
+            owners.append(face)
+    key, owner = np.concatenate(keys), np.concatenate(owners)
+    order = np.argsort(key, kind="stable")
+    key, owner = key[order], owner[order]
+    same = np.flatnonzero(key[1:] == key[:-1])
+    return owner[same], owner[same + 1]
+
+
+def roughness(vertices, faces) -> float:
     """The median angle, in degrees, between the normals of faces sharing an edge.
 
     Args:
       vertices: `[n_vertex, 3]` positions in any frame.
       faces: `[n_face, 3]` vertex indices.
-      adjacency: `graph.face_adjacency(faces, n_vertex)`, if already known.
 
     Returns:
-      The median over edge-adjacent face pairs whose faces both have an area; 0 for a
-      mesh without such a pair (a single triangle, or only degenerate faces).
+      The median over edge-adjacent face pairs whose faces both have an area (over a
+      fixed sample of the edges above `EXACT_MAX_FACES` faces); 0 for a mesh without
+      such a pair (a single triangle, or only degenerate faces).
     """
     v = np.asarray(vertices, np.float64)
     f = np.asarray(faces)
-    a, b = face_adjacency(f, v.shape[0]) if adjacency is None else adjacency
-    n = _face_normals(v, f)
-    ok = (np.abs(n[a]).sum(axis=1) > 0) & (np.abs(n[b]).sum(axis=1) > 0)
+    a, b = _edge_pairs(f, v.shape[0])
+    na, nb = _face_normals(v, f[a]), _face_normals(v, f[b])
+    ok = (np.abs(na).sum(axis=1) > 0) & (np.abs(nb).sum(axis=1) > 0)
     if not ok.any():
         return 0.0
-    cos = np.clip(np.einsum("ij,ij->i", n[a[ok]], n[b[ok]]), -1.0, 1.0)
+    cos = np.clip(np.einsum("ij,ij->i", na[ok], nb[ok]), -1.0, 1.0)
     return float(np.degrees(np.median(np.arccos(cos))))
 
 

@@ -47,6 +47,18 @@ def test_roughness_is_trimesh_median_adjacency_angle():
     assert roughness(noisy, f) == pytest.approx(expected, abs=1e-6)
 
 
+def test_sampled_roughness_of_a_large_mesh_is_close_to_the_exact_one(monkeypatch):
+    from dmd_jax import presmooth
+
+    _, noisy, f = _noisy_sphere(0.4)
+    exact = roughness(noisy, f)
+    monkeypatch.setattr(presmooth, "EXACT_MAX_FACES", 100)
+    monkeypatch.setattr(presmooth, "SAMPLED_HALF_EDGES", 1000)
+    a, b = presmooth._edge_pairs(f, len(noisy))
+    assert 300 < len(a) < 700 and np.all(a != b)  # about 500 of the 1,920 pairs
+    assert roughness(noisy, f) == pytest.approx(exact, abs=3.0)
+
+
 def test_roughness_is_scale_translation_and_rotation_free():
     _, noisy, f = _noisy_sphere(0.4)
     q, _ = np.linalg.qr(np.random.default_rng(1).standard_normal((3, 3)))
