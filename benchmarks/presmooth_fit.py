@@ -141,11 +141,9 @@ def choose(rows, clean_roughness: dict[str, float]):
 
     best = None
     for start in STARTS:
-        if any(steps_for(r, start, 1.0e9) for r in clean_roughness.values()):
-            continue  # would smooth a clean validation mesh
         for per_step in PER_STEPS:
             if any(steps_for(r, start, per_step) for r in clean_roughness.values()):
-                continue
+                continue  # would smooth a clean validation mesh
             errs = rule_errors(rows, start, per_step)
             score = float(np.mean(list(errs.values())))
             if best is None or score < best[0] - 1e-9:
@@ -184,8 +182,7 @@ def main(argv: list[str] | None = None) -> int:
         blank = [""] * 22
         records = rows + [[m, "", "clean", "", r, *blank] for m, r in clean.items()]
         write_csv(csv_path, HEADER, records)
-    start, per_step, errs = rule_errors_best = choose(rows, clean)
-    del rule_errors_best
+    start, per_step, errs = choose(rows, clean)
     names = [condition_name(d, lv) for d, lv in CONDITIONS]
 
     def mean_of(col):

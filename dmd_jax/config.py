@@ -77,6 +77,15 @@ def _check_positive_int(name: str, value: Any, *, minimum: int = 1) -> None:
     )
 
 
+def _check_finite(name: str, value: Any, *, positive: bool = False) -> None:
+    """A finite real number (not a bool), >= 0, or > 0 with `positive`."""
+    ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+    _check(
+        ok and (value > 0 if positive else value >= 0),
+        f"{name} must be a finite number {'> 0' if positive else '>= 0'}, got {value!r}",
+    )
+
+
 # --------------------------------------------------------------------------------------
 # JSON helpers
 # --------------------------------------------------------------------------------------
@@ -403,23 +412,9 @@ class ModelConfig(_ConfigMixin):
             f"filter_sigmas must be a non-empty tuple of positive numbers, "
             f"got {self.filter_sigmas!r}",
         )
-        _check(
-            isinstance(self.pass_tolerance, int | float)
-            and not isinstance(self.pass_tolerance, bool)
-            and math.isfinite(self.pass_tolerance)
-            and self.pass_tolerance >= 0,
-            f"pass_tolerance must be a finite number >= 0, got {self.pass_tolerance!r}",
-        )
-        for name, low in (("presmooth_start", 0.0), ("presmooth_per_step", None)):
-            value = getattr(self, name)
-            _check(
-                isinstance(value, int | float)
-                and not isinstance(value, bool)
-                and math.isfinite(value)
-                and (value >= low if low is not None else value > 0),
-                f"{name} must be a finite number {'>= 0' if low is not None else '> 0'}, "
-                f"got {value!r}",
-            )
+        _check_finite("pass_tolerance", self.pass_tolerance)
+        _check_finite("presmooth_start", self.presmooth_start)
+        _check_finite("presmooth_per_step", self.presmooth_per_step, positive=True)
         _check(
             not self.head_consistency or self.head == "normal",
             "head_consistency needs head='normal' (it describes the candidate normals)",

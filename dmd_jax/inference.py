@@ -387,6 +387,12 @@ def lean_mesh_frame(encoding: str, vertices: np.ndarray, faces: np.ndarray) -> C
     return CanonicalFrame(centre=box.centre, scale=h)
 
 
+def _check_steps(name: str, value, what: str = "a non-negative number of steps") -> None:
+    """`value` is a whole number >= 0 (a bool is not), else a `ValueError` naming `name`."""
+    if isinstance(value, bool) or int(value) != value or value < 0:
+        raise ValueError(f"{name} must be {what}, got {value!r}")
+
+
 def denoise(
     vertices,
     faces,
@@ -480,14 +486,9 @@ def denoise(
     """
     if iterations is not None:
         _pass_plan(iterations, None)  # a bad count fails before any work
-    if isinstance(relax, bool) or int(relax) != relax or relax < 0:
-        raise ValueError(f"relax must be a non-negative number of steps, got {relax!r}")
-    if presmooth is not None and (
-        isinstance(presmooth, bool) or int(presmooth) != presmooth or presmooth < 0
-    ):
-        raise ValueError(
-            f"presmooth must be a non-negative number of steps or None, got {presmooth!r}"
-        )
+    _check_steps("relax", relax)
+    if presmooth is not None:
+        _check_steps("presmooth", presmooth, "a non-negative number of steps or None")
     if aggregation not in AGGREGATIONS:
         raise ValueError(
             f"unknown aggregation {aggregation!r}; choose one of {', '.join(AGGREGATIONS)}"

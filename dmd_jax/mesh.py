@@ -1,7 +1,8 @@
 """Triangle meshes as arrays: validation and the canonical frame.
 
 `validate_mesh` is the one gate every mesh passes (file readers, `denoise`, the
-baselines); `canonical_frame` is the frame the network sees a mesh in. Graphs built from
+baselines); `canonical_frame` is the frame the network sees a mesh in; `mean_edge_length`
+and `face_normals_np` are the host-side measures the rest of the package shares. Graphs built from
 meshes live in `dmd_jax.graph`, file formats in `dmd_jax.io`.
 """
 
@@ -137,3 +138,13 @@ def mean_edge_length(vertices, faces, *, edges=None) -> float:
     v = np.asarray(vertices, dtype=np.float64)
     a, b = vertex_edges(faces, v.shape[0]) if edges is None else edges
     return float(np.linalg.norm(v[a] - v[b], axis=1).mean())
+
+
+def face_normals_np(vertices, faces) -> np.ndarray:
+    """Unit face normals `[n_face, 3]` on the host (NumPy); zero rows for degenerate
+    faces. `geometry.face_normals` is the differentiable JAX version."""
+    v = np.asarray(vertices)
+    f = np.asarray(faces)
+    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    norm = np.linalg.norm(n, axis=1, keepdims=True)
+    return np.divide(n, norm, out=np.zeros_like(n), where=norm > 0)

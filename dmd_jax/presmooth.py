@@ -26,20 +26,13 @@ import numpy as np
 import scipy.sparse as sp
 
 from dmd_jax.baselines._common import umbrella_weights
+from dmd_jax.mesh import face_normals_np
 
 # The most Laplacian steps `denoise` runs before the network (the roughness saturates
 # beyond about two mean edges of noise, so more noise cannot ask for more).
 MAX_STEPS = 20
 # The step size of each uniform Laplacian step, as `baselines.laplacian`'s default.
 LAMBDA = 0.5
-
-
-def _face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Unit face normals `[n_face, 3]`; zero rows for degenerate faces."""
-    v = vertices[faces]
-    cross = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
-    norm = np.linalg.norm(cross, axis=1, keepdims=True)
-    return np.where(norm > 0, cross / np.where(norm > 0, norm, 1.0), 0.0)
 
 
 # Up to this many faces the roughness reads every edge; a larger mesh reads a fixed
@@ -98,7 +91,7 @@ def roughness(vertices, faces) -> float:
     v = np.asarray(vertices, np.float64)
     f = np.asarray(faces)
     a, b = _edge_pairs(f, v.shape[0])
-    na, nb = _face_normals(v, f[a]), _face_normals(v, f[b])
+    na, nb = face_normals_np(v, f[a]), face_normals_np(v, f[b])
     ok = (np.abs(na).sum(axis=1) > 0) & (np.abs(nb).sum(axis=1) > 0)
     if not ok.any():
         return 0.0

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from dmd_jax.io import atomic_write
-from dmd_jax.mesh import canonical_frame
+from dmd_jax.mesh import canonical_frame, face_normals_np
 
 # A fixed view so renders of different methods compare pixel for pixel.
 _ELEV, _AZIM = 20.0, -60.0
@@ -32,12 +32,6 @@ UP_AXES = ("z", "y", "auto")
 _GREY = np.array([0.74, 0.77, 0.84])
 _TITLE_IN = 0.3  # inches of title strip above the first row
 _BAR_IN = 0.62  # inches of colour-bar strip under the values row
-
-
-def _face_normals_np(v: np.ndarray, f: np.ndarray) -> np.ndarray:
-    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    norm = np.linalg.norm(n, axis=1, keepdims=True)
-    return np.divide(n, norm, out=np.zeros_like(n), where=norm > 0)
 
 
 def _camera(elev: float, azim: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -77,7 +71,7 @@ def guess_up_axis(vertices, faces) -> str:
     v = canonical_frame(v).apply(v)
     cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
     area = 0.5 * np.linalg.norm(cross, axis=1)
-    normal = _face_normals_np(v, f)
+    normal = face_normals_np(v, f)
     centroid = v[f].mean(axis=1)
     support = {}
     for name, axis in (("y", 1), ("z", 2)):
@@ -98,7 +92,7 @@ def dihedral_angles(vertices, faces) -> np.ndarray:
     """
     v = np.asarray(vertices, np.float64)
     f = np.asarray(faces, np.int64)
-    n = _face_normals_np(v, f)
+    n = face_normals_np(v, f)
     edges = np.sort(np.stack([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], axis=1), axis=2)
     edges = edges.reshape(-1, 2)
     owner = np.repeat(np.arange(len(f)), 3)
@@ -137,7 +131,7 @@ def sharpest_face(
     sharp = dihedral_angles(v, f)
     view, right, screen_up = _camera(elev, azim)
     candidates = np.flatnonzero(sharp >= 0.8 * sharp.max())
-    facing = np.abs(_face_normals_np(v, f[candidates]) @ view) > 0.2
+    facing = np.abs(face_normals_np(v, f[candidates]) @ view) > 0.2
     if facing.any():
         candidates = candidates[facing]
     if len(candidates) > 32:
@@ -311,7 +305,7 @@ def render_meshes(
         v = _to_z_up(v, up)
         xy = np.stack([v @ right, v @ screen_up], axis=1)
         order = np.argsort(v[f].mean(axis=1) @ view)  # painter's algorithm: far first
-        shade = 0.22 + 0.78 * np.abs(_face_normals_np(v, f) @ light)
+        shade = 0.22 + 0.78 * np.abs(face_normals_np(v, f) @ light)
         projected.append((xy, f, order, shade))
 
     # Panel shape: the projected extent of the first mesh, clamped to 1:2 .. 2:1.

@@ -16,13 +16,12 @@ from pathlib import Path
 
 import numpy as np
 
-from dmd_jax.mesh import canonical_frame
+from dmd_jax.mesh import canonical_frame, face_normals_np
 from dmd_jax.render import (
     _AZIM,
     _ELEV,
     _GREY,
     _camera,
-    _face_normals_np,
     _to_z_up,
     nice_range,
     resolve_up,
@@ -129,7 +128,7 @@ def comparison_figure(
         if fv is not None and np.shape(fv) != (len(f),):
             raise ValueError(f"face_values[{i}] needs one value per face of mesh {i}")
         v = _to_z_up(canonical_frame(v).apply(v), up)
-        shade = 0.22 + 0.78 * np.abs(_face_normals_np(v, f) @ light)
+        shade = 0.22 + 0.78 * np.abs(face_normals_np(v, f) @ light)
         if fv is None:
             rgb = shade[:, None] * _GREY[None, :]
         else:
