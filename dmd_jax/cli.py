@@ -549,21 +549,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         )
     init = None
     if args.init_from:
-        from dmd_jax.checkpoints import load_params
-
-        init, init_cfg = load_params(args.init_from)
-        if init_cfg.model.replace(head_consistency=True) == cfg.model and not (
-            init_cfg.model.head_consistency
-        ):
-            # Adding the consistency input to a trained head: its Dense layer starts at
-            # zero, so the run starts from the trained model's outputs.
-            from dmd_jax.checkpoints import graft_params
-            from dmd_jax.model import init_params
-
-            fresh = init_params(cfg.model, jax.random.PRNGKey(cfg.train.seed))
-            init = graft_params(fresh, init)
-        elif init_cfg.model != cfg.model:
-            raise ValueError(f"{args.init_from}: its model config differs from this run's")
+        init = _init_params(args.init_from, cfg)
     pad_to = args.pad
     if pad_to == "auto":
         # Short runs spend most of their time compiling (one program per vertex bucket,
@@ -587,6 +573,54 @@ def _cmd_train(args: argparse.Namespace) -> int:
     if primary:
         print(json.dumps(result, indent=2) if args.json else _train_summary(result))
     return 0
+
+
+def _init_params(path, cfg):
+    """The params a fine-tune starts from: those of a checkpoint or weights file.
+
+    The source's model may differ from `cfg.model` only in settings that hold no
+    parameters (its parameter tree must have `cfg.model`'s shapes), or by the added
+    `head_consistency` input, whose zero-initialised layer is grafted on.
+
+    Raises:
+      ValueError: the parameter shapes differ.
+    """
+    import jax
+    import numpy as np
+
+    from dmd_jax.checkpoints import graft_params, load_model
+    from dmd_jax.model import init_params, param_shapes
+
+    source = load_model(path)
+    src = source.config.model
+
+    def shapes(tree):
+        flat = jax.tree_util.tree_flatten_with_path(tree)[0]
+        return {jax.tree_util.keystr(k): tuple(np.shape(v)) for k, v in flat}
+
+    if shapes(param_shapes(cfg.model)) == shapes(source.params):
+        return source.params
+    problem = f"model config differs: {_model_diff(src, cfg.model)}"
+    if cfg.model.head_consistency and not src.head_consistency:
+        # Adding the consistency input to a trained head: its Dense layer starts at
+        # zero, so the run starts from the trained model's outputs.
+        fresh = init_params(cfg.model, jax.random.PRNGKey(cfg.train.seed))
+        try:
+            return graft_params(fresh, source.params)
+        except ValueError as exc:
+            problem = f"{exc}; {problem}"
+    raise ValueError(f"{path}: its parameters do not fit this run's model ({problem})")
+
+
+def _model_diff(a, b) -> str:
+    import dataclasses
+
+    diff = [
+        f"{f.name} {getattr(a, f.name)!r} vs {getattr(b, f.name)!r}"
+        for f in dataclasses.fields(a)
+        if getattr(a, f.name) != getattr(b, f.name)
+    ]
+    return "; ".join(diff) or "same fields"
 
 
 # `dmd-jax train --pad auto` pads every batch to one shape for runs of at most this many
@@ -864,7 +898,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--init-from",
         default=None,
-        help="checkpoint directory to fine-tune from (same model config)",
+        help="checkpoint directory or weights file to fine-tune from (the same parameter "
+        "shapes; settings that hold no parameters, such as vertex_iterations, may differ)",
     )
     p.add_argument(
         "--real-meshes",

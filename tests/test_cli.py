@@ -714,6 +714,47 @@ def test_export_weights_says_which_step(capsys, tmp_path):
         np.testing.assert_array_equal(a, b)
 
 
+def test_train_init_from_weights_file_or_checkpoint(tmp_path):
+    """`train --init-from` takes a weights file or a checkpoint; settings without
+    parameters (vertex iterations, pass tolerance) may differ, parameter shapes may not."""
+    import jax.numpy as jnp
+
+    from dmd_jax.checkpoints import checkpoint_managers, save_checkpoint, save_weights
+    from dmd_jax.cli import _init_params
+    from dmd_jax.train import TrainState
+    from dmd_jax.train import split_params as split
+
+    params = tiny_params()
+    source = TINY_CONFIG.with_edits({"model": {"pass_tolerance": 0.2}})
+    save_weights(tmp_path / "w.msgpack", params, source)
+    latest, _ = checkpoint_managers(tmp_path / "run", 1)
+    save_checkpoint(latest, TrainState(jnp.asarray(3), split(params), {}), source)
+    run_cfg = TINY_CONFIG.with_edits({"model": {"vertex_iterations": 20}})
+    for path in (tmp_path / "w.msgpack", tmp_path / "run" / "checkpoints" / "latest"):
+        got = _init_params(path, run_cfg)
+        for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(got), strict=True):
+            np.testing.assert_array_equal(a, b)
+    wider = TINY_CONFIG.with_edits({"model": {"width": TINY_CONFIG.model.width * 2}})
+    with pytest.raises(ValueError, match="do not fit.*width"):
+        _init_params(tmp_path / "w.msgpack", wider)
+    with pytest.raises(FileNotFoundError):
+        _init_params(tmp_path / "missing.msgpack", run_cfg)
+    # A trained normal-first head grows the zero-initialised consistency input.
+    from dmd_jax.model import init_params
+
+    normal = preset("test")
+    trained = init_params(normal.model, jax.random.PRNGKey(1))
+    save_weights(tmp_path / "n.msgpack", trained, normal)
+    grown = _init_params(
+        tmp_path / "n.msgpack", normal.with_edits({"model": {"head_consistency": True}})
+    )
+    old = {jax.tree_util.keystr(k): v for k, v in jax.tree_util.tree_flatten_with_path(trained)[0]}
+    new = {jax.tree_util.keystr(k): v for k, v in jax.tree_util.tree_flatten_with_path(grown)[0]}
+    assert set(old) < set(new)
+    for key, value in old.items():
+        np.testing.assert_array_equal(value, new[key])
+
+
 def test_readme_python_blocks_run_with_root_level_names(tmp_path, monkeypatch, capsys):
     """The README's Python examples, run as written on a small mesh (bundled weights)."""
     import re
