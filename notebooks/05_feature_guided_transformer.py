@@ -284,27 +284,25 @@ same = similarity["another draw, σ = 0.3"]
 assert np.diag(same).min() > 0.99
 closed = [CATEGORIES.index(c) for c in ("blob", "torus", "bracket")]
 terrain = CATEGORIES.index("terrain")
-assert same[np.ix_(closed, closed)].min() > 0.985
+assert same[np.ix_(closed, closed)].min() > 0.98
 off_terrain = np.concatenate([same[terrain, closed], same[closed, terrain]])
-assert 0.93 < off_terrain.min() and off_terrain.max() < 0.98
+assert 0.87 < off_terrain.min() and off_terrain.max() < 0.95
 twice = similarity["another draw, σ = 0.6"]
-assert 0.85 < np.diag(twice)[closed].min() and np.diag(twice)[closed].max() < 0.96
+assert 0.89 < np.diag(twice)[closed].min() and np.diag(twice)[closed].max() < 0.97
 assert twice[terrain, terrain] > 0.99
 
 # %% [markdown]
 # The diagonal compares a mesh with itself under new noise, the off-diagonal entries
 # compare different meshes. Under a new draw at the same level every mesh keeps its
 # matrix (diagonal above 0.99). The three closed shapes get nearly the same matrix
-# (0.99 and above for every pair) and the open terrain patch a slightly different one
-# (0.94–0.98 against the others): at one noise level the transformer acts almost as
-# one learnt linear map, with a small correction for an open patch (an earlier bundled
-# model, without the Taubin inputs, gave terrain a matrix of its own, below 0.9 against
-# blob and torus). Twice the noise changes the closed shapes' matrices more than any
-# change of shape does: each is only 0.88–0.95 alike to its own matrix at σ = 0.3,
-# while the terrain patch keeps its matrix (above 0.99). The matrix tracks the noise
-# level more than the shape (the cells assert the figures quoted here; the weights
-# fine-tuned with heavier normal losses moved the closed shapes' σ = 0.6 matrices,
-# which the previous bundled ones kept within 0.05).
+# (0.98 and above for every pair) and the open terrain patch a different one (0.88–0.94
+# against the others): at one noise level the transformer acts almost as one learnt
+# linear map for closed shapes, with a correction for an open patch (the bundled
+# weights before the last fine-tunes kept terrain within 0.93–0.98 of the others).
+# Twice the noise changes the closed shapes' matrices more than a change between them
+# does: each is only 0.91–0.96 alike to its own matrix at σ = 0.3, while the terrain
+# patch keeps its matrix (above 0.99). Among closed shapes the matrix tracks the noise
+# level more than the shape (the cells assert the figures quoted here).
 #
 # ## The feature extractor against the ground truth
 #
@@ -418,14 +416,14 @@ for name, x, w in zip(CATEGORIES, per_mesh(t_in), W, strict=True):
     )
 ratios = [a / b for a, b in parts]
 print("input part / feature part:", " ".join(f"{r:.1f}" for r in ratios))
-assert min(ratios) > 2.5 and max(ratios) < 4.5
+assert min(ratios) > 2.4 and max(ratios) < 3.6
 if model_cfg.encoding == "local":
     assert min(ninth) > 0.05  # the product is not limited to eight dimensions
 
 # %% [markdown]
 # The two norms show how much of the bundled model's intermediate representation comes
 # from the primal input and how much from the estimated features: the input part is 2.5
-# to 4.5 times larger on every mesh, so the features are a minority but not negligible
+# to 3.4 times larger on every mesh, so the features are a minority but not negligible
 # share. The singular values of the (centred) product $t_\text{in}W_{tf}$ over a mesh's
 # vertices show its rank. With the paper's xyz encoding it has at most eight non-zero
 # values (FGT-3 would cut that to three); with the bundled model's 45-column
@@ -470,20 +468,22 @@ for name, g in guidance.items():
 noisy_normal = np.array([m["normal_deg"] for m in noisy_scores])
 fe_row = table["FE (normal)"]
 assert all(np.all(row < 0.8 * noisy_normal) for row in table.values())
-assert np.abs(table["oracle (clean)"] - fe_row).max() < 1
-assert np.abs(table["zeros"] - fe_row).max() < 1
+assert np.abs(table["oracle (clean)"] - fe_row).max() < 2
+assert np.abs(table["zeros"] - fe_row).max() < 2
 print("oracle - FE (normal°):", np.round(table["oracle (clean)"] - fe_row, 2))
 print("zeros - FE (normal°): ", np.round(table["zeros"] - fe_row, 2))
 
 # %% [markdown]
 # Every kind of guidance leaves the denoised normals less than 0.8 times as far off as
-# the noisy input's: most of the work does not depend on the guidance. The oracle hardly
-# helps: the clean mesh's features change the normal error by less than 1° on every mesh
-# (here at most 0.7°, a gain on the bracket, and 0.3° worse on the terrain). The model
-# was trained with its FE's estimates and reads them, not the clean features, so this is
-# no measure of room for a better feature extractor. Zeros in place of the features
-# change it by less than 1°: the bundled model, whose resolution-free inputs already
-# carry the smoothed normals and the Taubin displacements, relies on its guidance very
-# little (an earlier bundled model moved by up to 4° with zeros). `vertex` is the per-
+# the noisy input's: most of the work does not depend on the guidance. The oracle helps
+# little: the clean mesh's features change the normal error by less than 2° on every
+# mesh (here a gain of 1.7° on the bracket, 0.5° worse on the torus, under 0.1° on the
+# others). The model was trained with its FE's estimates and reads them, not the clean
+# features, so this is no measure of room for a better feature extractor. Zeros in place
+# of the features change it by less than 2° too, and on the bracket they are 1.1° better
+# than the FE's own estimates, which mislead the head on that sharp part at this heavy
+# noise: the bundled model, whose resolution-free inputs already carry the smoothed
+# normals and the Taubin displacements, relies on its guidance little (an earlier
+# bundled model moved by up to 4° with zeros). `vertex` is the per-
 # coordinate squared error in the model's frame (edge units for the bundled model),
 # `normal°` the mean face-normal angle.

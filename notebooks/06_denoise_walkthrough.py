@@ -229,7 +229,7 @@ for region in (0, 1):
 # smoothing (lowering the vertex error while the normal error rises again) or stop
 # changing the mesh once the noise is gone. Without `iterations`, `denoise` follows the
 # weights' own rule (`ModelConfig.pass_tolerance`): the bundled weights run a second
-# pass, and more, only while the last pass moved the vertices by over 0.18 mean edges
+# pass, and more, only while the last pass moved the vertices by over 0.17 mean edges
 # on average, which on the validation split happened after heavy noise only
 # (`benchmarks/results/pass_tolerance.md`). `info` reports how many passes ran.
 

@@ -8,7 +8,8 @@ by the resolution-free model, again when those were fine-tuned, and again when t
 model with Taubin candidates replaced them (all 2026-11-30), and again when the
 6,000-step retraining of that recipe replaced them, and again when its fine-tune with
 heavier normal losses did (both 2026-12-01; one pass here, as `pass_tolerance` gives for
-this light noise).
+this light noise), and again when the fine-tunes on benchmark noise with 120 pre-filter
+passes did (2026-12-01).
 Any change to weight loading, graph building, padding or the network's forward pass
 shows up here.
 """
