@@ -102,7 +102,8 @@ def worker(preset: str, n_face: int, mode: str, mesh_dir: Path, budget: str) -> 
             ff,
             bundle,
             v.dtype,
-            1,
+            # The default mode's pass policy (the weights' `pass_tolerance`).
+            inference._pass_plan(None, bundle.config.model),
             "auto",
             inference.parse_memory(budget),
             None,

@@ -153,3 +153,24 @@ def test_training_measure_counts_one_compilation_per_bucket():
         assert r["steps_per_epoch"] == -(-3 // r["batch_size"])
         assert len(r["step_times"]) == len(r["input_times"]) == 2
     assert "| test |" in training.table(rows) and "| yes |" in training.compile_table(rows)
+
+
+@pytest.mark.parametrize("mode", ["default", "patches", "whole"])
+def test_inference_scale_worker_runs_each_mode(tmp_path, mode):
+    """`bench_inference_scale`'s worker on a small grid, every mode (the forced patch
+    path calls `inference` internals, which must keep up with their signatures)."""
+    from benchmarks import bench_inference_scale as scale
+
+    faces, n = agg.grid_faces(2_000)
+    side = int(round(n**0.5))
+    u, w = np.meshgrid(np.arange(side, dtype=np.float64), np.arange(side, dtype=np.float64))
+    rng = np.random.default_rng(0)
+    v = np.stack([u.ravel(), w.ravel(), 0.1 * rng.standard_normal(n)], axis=1)
+    np.save(tmp_path / "vertices.npy", v)
+    np.save(tmp_path / "faces.npy", faces)
+    row = scale.worker("small", len(faces), mode, tmp_path, "2GiB")
+    assert row["faces"] == len(faces) and row["mode"] == mode
+    # A 2,000-face grid fits the budget whole unless the patch path is forced.
+    assert row["path"] == ("patches" if mode == "patches" else "whole")
+    if mode == "patches":
+        assert row["patches"] >= 1
