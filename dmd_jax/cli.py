@@ -579,28 +579,25 @@ def _init_params(path, cfg):
     """The params a fine-tune starts from: those of a checkpoint or weights file.
 
     The source's model may differ from `cfg.model` only in settings that hold no
-    parameters (its parameter tree must have `cfg.model`'s shapes), or by the added
-    `head_consistency` input, whose zero-initialised layer is grafted on.
+    parameters (its params must pass `checkpoints.check_params` against `cfg`: the same
+    paths, shapes and dtypes, finite), or by the added `head_consistency` input, whose
+    zero-initialised layer is grafted on.
 
     Raises:
-      ValueError: the parameter shapes differ.
+      ValueError: the params do not fit `cfg`'s model.
     """
     import jax
-    import numpy as np
 
-    from dmd_jax.checkpoints import graft_params, load_model
-    from dmd_jax.model import init_params, param_shapes
+    from dmd_jax.checkpoints import check_params, graft_params, load_model
+    from dmd_jax.model import init_params
 
     source = load_model(path)
     src = source.config.model
-
-    def shapes(tree):
-        flat = jax.tree_util.tree_flatten_with_path(tree)[0]
-        return {jax.tree_util.keystr(k): tuple(np.shape(v)) for k, v in flat}
-
-    if shapes(param_shapes(cfg.model)) == shapes(source.params):
+    try:
+        check_params(source.params, cfg, "the source")
         return source.params
-    problem = f"model config differs: {_model_diff(src, cfg.model)}"
+    except ValueError as exc:
+        problem = f"{exc}; model config differs: {_model_diff(src, cfg.model)}"
     if cfg.model.head_consistency and not src.head_consistency:
         # Adding the consistency input to a trained head: its Dense layer starts at
         # zero, so the run starts from the trained model's outputs.
