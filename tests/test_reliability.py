@@ -368,12 +368,12 @@ CASES = [
     Case(
         "truncated PLY (ASCII)",
         file=(".ply", ply(TET_V, TET_F[:3], declared_faces=4)),
-        error="the header declares 4 faces, only 3 triangles",
+        error="truncated PLY: the file ends inside the 4 'face' elements",
     ),
     Case(
         "truncated PLY (binary)",
         file=(".ply", _binary_ply_truncated()),
-        error="could not read the mesh",
+        error="truncated PLY",
     ),
     Case(
         "truncated STL (binary)",
@@ -395,7 +395,9 @@ CASES = [
         file=(".off", b"OFF\nfour two zero\n"),
         error="line 2: expected the counts",
     ),
-    Case("corrupt PLY header", file=(".ply", b"ply\nformat nonsense\n"), error="could not read"),
+    Case(
+        "corrupt PLY header", file=(".ply", b"ply\nformat nonsense\n"), error="no 'end_header' line"
+    ),
     Case("not an OFF file", file=(".off", b"solid x\n"), error="not an OFF file"),
     Case("unknown extension", file=(".xyz", obj(TET_V, TET_F)), error="unknown mesh format"),
     Case(
@@ -870,10 +872,13 @@ def test_save_mesh_and_weights_are_atomic(tmp_path, monkeypatch, bundle):
     checkpoints.save_weights(tmp_path / "kept.msgpack", bundle.params, CONFIG)
     originals = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
 
-    def failing_export(self, *args, **kwargs):
+    def failing_rows(fh, row, rows):
+        fh.write("v 1 2")  # a partial file, then the disk fills
         raise OSError("disk full")
 
-    monkeypatch.setattr(trimesh.Trimesh, "export", failing_export)
+    import dmd_jax.io
+
+    monkeypatch.setattr(dmd_jax.io, "_write_rows", failing_rows)
     for name in ("new.obj", "kept.obj"):
         with pytest.raises(OSError, match="disk full"):
             save_mesh(tmp_path / name, TET_V * 2, TET_F, overwrite=True)

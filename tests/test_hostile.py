@@ -1,0 +1,237 @@
+"""Hostile and careless inputs (issue 31): no silent wrong answer, no traceback.
+
+One test (or a few) per numbered case of the issue, named `test_case<N>_...`, each
+failing before the fix and passing after; the fuzz test of the readers is in
+`tests/test_fuzz.py`. Everything runs on tiny meshes, without a network pass, except
+where the case is about the denoise command itself.
+"""
+
+from __future__ import annotations
+
+import os
+import struct
+import warnings
+
+import numpy as np
+import pytest
+from conftest import tetrahedron
+
+from dmd_jax.io import load_mesh, save_mesh
+
+BOM = b"\xef\xbb\xbf"
+TET_V, TET_F = tetrahedron()
+# A tetrahedron plus one unused vertex at the end: a one-off vertex shift is silent.
+TET5_V = np.concatenate([TET_V, [[9.0, 9.0, 9.0]]])
+
+
+def _obj(v, f) -> bytes:
+    lines = [f"v {x!r} {y!r} {z!r}" for x, y, z in np.asarray(v, float).tolist()]
+    lines += ["f " + " ".join(str(int(i) + 1) for i in face) for face in f]
+    return ("\n".join(lines) + "\n").encode()
+
+
+def _off(v, f, *, declared_faces=None) -> bytes:
+    n_f = len(f) if declared_faces is None else declared_faces
+    lines = ["OFF", f"{len(v)} {n_f} 0"]
+    lines += [f"{x!r} {y!r} {z!r}" for x, y, z in np.asarray(v, float).tolist()]
+    lines += [f"{len(face)} " + " ".join(str(int(i)) for i in face) for face in f]
+    return ("\n".join(lines) + "\n").encode()
+
+
+def _ply_ascii(v, f) -> bytes:
+    head = (
+        "ply\nformat ascii 1.0\n"
+        f"element vertex {len(v)}\nproperty double x\nproperty double y\nproperty double z\n"
+        f"element face {len(f)}\nproperty list uchar int vertex_indices\nend_header\n"
+    )
+    body = [f"{x!r} {y!r} {z!r}" for x, y, z in np.asarray(v, float).tolist()]
+    body += [f"{len(face)} " + " ".join(str(int(i)) for i in face) for face in f]
+    return (head + "\n".join(body) + "\n").encode()
+
+
+def _load(path):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # triangulation notes
+        return load_mesh(path)
+
+
+# --------------------------------------------------------------------------------------
+# 1. A UTF-8 byte-order mark
+# --------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "suffix, data",
+    [
+        (".obj", _obj(TET5_V, TET_F)),
+        (".obj", _obj(TET_V, TET_F)),
+        (".off", _off(TET5_V, TET_F)),
+        (".ply", _ply_ascii(TET5_V, TET_F)),
+    ],
+    ids=["obj-unused-vertex", "obj", "off", "ply"],
+)
+def test_case1_utf8_bom_is_ignored(tmp_path, suffix, data):
+    path = tmp_path / f"bom{suffix}"
+    path.write_bytes(BOM + data)
+    v, f = _load(path)
+    expected_v = TET5_V if b"9.0" in data else TET_V
+    np.testing.assert_array_equal(v, expected_v)
+    np.testing.assert_array_equal(f, TET_F)
+
+
+def test_case1_utf8_bom_before_ascii_stl(tmp_path):
+    import trimesh
+
+    text = trimesh.Trimesh(TET_V, TET_F, process=False).export(file_type="stl_ascii")
+    path = tmp_path / "bom.stl"
+    path.write_bytes(BOM + text.encode())
+    v, f = _load(path)
+    assert len(v) == 4 and len(f) == 4
+
+
+# --------------------------------------------------------------------------------------
+# 4. Writers round-trip every finite float64 exactly
+# --------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("suffix", [".obj", ".off", ".ply"])
+@pytest.mark.parametrize("scale", [1e-300, 1e-160, 1e-16, 1.0, 1e150, 1e300])
+def test_case4_writers_round_trip_float64_exactly(tmp_path, suffix, scale):
+    rng = np.random.default_rng(4)
+    v = rng.standard_normal((5, 3)) * scale
+    path = save_mesh(tmp_path / f"m{suffix}", v, TET_F)
+    v2, f2 = load_mesh(path)
+    np.testing.assert_array_equal(v2, v)  # bit for bit, unused vertex 4 included
+    np.testing.assert_array_equal(f2, TET_F)
+
+
+@pytest.mark.parametrize("suffix", [".obj", ".off", ".ply"])
+def test_case4_extreme_floats_round_trip(tmp_path, suffix):
+    # The smallest subnormal, the largest finite, -0.0 and a value with 17 digits.
+    v = np.array(
+        [[5e-324, -0.0, 1.7976931348623157e308], [0.1, 1 / 3, -2.2250738585072014e-308]]
+        + TET_V[2:].tolist()
+        + [[9.0, 9.0, 9.0]]
+    )
+    path = save_mesh(tmp_path / f"x{suffix}", v, TET_F)
+    v2, _ = load_mesh(path)
+    assert v2.tobytes() == v.tobytes()  # -0.0 keeps its sign too
+
+
+# --------------------------------------------------------------------------------------
+# 5. A file that contradicts its own header
+# --------------------------------------------------------------------------------------
+
+
+def test_case5_off_with_more_faces_than_declared_is_refused(tmp_path):
+    path = tmp_path / "more.off"
+    path.write_bytes(_off(TET_V, TET_F, declared_faces=3))
+    with pytest.raises(ValueError, match=r"more.off: line 10: data after the 3 faces"):
+        load_mesh(path)
+
+
+def test_case5_ply_with_more_faces_than_declared_is_refused(tmp_path):
+    data = _ply_ascii(TET_V, TET_F).replace(b"element face 4", b"element face 3")
+    path = tmp_path / "more.ply"
+    path.write_bytes(data)
+    with pytest.raises(ValueError, match=r"more.ply: 4 values after the last element"):
+        load_mesh(path)
+    binary = _ply_binary(TET_V, [list(f) for f in TET_F]).replace(
+        b"element face 4", b"element face 3"
+    )
+    path.write_bytes(binary)
+    with pytest.raises(ValueError, match=r"more.ply: 13 bytes after the last element"):
+        load_mesh(path)
+
+
+# --------------------------------------------------------------------------------------
+# 14. Valid PLY variants; FIFOs and symlink loops; a header that hides its faces
+# --------------------------------------------------------------------------------------
+
+
+def _ply_binary(v, faces, *, order="<", extra_list=False) -> bytes:
+    fmt = {"<": "binary_little_endian", ">": "binary_big_endian"}[order]
+    head = (
+        f"ply\nformat {fmt} 1.0\nelement vertex {len(v)}\nproperty float x\n"
+        f"property float y\nproperty float z\nelement face {len(faces)}\n"
+        "property list uchar int vertex_indices\n"
+        + ("property list uchar float texcoord\n" if extra_list else "")
+        + "end_header\n"
+    )
+    body = np.asarray(v, order + "f4").tobytes()
+    for face in faces:
+        body += struct.pack(f"{order}B{len(face)}i", len(face), *face)
+        if extra_list:
+            body += struct.pack(f"{order}B6f", 6, *range(6))
+    return head.encode() + body
+
+
+SQUARE_PYRAMID_V = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0.5, 0.5, 1]], float)
+SQUARE_PYRAMID = [[3, 2, 1, 0], [0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]]
+SQUARE_PYRAMID_TRIS = [[3, 2, 1], [3, 1, 0], [0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]]
+
+
+@pytest.mark.parametrize("order", ["<", ">"])
+def test_case14_binary_ply_mixing_triangles_and_quads(tmp_path, order):
+    path = tmp_path / "mixed.ply"
+    path.write_bytes(_ply_binary(SQUARE_PYRAMID_V, SQUARE_PYRAMID, order=order))
+    with pytest.warns(UserWarning, match="triangulated 1 polygon faces"):
+        v, f = load_mesh(path)
+    np.testing.assert_array_equal(v, SQUARE_PYRAMID_V)
+    np.testing.assert_array_equal(f, SQUARE_PYRAMID_TRIS)
+
+
+def test_case14_ply_with_two_face_lists(tmp_path):
+    # A texture-coordinate list after the index list, in ASCII and in binary.
+    head = (
+        "ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\n"
+        "property float z\nelement face 4\nproperty list uchar int vertex_indices\n"
+        "property list uchar float texcoord\nend_header\n"
+    )
+    body = [" ".join(map(repr, row)) for row in TET_V.tolist()]
+    body += [f"3 {a} {b} {c} 6 0 0 1 0 0 1" for a, b, c in TET_F]
+    path = tmp_path / "uv.ply"
+    path.write_text(head + "\n".join(body) + "\n")
+    v, f = load_mesh(path)
+    np.testing.assert_array_equal(v, TET_V)
+    np.testing.assert_array_equal(f, TET_F)
+    path.write_bytes(_ply_binary(TET_V, [list(x) for x in TET_F], extra_list=True))
+    v, f = load_mesh(path)
+    np.testing.assert_array_equal(v, TET_V)
+    np.testing.assert_array_equal(f, TET_F)
+
+
+def test_case14_ply_size_guard_cannot_be_bypassed(tmp_path):
+    # A face count that is not a plain integer used to slip past the size guard and
+    # be reported as a point cloud; a count beyond the file's size is refused early.
+    path = tmp_path / "odd.ply"
+    path.write_bytes(_ply_ascii(TET_V, TET_F).replace(b"element face 4", b"element face -4"))
+    with pytest.raises(ValueError, match="header line 7: an element needs a name and a count"):
+        load_mesh(path)
+    path.write_bytes(_ply_ascii(TET_V, TET_F).replace(b"element face 4", b"element face 4e9"))
+    with pytest.raises(ValueError, match="an element needs a name and a count"):
+        load_mesh(path)
+    path.write_bytes(
+        _ply_ascii(TET_V, TET_F).replace(b"element face 4", b"element face 10000000000")
+    )
+    with pytest.raises(ValueError, match="more than the file's .* bytes can hold"):
+        load_mesh(path)
+
+
+def test_case14_fifo_is_not_a_missing_file(tmp_path):
+    path = tmp_path / "pipe.obj"
+    os.mkfifo(path)
+    with pytest.raises(ValueError, match="pipe.obj: is a FIFO"):
+        load_mesh(path)  # and does not block reading it
+
+
+def test_case14_symlink_loop_is_not_a_missing_file(tmp_path):
+    path = tmp_path / "loop.obj"
+    os.symlink(path, path)
+    with pytest.raises(OSError, match="loop.obj: cannot open it .*symbolic links") as info:
+        load_mesh(path)
+    assert not isinstance(info.value, FileNotFoundError)
+    dangling = tmp_path / "dangling.obj"
+    os.symlink(tmp_path / "gone.obj", dangling)
+    with pytest.raises(FileNotFoundError, match="dangling.obj: a symbolic link to .*gone.obj"):
+        load_mesh(dangling)
