@@ -13,6 +13,14 @@ from typing import NamedTuple
 
 import numpy as np
 
+from dmd_jax.topology import (  # noqa: F401  (face_adjacency, vertex_edges: re-exported)
+    adjacent_faces,
+    edge_groups,
+    face_adjacency,
+    sorted_unique,
+    vertex_edges,
+)
+
 # --------------------------------------------------------------------------------------
 # Padded-neighbour (ELL) layout: the operator of `ops.gcn_aggregate` as tables
 # --------------------------------------------------------------------------------------
@@ -187,18 +195,6 @@ class MeshGraph(NamedTuple):
         return self.n_vertex_per_graph.shape[0]
 
 
-def _sorted_unique(keys: np.ndarray) -> np.ndarray:
-    """`np.unique(keys)` for a 1-D integer array, by a sort and a mask of first entries.
-
-    NumPy 2.4's `np.unique` hashes: 3 s for 1M int64 keys here against 0.07 s for
-    `np.sort`, which made `build_mesh_graph` take a minute at 1M vertices.
-    """
-    k = np.sort(keys)
-    if k.size == 0:
-        return k
-    return k[np.concatenate([[True], k[1:] != k[:-1]])]
-
-
 def _symmetric_with_self_loops(
     senders: np.ndarray, receivers: np.ndarray, n_node: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -206,21 +202,11 @@ def _symmetric_with_self_loops(
     loops = np.arange(n_node, dtype=np.int64)
     s = np.concatenate([senders, receivers, loops])
     r = np.concatenate([receivers, senders, loops])
-    key = _sorted_unique(r * n_node + s)
+    key = sorted_unique(r * n_node + s)
     r, s = np.divmod(key, n_node)
     degree = np.bincount(r, minlength=n_node).astype(np.float64)
     weight = 1.0 / np.sqrt(degree[s] * degree[r])
     return s.astype(np.int32), r.astype(np.int32), weight.astype(np.float32)
-
-
-def vertex_edges(faces: np.ndarray, n_vertex: int) -> tuple[np.ndarray, np.ndarray]:
-    """Unique undirected primal edges `[n_edge, 2]` (sorted pairs) of a triangle mesh."""
-    f = np.asarray(faces, dtype=np.int64)
-    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    e = np.sort(e, axis=1)
-    key = _sorted_unique(e[:, 0] * n_vertex + e[:, 1])
-    a, b = np.divmod(key, n_vertex)
-    return a, b
 
 
 def undirected_vertex_edges(graph: MeshGraph) -> tuple[np.ndarray, np.ndarray]:
@@ -232,43 +218,6 @@ def undirected_vertex_edges(graph: MeshGraph) -> tuple[np.ndarray, np.ndarray]:
     s, r = np.asarray(graph.vertex_senders), np.asarray(graph.vertex_receivers)
     keep = s < r
     return s[keep], r[keep]
-
-
-def face_adjacency(faces: np.ndarray, n_vertex: int) -> tuple[np.ndarray, np.ndarray]:
-    """Pairs of faces that share an edge, each unordered pair once (`a < b`).
-
-    On a non-manifold edge with k faces all k(k-1)/2 pairs are adjacent.
-    """
-    return _adjacent_faces(*_face_edge_groups(faces, n_vertex), np.asarray(faces).shape[0])
-
-
-def _face_edge_groups(faces, n_vertex: int):
-    """Every face's three edges grouped by edge: `(sorted keys, face of each, group starts,
-    group sizes)`, the key of edge `a < b` being `a * n_vertex + b`."""
-    f = np.asarray(faces, dtype=np.int64)
-    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-    key = e[:, 0] * n_vertex + e[:, 1]
-    face_of = np.tile(np.arange(f.shape[0], dtype=np.int64), 3)
-    order = np.argsort(key, kind="stable")
-    key, face_of = key[order], face_of[order]
-    # Groups of equal keys in the sorted array: where each starts and how long it is.
-    start = np.flatnonzero(np.concatenate([[True], key[1:] != key[:-1]])) if key.size else key
-    size = np.diff(np.append(start, key.size))
-    return key, face_of, start, size
-
-
-def _adjacent_faces(key, face_of, start, size, n_face: int):
-    """`face_adjacency` from `_face_edge_groups`' output."""
-    # Each face-edge entry pairs with every entry of its edge group (vectorised).
-    group = np.repeat(np.arange(start.size), size)
-    reps = size[group]
-    first = np.repeat(np.arange(key.size), reps)
-    offset = np.arange(first.size) - np.repeat(np.cumsum(reps) - reps, reps)
-    second = start[group[first]] + offset
-    a, b = face_of[first], face_of[second]
-    keep = a < b
-    pair = _sorted_unique(a[keep] * n_face + b[keep])
-    return np.divmod(pair, n_face)
 
 
 def build_mesh_graph(faces, n_vertex: int) -> MeshGraph:
@@ -288,10 +237,10 @@ def build_mesh_graph(faces, n_vertex: int) -> MeshGraph:
         raise ValueError(f"face indices must lie in [0, {n_vertex}), got [{f.min()}, {f.max()}]")
     n_face = f.shape[0]
     # One sort of the face edges gives both the unique edges and the adjacent faces.
-    key, face_of, start, size = _face_edge_groups(f, n_vertex)
-    a, b = np.divmod(key[start], n_vertex)
+    groups = edge_groups(f, n_vertex)
+    a, b = np.divmod(groups.key[groups.start], n_vertex)
     vs, vr, vw = _symmetric_with_self_loops(a, b, n_vertex)
-    fa, fb = _adjacent_faces(key, face_of, start, size, n_face)
+    fa, fb = adjacent_faces(groups, n_face)
     fs, fr, fw = _symmetric_with_self_loops(fa, fb, n_face)
     degree = np.bincount(f.ravel(), minlength=n_vertex).astype(np.float32)
     return MeshGraph(

@@ -25,8 +25,8 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from dmd_jax.baselines._common import umbrella_weights
 from dmd_jax.mesh import face_normals_np
+from dmd_jax.topology import edge_keys, umbrella_weights
 
 # The most Laplacian steps `denoise` runs before the network (the roughness saturates
 # beyond about two mean edges of noise, so more noise cannot ask for more).
@@ -56,19 +56,17 @@ def _edge_pairs(faces: np.ndarray, n_vertex: int) -> tuple[np.ndarray, np.ndarra
     stride = 1 if m <= EXACT_MAX_FACES else -(-3 * m // SAMPLED_HALF_EDGES)
     keys, owners = [], []
     for lo_face in range(0, m, _CHUNK_FACES):
-        f = faces[lo_face : lo_face + _CHUNK_FACES].astype(np.int64)
-        ids = np.arange(lo_face, lo_face + f.shape[0], dtype=np.int64)
-        for a, b in ((0, 1), (1, 2), (2, 0)):
-            key = np.minimum(f[:, a], f[:, b]) * n_vertex + np.maximum(f[:, a], f[:, b])
-            if stride > 1:
-                with np.errstate(over="ignore"):
-                    mixed = (key.astype(np.uint64) * _HASH) >> np.uint64(32)
-                keep = mixed % np.uint64(stride) == 0
-                key, face = key[keep], ids[keep]
-            else:
-                face = ids
-            keys.append(key)
-            owners.append(face)
+        f = faces[lo_face : lo_face + _CHUNK_FACES]
+        # `edge_keys` lists a chunk's edges slot by slot, so entry k is face k % chunk's.
+        key = edge_keys(f, n_vertex)
+        face = np.tile(np.arange(lo_face, lo_face + f.shape[0], dtype=np.int64), 3)
+        if stride > 1:
+            with np.errstate(over="ignore"):
+                mixed = (key.astype(np.uint64) * _HASH) >> np.uint64(32)
+            keep = mixed % np.uint64(stride) == 0
+            key, face = key[keep], face[keep]
+        keys.append(key)
+        owners.append(face)
     key, owner = np.concatenate(keys), np.concatenate(owners)
     order = np.argsort(key, kind="stable")
     key, owner = key[order], owner[order]
@@ -111,7 +109,7 @@ def steps_for(rough: float, start: float, per_step: float, most: int = MAX_STEPS
 def laplacian_steps(vertices, faces, steps: int, lam: float = LAMBDA) -> np.ndarray:
     """`steps` uniform Laplacian steps `x ← x + λ (umbrella average − x)`.
 
-    The operator of `baselines.laplacian` (its `umbrella_weights`: MeshLab's, where a
+    The operator of `baselines.laplacian` (`topology.umbrella_weights`: MeshLab's, where a
     vertex on an open boundary averages itself with its boundary neighbours only; tested
     equal), as one sparse matrix on the host: no compilation, memory linear in the mesh
     (measured on a 5M-face grid: 1.2 GB at peak, 3.6 s for 5 steps on 2 cores).

@@ -17,7 +17,8 @@ surface at that vertex, and the step is projected off it.
 from __future__ import annotations
 
 import numpy as np
-import scipy.sparse as sp
+
+from dmd_jax.topology import boundary_vertex_mask, one_ring_mean
 
 # An eigenvalue of the normal tensor counts as a second (third) normal direction from this
 # fraction of the largest. Two planes meeting at a dihedral angle θ give a ratio of
@@ -27,18 +28,6 @@ import scipy.sparse as sp
 # beat 0.05 at every noise level tried (0.05 left clean meshes 0.1° closer) and kept
 # clean meshes closer than 1.0 (no creases kept).
 FEATURE_RATIO = 0.2
-
-
-def _one_ring(faces: np.ndarray, n_vertex: int) -> sp.csr_matrix:
-    """The row-normalised vertex adjacency `[n_vertex, n_vertex]` (the umbrella mean)."""
-    f = faces
-    rows = np.concatenate([f[:, 0], f[:, 1], f[:, 2], f[:, 1], f[:, 2], f[:, 0]])
-    cols = np.concatenate([f[:, 1], f[:, 2], f[:, 0], f[:, 0], f[:, 1], f[:, 2]])
-    adj = sp.csr_matrix((np.ones(rows.size), (rows, cols)), shape=(n_vertex, n_vertex))
-    adj.data[:] = 1.0  # edges shared by two faces were summed twice
-    degree = np.asarray(adj.sum(axis=1)).ravel()
-    inv = np.where(degree > 0, 1.0 / np.maximum(degree, 1.0), 0.0)
-    return sp.diags(inv) @ adj
 
 
 def _blocked_directions(x: np.ndarray, faces: np.ndarray, feature_ratio: float) -> np.ndarray:
@@ -102,11 +91,7 @@ def relax_tangential(
         raise ValueError(f"feature_ratio must lie in (0, 1], got {feature_ratio}")
     if iterations == 0 or f.size == 0:
         return x
-    # The baselines' edge bookkeeping, imported here so that `denoise` without `relax`
-    # does not load the baselines package (0.15 s).
-    from dmd_jax.baselines._common import boundary_vertex_mask
-
-    mean = _one_ring(f.astype(np.int64), x.shape[0])
+    mean = one_ring_mean(f.astype(np.int64), x.shape[0])
     # Vertices no face uses have an empty ring, and a boundary vertex's ring is one-sided
     # (its umbrella points into the mesh, so open scans would shrink): both stay put.
     free = np.zeros(x.shape[0], bool)

@@ -120,7 +120,91 @@ def test_graph_io_and_mesh_sit_below_the_model():
     """The host-side modules never import JAX-side ones (they stay usable without JAX)."""
     graph = import_graph()
     for low in ("dmd_jax.graph", "dmd_jax.mesh", "dmd_jax.io"):
-        assert graph[low] <= {"dmd_jax.graph", "dmd_jax.mesh"}, (low, graph[low])
+        assert graph[low] <= {"dmd_jax.graph", "dmd_jax.mesh", "dmd_jax.topology"}, (
+            low,
+            graph[low],
+        )
+
+
+def test_topology_is_the_bottom_layer():
+    """Edges, adjacency and boundary: NumPy/SciPy only, no other `dmd_jax` module."""
+    assert not import_graph()["dmd_jax.topology"]
+
+
+def private_baseline_uses(name: str, path: Path) -> list[str]:
+    """Where module `name` reaches into `dmd_jax.baselines`' private names.
+
+    Counted: importing a module of `dmd_jax.baselines` whose dotted path has a part with a
+    leading underscore (`baselines._common`), importing a leading-underscore name from
+    any of them, and reading `alias._name` off a name bound to one of them.
+    """
+    is_package = path.name == "__init__.py"
+    found, aliases = [], set()
+
+    def private(dotted: str) -> bool:
+        return any(part.startswith("_") for part in dotted.split("."))
+
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            for a in node.names:
+                if a.name.startswith("dmd_jax.baselines"):
+                    if private(a.name):
+                        found.append(f"import {a.name}")
+                    aliases.add(a.asname or a.name)
+        elif isinstance(node, ast.ImportFrom):
+            module = node.module or ""
+            if node.level:
+                base = name.split(".")
+                base = base[: len(base) - node.level + (1 if is_package else 0)]
+                module = ".".join(base + ([node.module] if node.module else []))
+            for a in node.names:
+                target = f"{module}.{a.name}"
+                if not target.startswith("dmd_jax.baselines"):
+                    continue
+                if private(target):
+                    found.append(f"from {module} import {a.name}")
+                aliases.add(a.asname or a.name)
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if (
+            isinstance(node, ast.Attribute)
+            and node.attr.startswith("_")
+            and not node.attr.startswith("__")
+            and isinstance(node.value, ast.Name)
+            and node.value.id in aliases
+        ):
+            found.append(f"{node.value.id}.{node.attr}")
+    return found
+
+
+def test_private_baseline_uses_are_seen(tmp_path):
+    code = (
+        "from dmd_jax.baselines._common import umbrella_weights\n"
+        "from dmd_jax.baselines import _ALL, laplacian\n"
+        "import dmd_jax.baselines._common as c\n"
+        "from dmd_jax import baselines\n"
+        "baselines._ALL, baselines.REGISTRY, laplacian.__name__\n"
+    )
+    path = tmp_path / "m.py"
+    path.write_text(code)
+    found = private_baseline_uses("dmd_jax.m", path)
+    assert found == [
+        "from dmd_jax.baselines._common import umbrella_weights",
+        "from dmd_jax.baselines import _ALL",
+        "import dmd_jax.baselines._common",
+        "baselines._ALL",
+    ], found
+
+
+def test_core_modules_use_no_private_name_of_the_baselines():
+    """The shipped denoiser never depends on the comparison methods' internals: what
+    both need (topology, geometry) lives below them."""
+    bad = {
+        name: uses
+        for name, path in module_names().items()
+        if not (name == "dmd_jax.baselines" or name.startswith("dmd_jax.baselines."))
+        and (uses := private_baseline_uses(name, path))
+    }
+    assert not bad, bad
 
 
 def test_public_names_resolve_and_are_listed():

@@ -1,6 +1,6 @@
 """Shared pieces of the classic denoisers: host-side neighbourhoods and JAX kernels.
 
-Neighbourhoods are index arrays built once per mesh in NumPy/SciPy (sparse products,
+Neighbourhoods are index arrays built once per mesh by `dmd_jax.topology` (NumPy/SciPy,
 no Python loops over elements); the filters themselves are gathers plus
 `jax.ops.segment_*` reductions inside `jax.jit`. Every public filter runs in the
 mesh's canonical frame (centre and longest bounding-box side 1) and maps the result
@@ -17,14 +17,12 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
-import scipy.sparse as sp
 
 from dmd_jax.geometry import (  # noqa: F401  (re-exported for the baselines)
     face_centroids,
     fit_vertices_to_normals,
     safe_norm,
 )
-from dmd_jax.graph import face_adjacency
 from dmd_jax.mesh import canonical_frame, validate_mesh
 
 # How many times each jitted core has been traced; tests read it to check that a
@@ -88,108 +86,6 @@ def check_count(name: str, **values) -> None:
 def float_dtype():
     """float64 when 64-bit JAX is enabled, else float32."""
     return jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
-
-
-# --------------------------------------------------------------------------------------
-# Host-side neighbourhoods
-# --------------------------------------------------------------------------------------
-
-
-def _i32(x) -> np.ndarray:
-    return np.ascontiguousarray(x, dtype=np.int32)
-
-
-def edge_face_counts(faces: np.ndarray, n_vertex: int) -> tuple[np.ndarray, ...]:
-    """Unique undirected edges `(a, b)` with `a < b` and the number of faces on each."""
-    f = np.asarray(faces, dtype=np.int64)
-    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-    key, count = np.unique(e[:, 0] * n_vertex + e[:, 1], return_counts=True)
-    a, b = np.divmod(key, n_vertex)
-    return a, b, count
-
-
-def umbrella_weights(faces: np.ndarray, n_vertex: int) -> tuple[np.ndarray, ...]:
-    """Weights of the uniform umbrella operator with VCG/MeshLab's boundary rule.
-
-    An interior vertex averages its 1-ring neighbours (each edge weighted by its number
-    of faces, i.e. uniformly on a manifold). A vertex on a boundary edge averages
-    itself and its neighbours along boundary edges only, so open boundaries are
-    smoothed as curves instead of shrinking into the surface. This is
-    `vcg::tri::Smooth::AccumulateLaplacianInfo`, which pymeshlab's Taubin and
-    Laplacian filters use.
-
-    Returns:
-      `(senders [m], receivers [m], weight [m], self_weight [n_vertex])`: the average
-      at `v` is `(self_weight[v] x_v + Σ weight x_s) / (self_weight[v] + Σ weight)`.
-    """
-    a, b, count = edge_face_counts(faces, n_vertex)
-    boundary_edge = count == 1
-    on_boundary = np.zeros(n_vertex, bool)
-    on_boundary[a[boundary_edge]] = True
-    on_boundary[b[boundary_edge]] = True
-    senders = np.concatenate([a, b])
-    receivers = np.concatenate([b, a])
-    c = np.concatenate([count, count]).astype(np.float64)
-    be = np.concatenate([boundary_edge, boundary_edge])
-    weight = np.where(on_boundary[receivers], be.astype(np.float64), c)
-    keep = weight > 0
-    order = np.argsort(receivers[keep], kind="stable")
-    return (
-        _i32(senders[keep][order]),
-        _i32(receivers[keep][order]),
-        weight[keep][order],
-        on_boundary.astype(np.float64),
-    )
-
-
-def vertex_face_incidence(faces: np.ndarray, n_vertex: int) -> sp.csr_matrix:
-    """Sparse `[n_face, n_vertex]` 0/1 incidence matrix."""
-    f = np.asarray(faces, dtype=np.int64)
-    n_face = f.shape[0]
-    rows = np.repeat(np.arange(n_face), 3)
-    return sp.csr_matrix((np.ones(3 * n_face), (rows, f.ravel())), shape=(n_face, n_vertex))
-
-
-def face_ring_pairs(
-    faces: np.ndarray, n_vertex: int, *, include_self: bool = True
-) -> tuple[np.ndarray, np.ndarray]:
-    """Pairs `(i, j)` of faces sharing at least one vertex, sorted by `i`.
-
-    This is the vertex-based 1-ring face neighbourhood that Sun et al. (2007), Zheng et
-    al. (2011) and Zhang et al. (2015) filter over.
-
-    Returns:
-      `(receivers, senders)` int32: face `i = receivers[k]` gathers from `senders[k]`.
-    """
-    inc = vertex_face_incidence(faces, n_vertex)
-    ring = (inc @ inc.T).tocoo()
-    i, j = ring.row.astype(np.int64), ring.col.astype(np.int64)
-    if not include_self:
-        keep = i != j
-        i, j = i[keep], j[keep]
-    order = np.lexsort((j, i))
-    return _i32(i[order]), _i32(j[order])
-
-
-def dual_edges(faces: np.ndarray, n_vertex: int) -> tuple[np.ndarray, np.ndarray]:
-    """Pairs of faces sharing an edge, each unordered pair once."""
-    fa, fb = face_adjacency(faces, n_vertex)
-    return _i32(fa), _i32(fb)
-
-
-def vertex_corner_arrays(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """`(vertex [3 f], face [3 f])` of every corner, for vertex-from-face segment sums."""
-    f = np.asarray(faces)
-    return _i32(f.ravel()), _i32(np.repeat(np.arange(f.shape[0]), 3))
-
-
-def boundary_vertex_mask(faces: np.ndarray, n_vertex: int) -> np.ndarray:
-    """`[n_vertex]` bool, `True` on vertices of edges that belong to one face only."""
-    a, b, count = edge_face_counts(faces, n_vertex)
-    mask = np.zeros(n_vertex, bool)
-    mask[a[count == 1]] = True
-    mask[b[count == 1]] = True
-    return mask
 
 
 # --------------------------------------------------------------------------------------

@@ -36,7 +36,8 @@ from dmd_jax.baselines._common import (
     run_in_canonical_frame,
 )
 from dmd_jax.geometry import vertex_normals
-from dmd_jax.graph import bucket_size, vertex_edges
+from dmd_jax.graph import bucket_size
+from dmd_jax.topology import vertex_edges
 
 
 @jax.jit

@@ -63,18 +63,16 @@ import optax
 
 from dmd_jax.baselines._common import (
     count_trace,
-    dual_edges,
     face_centroids,
-    face_ring_pairs,
     fit_vertices_to_normals,
     float_dtype,
     run_in_canonical_frame,
-    vertex_corner_arrays,
 )
 from dmd_jax.checkpoints import read_weights_file, write_weights_file
 from dmd_jax.geometry import face_areas, face_normals, safe_norm, safe_normalize
 from dmd_jax.graph import bucket_size
 from dmd_jax.mesh import canonical_frame, validate_mesh
+from dmd_jax.topology import dual_edges, face_ring_pairs, vertex_corner_arrays
 
 WEIGHTS_FORMAT = "dmd_jax-cnr-weights"
 WEIGHTS_VERSION = 1

@@ -21,23 +21,28 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from dmd_jax.baselines._common import (
-    _i32,
-    boundary_vertex_mask,
     check_count,
     check_positive,
     count_trace,
-    dual_edges,
     face_centroids,
-    face_ring_pairs,
     fit_vertices_to_normals,
     float_dtype,
     gaussian,
     mean_adjacent_centroid_distance,
     run_in_canonical_frame,
-    vertex_corner_arrays,
     weighted_normal_average,
 )
 from dmd_jax.geometry import face_areas, face_normals, safe_norm, safe_normalize
+from dmd_jax.topology import (
+    boundary_vertex_mask,
+    dual_edges,
+    face_ring_pairs,
+    vertex_corner_arrays,
+)
+
+
+def _i32(x) -> np.ndarray:
+    return np.ascontiguousarray(x, dtype=np.int32)
 
 
 def _sq(x):

@@ -22,8 +22,8 @@ from dmd_jax.baselines._common import (
     count_trace,
     float_dtype,
     run_in_canonical_frame,
-    umbrella_weights,
 )
+from dmd_jax.topology import umbrella_weights
 
 
 def _umbrella_average(x, senders, receivers, weight, self_weight):

@@ -20,11 +20,10 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
-import scipy.sparse as sp
 from scipy.sparse.csgraph import breadth_first_order
 
-from dmd_jax.graph import face_adjacency
 from dmd_jax.io import load_mesh
+from dmd_jax.topology import face_adjacency_matrix
 
 VALIDATION_FRACTION = 0.15
 MESH_SUFFIXES = (".ply", ".obj", ".off", ".stl")
@@ -76,14 +75,6 @@ def connected_patch(
     face_ids = np.asarray(order[:max_faces])
     vertex_ids = np.unique(faces[face_ids].ravel())
     return face_ids, vertex_ids
-
-
-def face_adjacency_matrix(faces: np.ndarray, n_vertex: int) -> sp.csr_matrix:
-    """Sparse symmetric `[n_face, n_face]` adjacency of faces sharing an edge."""
-    a, b = face_adjacency(np.asarray(faces), n_vertex)
-    n = faces.shape[0]
-    data = np.ones(2 * len(a), np.int8)
-    return sp.csr_matrix((data, (np.concatenate([a, b]), np.concatenate([b, a]))), shape=(n, n))
 
 
 def mesh_patches(
