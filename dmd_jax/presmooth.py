@@ -57,14 +57,20 @@ def _edge_pairs(faces: np.ndarray, n_vertex: int) -> tuple[np.ndarray, np.ndarra
     keys, owners = [], []
     for lo_face in range(0, m, _CHUNK_FACES):
         f = faces[lo_face : lo_face + _CHUNK_FACES]
-        # `edge_keys` lists a chunk's edges slot by slot, so entry k is face k % chunk's.
+        # `edge_keys` lists a chunk's edges slot by slot: entry k is the chunk's face
+        # k % len(f). The hash is mixed in place to keep the temporaries to two arrays.
         key = edge_keys(f, n_vertex)
-        face = np.tile(np.arange(lo_face, lo_face + f.shape[0], dtype=np.int64), 3)
         if stride > 1:
+            mixed = key.astype(np.uint64)
             with np.errstate(over="ignore"):
-                mixed = (key.astype(np.uint64) * _HASH) >> np.uint64(32)
-            keep = mixed % np.uint64(stride) == 0
-            key, face = key[keep], face[keep]
+                mixed *= _HASH
+            mixed >>= np.uint64(32)
+            mixed %= np.uint64(stride)
+            keep = np.flatnonzero(mixed == 0)
+            del mixed
+            key, face = key[keep], lo_face + keep % f.shape[0]
+        else:
+            face = np.tile(np.arange(lo_face, lo_face + f.shape[0], dtype=np.int64), 3)
         keys.append(key)
         owners.append(face)
     key, owner = np.concatenate(keys), np.concatenate(owners)
