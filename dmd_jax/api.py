@@ -95,13 +95,14 @@ def add_noise(
 
 
 def denoise_with(
-    method: str, vertices, faces, *, weights=None, iterations: int | None = None, **params
+    method: str, vertices, faces=None, *, weights=None, iterations: int | None = None, **params
 ) -> np.ndarray:
     """Denoises with DMD-Net or any baseline of `dmd_jax.baselines`, one call for all.
 
     Args:
       method: `"dmd"` (the network) or a name of `METHODS` (`taubin`, `bnf`, `cnr`, ...).
-      vertices: `[n_vertex, 3]` noisy positions, in any frame.
+      vertices: `[n_vertex, 3]` noisy positions, in any frame, or a mesh object with
+        `.vertices` and `.faces` (a `trimesh.Trimesh`) standing for both.
       faces: `[n_face, 3]` vertex indices.
       weights: DMD-Net or CNR weights: None for the bundled ones, a weights file, a
         checkpoint directory (DMD-Net), or a loaded `ModelBundle`. Classic filters have
@@ -110,7 +111,8 @@ def denoise_with(
         None (default): one for a classic filter, the model's own policy for DMD-Net
         (`dmd_jax.inference.denoise`).
       **params: parameters of a baseline (`dmd_jax.baselines.DEFAULTS[method]`), or
-        `aggregation` for DMD-Net (`dmd_jax.inference.denoise`).
+        keywords of `dmd_jax.inference.denoise` for DMD-Net (`aggregation`, `policy`,
+        `presmooth`, `relax`, `max_memory`, `return_info`, ...).
 
     Returns:
       `[n_vertex, 3]` NumPy array in the input frame and vertex order: float32 for
@@ -119,6 +121,13 @@ def denoise_with(
     Raises:
       ValueError: unknown method or parameter, weights for a classic filter, bad mesh.
     """
+    if faces is None and hasattr(vertices, "vertices") and hasattr(vertices, "faces"):
+        vertices, faces = vertices.vertices, vertices.faces  # a trimesh.Trimesh
+    if faces is None:
+        raise TypeError(
+            "denoise_with needs faces: pass denoise_with(method, vertices, faces) or a mesh "
+            "object with .vertices and .faces (e.g. a trimesh.Trimesh)"
+        )
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; choose one of: {', '.join(METHODS)}")
     if iterations is not None and (
@@ -132,6 +141,9 @@ def denoise_with(
 
         bundle = weights if isinstance(weights, ModelBundle) else load_model(weights)
         out = denoise(vertices, faces, bundle, iterations=iterations, **params)
+        if params.get("return_info"):
+            out, info = out
+            return np.asarray(out).astype(dtype, copy=False), info
         return np.asarray(out).astype(dtype, copy=False)
     from dmd_jax import baselines
 

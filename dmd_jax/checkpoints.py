@@ -6,7 +6,10 @@ Two stores, one way in:
   tag, a version, the config that built the params, provenance and the params. DMD-Net's
   (`save_weights` / `load_weights`) and CNR's share the container
   (`write_weights_file` / `read_weights_file`); the bundled `small` model ships in
-  `dmd_jax/weights/` and is read by `load_pretrained()`.
+  `dmd_jax/weights/` and is read by `load_pretrained()`. DMD-Net's version 2 adds a
+  `policy` section (`dmd_jax.policy.DenoisePolicy`: how `denoise` uses the network);
+  version 1 files, whose rules were `ModelConfig` fields, still load, their rules moved
+  into the policy.
 * a training checkpoint: an Orbax `CheckpointManager` directory written during
   training (`checkpoint_managers`, `save_checkpoint`, `restore_checkpoint`); its newest
   params and config come back from `load_params`.
@@ -30,27 +33,42 @@ import numpy as np
 from dmd_jax.config import ExperimentConfig
 from dmd_jax.graph import build_mesh_graph, pad_mesh_graph, padded_sizes_for
 from dmd_jax.io import atomic_write
+from dmd_jax.policy import DenoisePolicy, from_legacy_model_fields
 
 WEIGHTS_FORMAT = "dmd_jax-weights"
-WEIGHTS_VERSION = 1
+# 2: a `policy` section beside the config (2026-12-02). 1: the rules inside the model config.
+WEIGHTS_VERSION = 2
+READABLE_WEIGHTS_VERSIONS = (1, 2)
 PRETRAINED_NAME = "dmd_small.msgpack"
 
 
 class ModelBundle(NamedTuple):
-    """Trained params with the config that built them and where they came from."""
+    """Trained params with the config that built them, where they came from, and the
+    policy `denoise` runs them with (the default policy for a training checkpoint:
+    one pass, no pre-smoothing, no relaxation)."""
 
     params: Any
     config: ExperimentConfig
     meta: dict
+    policy: DenoisePolicy = DenoisePolicy()
 
 
 def write_weights_file(
-    path, *, fmt: str, version: int, config: dict, meta: dict, params, overwrite: bool = False
+    path,
+    *,
+    fmt: str,
+    version: int,
+    config: dict,
+    meta: dict,
+    params,
+    overwrite: bool = False,
+    sections: dict | None = None,
 ) -> Path:
     """Writes one msgpack weights file (format tag, version, config, meta, params), atomically.
 
     The container of every weights file of this project (DMD-Net's and CNR's); `fmt`
-    tells them apart and `read_weights_file` checks it.
+    tells them apart and `read_weights_file` checks it. `sections` adds further named
+    JSON sections (DMD-Net's `policy`).
     """
     from flax import serialization
 
@@ -59,6 +77,7 @@ def write_weights_file(
         "version": version,
         "config": json.dumps(config),
         "meta": json.dumps(meta),
+        **{name: json.dumps(value) for name, value in (sections or {}).items()},
         "params": serialization.to_state_dict(jax.device_get(params)),
     }
     data = serialization.msgpack_serialize(payload)
@@ -84,6 +103,28 @@ def read_weights_file(path, *, fmt: str, version: int, kind: str, parse_config):
       ValueError: a truncated or corrupt file, another format or version, a missing
         field, or an unreadable config or meta.
     """
+    payload = read_weights_payload(path, fmt=fmt, versions=(version,), kind=kind)
+    config = _parse_section(path, payload, "config", parse_config)
+    meta = _parse_section(path, payload, "meta", lambda d: d)
+    return config, meta, payload["params"]
+
+
+def _parse_section(path, payload: dict, name: str, parse):
+    """`parse(json.loads(payload[name]))`, any failure a `ValueError` naming the file."""
+    try:
+        return parse(json.loads(payload[name]))
+    except (TypeError, ValueError) as exc:  # JSONDecodeError is a ValueError
+        raise ValueError(f"{path}: unreadable {name} in the weights file ({exc})") from exc
+
+
+def read_weights_payload(path, *, fmt: str, versions: tuple[int, ...], kind: str) -> dict:
+    """The raw payload of a weights file: format tag and version checked, sections
+    `config`, `meta` and `params` present (JSON sections still as text).
+
+    Raises:
+      FileNotFoundError: no such file.
+      ValueError: a truncated or corrupt file, another format or version, a missing field.
+    """
     from flax import serialization
 
     path = Path(path)
@@ -97,26 +138,38 @@ def read_weights_file(path, *, fmt: str, version: int, kind: str, parse_config):
         ) from exc
     if not isinstance(payload, dict) or payload.get("format") != fmt:
         raise ValueError(f"{path}: not a {kind} weights file")
-    if payload.get("version") != version:
+    if payload.get("version") not in versions:
+        readable = " or ".join(str(v) for v in versions)
         raise ValueError(
-            f"{path}: weights format version {payload.get('version')} is not supported "
-            f"(this dmd_jax reads version {version})"
+            f"{path}: weights format version {payload.get('version')!r} is not supported "
+            f"(this dmd_jax reads version {readable})"
         )
     missing = [k for k in ("config", "meta", "params") if k not in payload]
     if missing:
         raise ValueError(f"{path}: incomplete weights file (no {', '.join(missing)})")
-    try:
-        config = parse_config(json.loads(payload["config"]))
-        meta = json.loads(payload["meta"])
-    except (TypeError, ValueError) as exc:  # JSONDecodeError is a ValueError
-        raise ValueError(f"{path}: unreadable config or meta in the weights file ({exc})") from exc
-    return config, meta, payload["params"]
+    return payload
 
 
 def save_weights(
-    path, params, config: ExperimentConfig, meta: dict | None = None, *, overwrite: bool = False
+    path,
+    params,
+    config: ExperimentConfig,
+    meta: dict | None = None,
+    *,
+    policy: DenoisePolicy | None = None,
+    overwrite: bool = False,
 ) -> Path:
-    """Writes params + config + meta to one msgpack file, atomically."""
+    """Writes params + config + policy + meta to one msgpack file (version 2), atomically.
+
+    Args:
+      path: the file to write.
+      params: the model's params.
+      config: the config that built them.
+      meta: provenance (JSON types).
+      policy: how `denoise` runs them; None stores the default policy.
+      overwrite: replace an existing file.
+    """
+    policy = DenoisePolicy() if policy is None else policy
     return write_weights_file(
         path,
         fmt=WEIGHTS_FORMAT,
@@ -125,27 +178,48 @@ def save_weights(
         meta=meta or {},
         params=params,
         overwrite=overwrite,
+        sections={"policy": policy.to_dict()},
     )
+
+
+def _config_and_policy(stored: dict, version: int) -> tuple[ExperimentConfig, dict | None]:
+    """The config of a stored dict, and for version 1 the policy its model fields held."""
+    if version != 1 or not isinstance(stored, dict) or not isinstance(stored.get("model"), dict):
+        return ExperimentConfig.from_dict(stored), None
+    model, policy = from_legacy_model_fields(stored["model"])
+    return ExperimentConfig.from_dict({**stored, "model": model}), policy.to_dict()
 
 
 def load_weights(path) -> ModelBundle:
     """Reads a weights file written by `save_weights`, checking format, version and config.
 
+    Version 1 files (before the policy had its own section) load with the policy their
+    model config held (`policy.from_legacy_model_fields`).
+
     Raises:
       ValueError: not a dmd_jax weights file, another format version, a truncated file,
-        or params whose structure or shapes do not match the stored config.
+        an unreadable config, policy or meta, or params whose structure or shapes do not
+        match the stored config.
     """
-    config, meta, params = read_weights_file(
-        path,
-        fmt=WEIGHTS_FORMAT,
-        version=WEIGHTS_VERSION,
-        kind="dmd_jax",
-        parse_config=ExperimentConfig.from_dict,
+    payload = read_weights_payload(
+        path, fmt=WEIGHTS_FORMAT, versions=READABLE_WEIGHTS_VERSIONS, kind="dmd_jax"
     )
+    version = payload["version"]
+    config, legacy = _parse_section(
+        path, payload, "config", lambda d: _config_and_policy(d, version)
+    )
+    if version == 1:
+        policy = DenoisePolicy.from_dict(legacy) if legacy else DenoisePolicy()
+    elif "policy" not in payload:
+        raise ValueError(f"{path}: incomplete weights file (no policy)")
+    else:
+        policy = _parse_section(path, payload, "policy", DenoisePolicy.from_dict)
+    meta = _parse_section(path, payload, "meta", lambda d: d)
+    params = payload["params"]
     if not isinstance(params, dict):
         raise ValueError(f"{path}: params must be a nested dict of arrays")
     check_params(params, config, str(path))
-    return ModelBundle(params=params, config=config, meta=meta)
+    return ModelBundle(params=params, config=config, meta=meta, policy=policy)
 
 
 @lru_cache(maxsize=8)
@@ -248,8 +322,13 @@ def load_pretrained() -> ModelBundle:
     return load_weights(path)
 
 
-def as_bundle(params, config: ExperimentConfig | None = None) -> ModelBundle:
-    """Accepts a `ModelBundle`, a path for `load_model`, or raw params plus `config`."""
+def as_bundle(params=None, config: ExperimentConfig | None = None) -> ModelBundle:
+    """Accepts a `ModelBundle`, a path for `load_model`, raw params plus `config`, or
+    None for the bundled model."""
+    if params is None:
+        if config is not None:
+            raise ValueError("config=... needs the raw params it describes")
+        return load_pretrained()
     if isinstance(params, ModelBundle):
         return params
     if isinstance(params, (str, Path)):

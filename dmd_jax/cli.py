@@ -126,6 +126,17 @@ def _cmd_info(args: argparse.Namespace) -> int:
             print("  (the paper says about 30 M; dmd_jax.config explains the difference)")
     elif getattr(args, "variant", None) is not None:
         raise ValueError("--variant needs --preset")
+    if getattr(args, "weights", None) is not None:
+        from dmd_jax.checkpoints import load_model
+        from dmd_jax.model import param_count
+
+        bundle = load_model(None if args.weights == "bundled" else args.weights)
+        model = bundle.config.model
+        print(
+            f"weights {args.weights}: preset {bundle.config.name}, width {model.width}, "
+            f"{param_count(model):,d} parameters, encoding {model.encoding}, head {model.head}"
+        )
+        print("  policy: " + ", ".join(f"{k} {v}" for k, v in bundle.policy.to_dict().items()))
     return 0
 
 
@@ -189,10 +200,10 @@ def _cmd_denoise(args: argparse.Namespace) -> int:
     if args.max_memory is not None:
         if args.method != "dmd":
             raise ValueError("--max-memory is for --method dmd (the network)")
-        from dmd_jax.inference import parse_memory
+        from dmd_jax.memory_plan import parse_memory
 
         extra["max_memory"] = parse_memory(args.max_memory)
-    if args.relax:
+    if args.relax is not None:
         if args.method != "dmd":
             raise ValueError("--relax is for --method dmd (the network)")
         if args.relax < 0:
@@ -215,23 +226,27 @@ def _cmd_denoise(args: argparse.Namespace) -> int:
         vertices, faces = _load_input(src)
         if len(pairs) == 1:
             _check_output(dst, src, args.overwrite)
-        info = {}
-        if args.method == "dmd":
-            extra["info"] = info
         t0 = time.perf_counter()
         # One call for the network and every baseline, as in Python (dmd_jax.denoise_with).
         out = denoise_with(
-            args.method, vertices, faces, weights=weights, iterations=args.iterations, **extra
+            args.method,
+            vertices,
+            faces,
+            weights=weights,
+            iterations=args.iterations,
+            **({"return_info": True} if args.method == "dmd" else {}),
+            **extra,
         )
+        out, info = out if args.method == "dmd" else (out, None)
         elapsed = time.perf_counter() - t0
         save_mesh(dst, out, faces, overwrite=args.overwrite, protect=[src])
         how = ""
-        if info.get("presmooth_steps"):
-            how = f" after {info['presmooth_steps']} Laplacian steps"
-        if info.get("passes", 1) > 1:
-            how += f" ({info['passes']} passes)"
-        if info.get("path") == "patches":
-            how += f" in {info['patches']} patches of {info['patch_size']:,} vertices"
+        if info is not None and info.presmooth_steps:
+            how = f" after {info.presmooth_steps} Laplacian steps"
+        if info is not None and info.passes > 1:
+            how += f" ({info.passes} passes)"
+        if info is not None and info.path == "patches":
+            how += f" in {info.patches} patches of {info.patch_size:,} vertices"
         print(
             f"denoised {src} ({len(vertices)} vertices, {len(faces)} faces) with "
             f"{args.method}{how} in {elapsed:.2f} s -> {dst}"
@@ -285,8 +300,54 @@ def _cmd_add_noise(args: argparse.Namespace) -> int:
     return 0
 
 
+def _in_gt_order(v, f, gt_v, gt_f, path, gt_path):
+    """The vertices of `path` in the ground truth's vertex order, or a clear error.
+
+    The metrics compare vertex i with vertex i. A mesh with the ground truth's faces is
+    taken as it is; one with the same number of faces but another vertex numbering (an
+    STL output, which renumbers its vertices, or a mesh reordered by another tool) is
+    matched through its faces, corner by corner, or else through identical positions,
+    with a note; anything else is refused, naming what differs.
+    """
+    import numpy as np
+
+    if v.shape == gt_v.shape and f.shape == gt_f.shape and (f == gt_f).all():
+        return v
+    counts = f"{len(v)} vs {len(gt_v)} vertices, {len(f)} vs {len(gt_f)} faces"
+    if f.shape == gt_f.shape and len(v) == len(gt_v):
+        # Faces in the same order, vertices renumbered: face i corner j is the same
+        # point in both, so the faces themselves give the vertex map.
+        perm = np.full(len(gt_v), -1, np.int64)
+        perm[gt_f.ravel()] = f.ravel()
+        if (perm[gt_f] == f).all() and (np.sort(perm) == np.arange(len(v))).all():
+            _note(f"{path}: vertices matched to {gt_path} through the faces (another vertex order)")
+            return v[perm]
+        # Or the very same points, listed in another order (and faces with them).
+        order_v, order_gt = np.lexsort(v.T[::-1]), np.lexsort(gt_v.T[::-1])
+        if (v[order_v] == gt_v[order_gt]).all() and len(np.unique(v, axis=0)) == len(v):
+            perm = np.empty(len(v), np.int64)
+            perm[order_gt] = order_v
+            inverse = np.argsort(perm)
+            ours = np.sort(np.sort(inverse[f], axis=1), axis=0)
+            theirs = np.sort(np.sort(gt_f, axis=1), axis=0)
+            if (np.unique(ours, axis=0).shape == np.unique(theirs, axis=0).shape) and (
+                np.unique(ours, axis=0) == np.unique(theirs, axis=0)
+            ).all():
+                _note(f"{path}: vertices matched to {gt_path} by position (another order)")
+                return v[perm]
+        raise ValueError(
+            f"{path}: the counts match {gt_path} ({counts}) but the vertex order does not "
+            "(an STL output renumbers vertices; evaluate the OBJ, OFF or PLY output, "
+            "which keeps the input's order)"
+        )
+    raise ValueError(
+        f"{path}: vertex/face correspondence with {gt_path} is required ({counts})"
+    )
+
+
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     import json
+    import math
 
     from dmd_jax.metrics import mesh_metrics, metrics_table
 
@@ -294,15 +355,23 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     rows = []
     for path in args.mesh:
         v, f = _load_input(path)
-        if v.shape != gt_v.shape or f.shape != gt_f.shape or (f != gt_f).any():
-            raise ValueError(
-                f"{path}: vertex/face correspondence with {args.gt} is required "
-                f"({len(v)} vs {len(gt_v)} vertices, {len(f)} vs {len(gt_f)} faces)"
-            )
+        v = _in_gt_order(v, f, gt_v, gt_f, path, args.gt)
         m = mesh_metrics(v, gt_v, gt_f)
+        if math.isnan(m["normal_deg"]):
+            raise ValueError(
+                f"{args.gt}: no face of the ground truth has a non-zero area, so the normal "
+                "error is undefined (a degenerate mesh cannot be a ground truth)"
+            )
+        bad = [k for k, x in m.items() if not math.isfinite(x)]
+        if bad:
+            raise ValueError(
+                f"{path}: its {bad[0]} error overflows float64 (the mesh lies astronomically "
+                f"far from {args.gt}: another unit or a corrupt file?)"
+            )
         rows.append({"mesh": str(path), **{k: float(x) for k, x in m.items()}})
     if args.json:
-        print(json.dumps(rows, indent=2))
+        # allow_nan=False: never the non-JSON `Infinity`/`NaN` (refused above).
+        print(json.dumps(rows, indent=2, allow_nan=False))
     else:
         print(metrics_table({r["mesh"]: r for r in rows}, style="text"), end="")
     return 0
@@ -391,14 +460,20 @@ def _cmd_render(args: argparse.Namespace) -> int:
 def _cmd_make_dataset(args: argparse.Namespace) -> int:
     import time
 
-    from dmd_jax.data import DEFAULT_TEST_INTER, convert_folder, make_dataset
+    from dmd_jax.data.dataset import build_dataset
 
     def names(text):
         # None: the option was not given; "" gives (): e.g. --test-inter "" holds out nothing.
         return None if text is None else tuple(x.strip() for x in text.split(",") if x.strip())
 
     start = time.perf_counter()
-    common = dict(
+    ds = build_dataset(
+        args.out,
+        from_folder=args.from_folder,
+        per_category=args.per_category,
+        categories=names(args.categories),
+        test_inter=names(args.test_inter),
+        remesh=args.remesh,
         seed=args.seed,
         intra_fraction=args.intra_fraction,
         workers=args.workers,
@@ -407,29 +482,6 @@ def _cmd_make_dataset(args: argparse.Namespace) -> int:
         progress=not args.no_progress,
         overwrite=args.overwrite,
     )
-    if args.from_folder:
-        if args.per_category is not None or args.categories:
-            raise ValueError(
-                "--per-category and --categories apply to procedural data, not --from-folder"
-            )
-        ds = convert_folder(
-            args.from_folder,
-            args.out,
-            test_inter=names(args.test_inter),
-            remesh=args.remesh,
-            **common,
-        )
-    else:
-        if args.per_category is None:
-            raise ValueError("--per-category is required (or give --from-folder)")
-        test_inter = names(args.test_inter)
-        ds = make_dataset(
-            args.out,
-            per_category=args.per_category,
-            categories=names(args.categories) or None,
-            test_inter=DEFAULT_TEST_INTER if test_inter is None else test_inter,
-            **common,
-        )
     counts = ds.counts()
     skipped = len(ds.manifest.get("skipped", []))
     print(
@@ -502,9 +554,26 @@ def _distributed_args(args: argparse.Namespace) -> dict | None:
     }
 
 
+def _train_config(args: argparse.Namespace):
+    """The run's `ExperimentConfig`: the preset, its `--set` edits, then the flags that
+    set config fields (`--data`, and `--eval-meshes`, `--real-meshes`, `--init-from`
+    when given)."""
+    from dmd_jax.config import preset
+
+    cfg = preset(args.preset).with_edits(_parse_edits(args.set or []))
+    data = {"dataset_dir": args.data}
+    if args.eval_meshes is not None:
+        data["eval_meshes_per_split"] = args.eval_meshes
+    if args.real_meshes:
+        data["real_root"] = args.real_meshes
+    edits = {"data": data}
+    if args.init_from is not None:
+        edits["train"] = {"init_from": args.init_from}
+    return cfg.with_edits(edits)
+
+
 def _cmd_train(args: argparse.Namespace) -> int:
     import json
-    import time
 
     import jax
 
@@ -512,117 +581,21 @@ def _cmd_train(args: argparse.Namespace) -> int:
     distributed = _distributed_args(args)
     if distributed is not None:
         jax.distributed.initialize(**distributed)
-    primary = jax.process_index() == 0
 
-    from dmd_jax.config import preset
-    from dmd_jax.data.dataset import load_dataset
-    from dmd_jax.pipeline import make_examples
-    from dmd_jax.train import train
+    from dmd_jax.train import train_and_evaluate
 
-    cfg = preset(args.preset).with_edits(_parse_edits(args.set or []))
-    data = load_dataset(args.data)
-    train_ex = make_examples(data.arrays("train"))
-    evals = {}
-    for split in ("test_intra", "test_inter"):
-        records = data.split(split)[: args.eval_meshes]
-        evals[split] = make_examples([r.load() for r in records])
-    eval_noise = None
-    if args.real_meshes:
-        from dmd_jax.data import real
-        from dmd_jax.pipeline import BENCHMARK_NOISE
-
-        train_ex += make_examples(
-            real.load_real_patches(args.real_meshes, "train", seed=cfg.train.seed)
-        )
-        # One patch per validation mesh, the benchmark's noise (Gaussian along normals).
-        evals["val"] = make_examples(
-            real.load_real_patches(
-                args.real_meshes, "val", max_faces=4000, max_patches=1, seed=cfg.train.seed
-            )
-        )
-        eval_noise = BENCHMARK_NOISE
-    if primary:
-        print(
-            f"training {cfg.name} on {len(train_ex)} meshes from {args.data}; evaluating on "
-            + ", ".join(f"{k}: {len(v)}" for k, v in evals.items())
-            + (f"; data-parallel over {jax.device_count()} devices" if args.data_parallel else "")
-        )
-    init = None
-    if args.init_from:
-        init = _init_params(args.init_from, cfg)
-    pad_to = args.pad
-    if pad_to == "auto":
-        # Short runs spend most of their time compiling (one program per vertex bucket,
-        # ~15 s of CPU each for the test preset on 2 cores): one padded shape for all.
-        pad_to = "largest" if cfg.train.steps <= AUTO_PAD_MAX_STEPS else "bucket"
-    t0 = time.time()
-    result = train(
-        cfg,
-        train_ex,
+    result = train_and_evaluate(
+        _train_config(args),
         args.workdir,
-        eval_sets=evals,
-        progress=primary and not args.no_progress,
-        init_params=init,
+        pad=args.pad,
         data_parallel=args.data_parallel,
-        eval_noise=eval_noise,
-        pad_to=pad_to,
+        progress=not args.no_progress,
         verbose=True,
     )
     result.pop("state", None)
-    result["wall_time_s"] = time.time() - t0
-    if primary:
+    if jax.process_index() == 0:
         print(json.dumps(result, indent=2) if args.json else _train_summary(result))
     return 0
-
-
-def _init_params(path, cfg):
-    """The params a fine-tune starts from: those of a checkpoint or weights file.
-
-    The source's model may differ from `cfg.model` only in settings that hold no
-    parameters (its params must pass `checkpoints.check_params` against `cfg`: the same
-    paths, shapes and dtypes, finite), or by the added `head_consistency` input, whose
-    zero-initialised layer is grafted on.
-
-    Raises:
-      ValueError: the params do not fit `cfg`'s model.
-    """
-    import jax
-
-    from dmd_jax.checkpoints import check_params, graft_params, load_model
-    from dmd_jax.model import init_params
-
-    source = load_model(path)
-    src = source.config.model
-    try:
-        check_params(source.params, cfg, "the source")
-        return source.params
-    except ValueError as exc:
-        problem = f"{exc}; model config differs: {_model_diff(src, cfg.model)}"
-    if cfg.model.head_consistency and not src.head_consistency:
-        # Adding the consistency input to a trained head: its Dense layer starts at
-        # zero, so the run starts from the trained model's outputs.
-        fresh = init_params(cfg.model, jax.random.PRNGKey(cfg.train.seed))
-        try:
-            return graft_params(fresh, source.params)
-        except ValueError as exc:
-            problem = f"{exc}; {problem}"
-    raise ValueError(f"{path}: its parameters do not fit this run's model ({problem})")
-
-
-def _model_diff(a, b) -> str:
-    import dataclasses
-
-    diff = [
-        f"{f.name} {getattr(a, f.name)!r} vs {getattr(b, f.name)!r}"
-        for f in dataclasses.fields(a)
-        if getattr(a, f.name) != getattr(b, f.name)
-    ]
-    return "; ".join(diff) or "same fields"
-
-
-# `dmd-jax train --pad auto` pads every batch to one shape for runs of at most this many
-# steps (the test preset's 40 compile once instead of 5-6 times on a tiny dataset).
-AUTO_PAD_MAX_STEPS = 500
 
 
 def _train_summary(result: dict) -> str:
@@ -648,34 +621,53 @@ def _cmd_export_weights(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from dmd_jax.checkpoints import load_params, load_weights, save_weights
+    from dmd_jax.policy import DenoisePolicy
 
     source = Path(args.checkpoint)
     if source.is_file():
         # A weights file: the same params with a newly fitted inference policy.
         bundle = load_weights(source)
         params, cfg, meta = bundle.params, bundle.config, dict(bundle.meta)
+        policy = bundle.policy
         step = meta.get("step")
         meta["exported_from"] = str(args.checkpoint)
     else:
         params, cfg = load_params(source)
+        policy = DenoisePolicy()
         step = _latest_step(source)
         meta = {"source": str(args.checkpoint), "platform": platform.platform()}
         if step is not None:
             meta["step"] = step
-    if args.pass_tolerance is not None:
-        cfg = cfg.with_edits({"model": {"pass_tolerance": args.pass_tolerance}})
-    if args.presmooth is not None:
-        start, per_step = args.presmooth
-        cfg = cfg.with_edits({"model": {"presmooth_start": start, "presmooth_per_step": per_step}})
+    policy = _edited_policy(policy, args)
     if args.meta:
         meta.update(json.loads(args.meta))
-    path = save_weights(args.output, params, cfg, meta, overwrite=args.overwrite)
+    path = save_weights(args.output, params, cfg, meta, policy=policy, overwrite=args.overwrite)
     print(
         f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB): "
         + (f"step {step}" if step is not None else "the newest step")
         + f" of {args.checkpoint}, preset {cfg.name}"
     )
     return 0
+
+
+def _edited_policy(policy, args: argparse.Namespace):
+    """`policy` with export-weights' --pass-tolerance, --max-passes, --presmooth and
+    --relax-steps applied (a tolerance on a one-pass policy without --max-passes gets
+    `policy.LEGACY_AUTO_MAX_PASSES`, the cap such weights always had)."""
+    from dmd_jax.policy import LEGACY_AUTO_MAX_PASSES
+
+    edits = {}
+    if args.pass_tolerance is not None:
+        edits["pass_tolerance"] = args.pass_tolerance
+        if args.pass_tolerance > 0 and policy.max_passes == 1:
+            edits["max_passes"] = LEGACY_AUTO_MAX_PASSES
+    if args.max_passes is not None:
+        edits["max_passes"] = args.max_passes
+    if args.presmooth is not None:
+        edits["presmooth_start"], edits["presmooth_per_step"] = args.presmooth
+    if args.relax_steps is not None:
+        edits["relax_steps"] = args.relax_steps
+    return policy.with_edits(edits)
 
 
 def _latest_step(checkpoint_dir) -> int | None:
@@ -716,6 +708,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="print the parameter count of a preset's model",
     )
     p.add_argument("--variant", help="structure-ablation variant, e.g. FGT-3 or fgt3")
+    p.add_argument(
+        "--weights",
+        default=None,
+        help="also describe these weights (a file, a checkpoint directory, or 'bundled'): "
+        "the network and the denoising policy stored with it",
+    )
     p.set_defaults(func=_cmd_info)
 
     p = sub.add_parser("denoise", help="denoise mesh files")
@@ -741,9 +739,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--iterations",
         type=int,
         default=None,
-        help="passes of the denoiser (default: 1 for a classic filter; for dmd the model's "
-        "own policy, for the bundled weights a second pass and more only while a pass "
-        "still moves the mesh by over 0.18 mean edges)",
+        help="passes of the denoiser (default: 1 for a classic filter; for dmd the pass rule "
+        "stored with the weights: `dmd-jax info --weights W` shows it)",
     )
     p.add_argument(
         "--max-memory",
@@ -754,19 +751,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--relax",
         type=int,
-        default=0,
+        default=None,
         metavar="STEPS",
         help="steps of crease-preserving tangential relaxation after the network, for "
-        "noise that is not along the normals, e.g. 3 (default: 0, none)",
+        "noise that is not along the normals, e.g. 3 (default: the weights' policy)",
     )
     p.add_argument(
         "--presmooth",
         type=int,
         default=None,
         metavar="STEPS",
-        help="uniform Laplacian steps before the network (default: the model's own rule, "
-        "for the bundled weights none unless the mesh is rougher than light noise makes it, "
-        "up to 20 for noise of several edge lengths; 0: none)",
+        help="uniform Laplacian steps before the network (default: the pre-smoothing rule "
+        "stored with the weights, as many steps as the mesh's roughness asks for; 0: none)",
     )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.set_defaults(func=_cmd_denoise)
@@ -804,7 +800,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_add_noise)
 
     p = sub.add_parser("evaluate", help="vertex / normal / chamfer metrics against a ground truth")
-    p.add_argument("--gt", required=True, help="ground-truth mesh (same vertex order)")
+    p.add_argument(
+        "--gt",
+        required=True,
+        help="ground-truth mesh: the same vertices as each --mesh, in the same order (a "
+        "mesh whose faces match but whose vertices were renumbered, e.g. an STL output, is "
+        "matched through its faces)",
+    )
     p.add_argument("--mesh", required=True, nargs="+", help="meshes to score")
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
     p.set_defaults(func=_cmd_evaluate)
@@ -888,23 +890,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--eval-meshes",
         type=int,
-        default=8,
-        help="meshes of each test split used for periodic evaluation (8 of each: a "
-        "third of the test preset's one-minute run is evaluation)",
+        default=None,
+        help="sets data.eval_meshes_per_split: meshes of each test split used for "
+        "periodic evaluation (default: the config's, 8 of each)",
     )
     p.add_argument(
         "--init-from",
         default=None,
-        help="checkpoint directory or weights file to fine-tune from (the same parameter "
-        "shapes; settings that hold no parameters, such as vertex_iterations, may differ)",
+        help="sets train.init_from: checkpoint directory or weights file to fine-tune from "
+        "(the same parameter shapes; settings that hold no parameters, such as "
+        "vertex_iterations, may differ)",
     )
     p.add_argument(
         "--real-meshes",
         default=None,
         metavar="DIR",
-        help="folder of real meshes (e.g. ../shared/meshes/train): its training split is "
-        "added as connected patches, its fixed validation split (dmd_jax.data.real) is "
-        "evaluated as 'val' with the benchmark noise and picks the best checkpoint",
+        help="sets data.real_root: folder of real meshes (e.g. ../shared/meshes/train): "
+        "its training split is added as connected patches, its fixed validation split "
+        "(dmd_jax.data.real) is evaluated as 'val' with the benchmark noise and picks the "
+        "best checkpoint (patch sizes: data.real_* fields, e.g. --set "
+        "data.real_patch_faces=4000)",
     )
     p.add_argument(
         "--pad",
@@ -912,7 +917,8 @@ def build_parser() -> argparse.ArgumentParser:
         default="auto",
         help="bucket: each batch padded to its own vertex bucket (one compiled program per "
         "bucket, least padding); largest: every batch to the largest the data can form (one "
-        f"program); auto: largest for runs of at most {AUTO_PAD_MAX_STEPS} steps",
+        "program); auto: largest for runs of at most 500 steps "
+        "(dmd_jax.train.AUTO_PAD_MAX_STEPS)",
     )
     p.add_argument(
         "--json", action="store_true", help="print the final evaluation as JSON, not one line"
@@ -947,8 +953,21 @@ def build_parser() -> argparse.ArgumentParser:
         "--pass-tolerance",
         type=float,
         default=None,
-        help="store this ModelConfig.pass_tolerance (denoise's default number of passes; fit "
-        "it on the validation split with benchmarks/pass_tolerance.py)",
+        help="store this pass tolerance in the weights' policy: passes repeat while the last "
+        "moved the mesh by more than it, in mean edges (fit it with `make calibrate`; "
+        "0: every one of --max-passes)",
+    )
+    p.add_argument(
+        "--max-passes",
+        type=int,
+        default=None,
+        help="store this most network passes in the weights' policy",
+    )
+    p.add_argument(
+        "--relax-steps",
+        type=int,
+        default=None,
+        help="store this many tangential relaxation steps in the weights' policy",
     )
     p.add_argument(
         "--presmooth",
@@ -956,9 +975,9 @@ def build_parser() -> argparse.ArgumentParser:
         nargs=2,
         default=None,
         metavar=("START", "PER_STEP"),
-        help="store this pre-smoothing rule (ModelConfig.presmooth_start and "
-        "presmooth_per_step, degrees of roughness; fit it on the validation split with "
-        "benchmarks/presmooth_fit.py; START 0 turns it off)",
+        help="store this pre-smoothing rule in the weights' policy (degrees of roughness: "
+        "round((roughness - START) / PER_STEP) steps; fit it with `make calibrate`; "
+        "START 0 turns it off)",
     )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.set_defaults(func=_cmd_export_weights)

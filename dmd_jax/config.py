@@ -77,6 +77,14 @@ def _check_positive_int(name: str, value: Any, *, minimum: int = 1) -> None:
     )
 
 
+def _check_path(name: str, value: Any) -> None:
+    """None, or a non-empty string (a file or folder named in a config)."""
+    _check(
+        value is None or (isinstance(value, str) and value != ""),
+        f"{name} must be a path or null, got {value!r}",
+    )
+
+
 def _check_finite(name: str, value: Any, *, positive: bool = False) -> None:
     """A finite real number (not a bool), >= 0, or > 0 with `positive`."""
     ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
@@ -274,9 +282,20 @@ def _from_json(value: Any, hint: Any, where: str) -> Any:
 # --------------------------------------------------------------------------------------
 
 
+# ModelConfig fields of configs saved before 2026-12-02 that now live in
+# `dmd_jax.policy.DenoisePolicy` (`policy.from_legacy_model_fields`).
+LEGACY_POLICY_FIELDS = ("pass_tolerance", "presmooth_start", "presmooth_per_step")
+
+
 @struct.dataclass
 class ModelConfig(_ConfigMixin):
     """DMD-Net structure. All fields are static (they decide shapes and code paths).
+
+    Only what defines the network and its parameters: how `denoise` uses a trained
+    network (pre-smoothing, passes, relaxation) is a `dmd_jax.policy.DenoisePolicy`,
+    stored beside the config in a weights file. `vertex_iterations` and
+    `filter_iterations` hold no parameters but are part of the function the network was
+    trained as (training differentiates through them), so they stay here.
 
     Attributes:
       width: hidden width of every two-stream network (paper: 512) and the number of
@@ -332,21 +351,6 @@ class ModelConfig(_ConfigMixin):
         one filter (and `len(encoding.FILTER_SNAPSHOTS)` candidates) each; the filters'
         passes are most of the encoding's cost (about 2.3 ms a pass at 100k faces on 2
         CPU cores), so fewer filters buy speed.
-      pass_tolerance: what `denoise` does by default (`iterations=None`). 0: one pass.
-        Above 0: passes repeat while the last one moved the vertices by more than this
-        on average, in the units of the model's frame (mean edge lengths of the input
-        for the `"local"` encoding), at most `inference.AUTO_MAX_PASSES`. The amount a
-        pass moves the mesh tells how noisy it was: a second pass helps after heavy
-        noise and hurts after light noise. A property of trained weights, fitted on the
-        validation split (`benchmarks/pass_tolerance.py`), not of the architecture.
-      presmooth_start, presmooth_per_step: the heavy-noise pre-smoothing `denoise` runs
-        by default (`presmooth=None`): `round((roughness − presmooth_start) /
-        presmooth_per_step)` uniform Laplacian steps, clipped to
-        `presmooth.MAX_STEPS`, before the network, where the roughness is the noisy
-        mesh's median angle (degrees) between edge-adjacent face normals
-        (`dmd_jax.presmooth`). `presmooth_start` 0 (default): none. Like
-        `pass_tolerance`, a property of trained weights fitted on the validation split
-        (`benchmarks/presmooth_fit.py`).
     """
 
     width: int = _static(64)
@@ -373,9 +377,16 @@ class ModelConfig(_ConfigMixin):
     head_consistency: bool = _static(False)
     taubin_iterations: int = _static(0)
     filter_sigmas: tuple[float, ...] = _static(FILTER_RANGE_SIGMAS)
-    pass_tolerance: float = _static(0.0)
-    presmooth_start: float = _static(0.0)
-    presmooth_per_step: float = _static(5.0)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]):
+        """`_ConfigMixin.from_dict`, dropping the policy fields of configs saved before the
+        policy had its own home (`LEGACY_POLICY_FIELDS`; every such config carries them,
+        most at their defaults). A weights file's non-default values were moved to its
+        policy by `dmd_jax.checkpoints` before this is called."""
+        if isinstance(data, dict):
+            data = {k: v for k, v in data.items() if k not in LEGACY_POLICY_FIELDS}
+        return super().from_dict(data)
 
     def __post_init__(self):
         _check_positive_int("width", self.width)
@@ -412,9 +423,6 @@ class ModelConfig(_ConfigMixin):
             f"filter_sigmas must be a non-empty tuple of positive numbers, "
             f"got {self.filter_sigmas!r}",
         )
-        _check_finite("pass_tolerance", self.pass_tolerance)
-        _check_finite("presmooth_start", self.presmooth_start)
-        _check_finite("presmooth_per_step", self.presmooth_per_step, positive=True)
         _check(
             not self.head_consistency or self.head == "normal",
             "head_consistency needs head='normal' (it describes the candidate normals)",
@@ -528,6 +536,10 @@ class TrainConfig(_ConfigMixin):
       ckpt_keep: checkpoints kept on disk.
       rotate: random rotation augmentation (the paper's route to rotation equivariance).
       seed: seed of parameter init, shuffling and noise.
+      init_from: a checkpoint directory or weights file a fine-tune starts from
+        (`train.init_params_from`: the same parameter shapes, or a grafted
+        `head_consistency` input); the optimizer starts fresh. None: a fresh init. A run
+        that resumes from its own checkpoint ignores it.
     """
 
     lr: float = _static(1e-4)
@@ -549,6 +561,7 @@ class TrainConfig(_ConfigMixin):
     log_every: int = _static(100)
     rotate: bool = _static(True)
     seed: int = _static(0)
+    init_from: str | None = _static(None)
 
     @property
     def learning_rate(self) -> float:
@@ -577,6 +590,7 @@ class TrainConfig(_ConfigMixin):
             _check_positive_int(name, getattr(self, name), minimum=0)
         _check_positive_int("ckpt_keep", self.ckpt_keep)
         _check_positive_int("seed", self.seed, minimum=0)
+        _check_path("init_from", self.init_from)
 
 
 @struct.dataclass
@@ -620,7 +634,11 @@ class NoiseConfig(_ConfigMixin):
 
 @struct.dataclass
 class DataConfig(_ConfigMixin):
-    """Where the training meshes come from and how they are split (all static).
+    """Where the training meshes come from, how they are split, what is evaluated.
+
+    The first group records how a dataset was made (the ablation runs fill it in); the
+    rest is what `train.train_and_evaluate` reads to assemble a run's training and
+    evaluation sets (`dmd_jax.data.training_sets`). All static.
 
     Attributes:
       source: `procedural` (the built-in shape categories) or `folder` (category/*.obj).
@@ -631,6 +649,23 @@ class DataConfig(_ConfigMixin):
       target_vertices: vertex count procedural shapes are remeshed to.
       test_fraction: fraction of each training category's instances kept for test-intra.
       seed: seed of the generator and of the split.
+      dataset_dir: a dataset directory written by `dmd-jax make-dataset`
+        (`data.load_dataset`): training uses its `train` split, evaluation the first
+        meshes of its test splits. None: no dataset (`train_and_evaluate` needs one).
+      eval_meshes_per_split: meshes of each test split (`test_intra`, `test_inter`)
+        evaluated during training, the first of each split; 0: none. (8 of each: a
+        third of the `test` preset's one-minute run is evaluation.)
+      real_root: a folder of real meshes (e.g. `shared/meshes/train`), or None. Its
+        training split (`data.real`) is added to the training set as connected patches;
+        its fixed validation split is evaluated as `val`, picks the best checkpoint, and
+        every evaluation set then uses the benchmark noise (`pipeline.BENCHMARK_NOISE`)
+        instead of the training noise. The patches are drawn with `train.seed`.
+      real_patch_faces: faces of a training patch at most (a smaller mesh stays whole).
+      real_faces_per_patch: a training mesh of `F` faces gives
+        `F // real_faces_per_patch + 1` patches, at most `real_patches_per_mesh`.
+      real_patches_per_mesh: training patches per real mesh at most.
+      real_val_patch_faces: faces of a validation patch at most.
+      real_val_patches_per_mesh: validation patches per real mesh at most.
     """
 
     source: str = _static("procedural")
@@ -641,6 +676,14 @@ class DataConfig(_ConfigMixin):
     target_vertices: int = _static(2000)
     test_fraction: float = _static(0.2)
     seed: int = _static(0)
+    dataset_dir: str | None = _static(None)
+    eval_meshes_per_split: int = _static(8)
+    real_root: str | None = _static(None)
+    real_patch_faces: int = _static(6000)
+    real_faces_per_patch: int = _static(12000)
+    real_patches_per_mesh: int = _static(8)
+    real_val_patch_faces: int = _static(4000)
+    real_val_patches_per_mesh: int = _static(1)
 
     def __post_init__(self):
         _check_choice("data source", self.source, DATA_SOURCES)
@@ -652,6 +695,17 @@ class DataConfig(_ConfigMixin):
         _check_positive_int("target_vertices", self.target_vertices, minimum=4)
         _check(0.0 <= self.test_fraction < 1.0, "test_fraction must lie in [0, 1)")
         _check_positive_int("seed", self.seed, minimum=0)
+        _check_path("dataset_dir", self.dataset_dir)
+        _check_positive_int("eval_meshes_per_split", self.eval_meshes_per_split, minimum=0)
+        _check_path("real_root", self.real_root)
+        for name in (
+            "real_patch_faces",
+            "real_faces_per_patch",
+            "real_patches_per_mesh",
+            "real_val_patch_faces",
+            "real_val_patches_per_mesh",
+        ):
+            _check_positive_int(name, getattr(self, name))
 
 
 @struct.dataclass

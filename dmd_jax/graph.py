@@ -514,6 +514,35 @@ def with_ell_layout(
     )
 
 
+# How inference runs the GCN aggregations (the same operator either way, equal up to
+# float summation order): "ell" through padded neighbour tables, "segment_sum" over the
+# edge lists, as in training, or "auto": the tables, except one padded to more than
+# `AUTO_MAX_FILL` slots per edge (a vertex of very high valence).
+AGGREGATIONS = ("auto", "ell", "segment_sum")
+# `auto` keeps a graph's ELL table while it holds at most this many slots per distinct
+# edge. The shared meshes, padded, need 1.8-2.9 (vertex graph) and 1.2-1.4 (face graph);
+# truck.obj, with a vertex of valence 36, 6.6, where its table still beat the segment sum
+# (benchmarks/README.md). A pole of valence 1000 would need hundreds.
+AUTO_MAX_FILL = 8.0
+
+
+def check_aggregation(aggregation: str) -> None:
+    """Raises `ValueError` unless `aggregation` is one of `AGGREGATIONS`."""
+    if aggregation not in AGGREGATIONS:
+        raise ValueError(
+            f"unknown aggregation {aggregation!r}; choose one of {', '.join(AGGREGATIONS)}"
+        )
+
+
+def with_aggregation_layout(graph: MeshGraph, aggregation: str) -> MeshGraph:
+    """A padded `graph` laid out for `aggregation` (one of `AGGREGATIONS`): ELL tables
+    for `"ell"`, tables within `AUTO_MAX_FILL` for `"auto"`, none for `"segment_sum"`."""
+    check_aggregation(aggregation)
+    if aggregation == "segment_sum":
+        return graph
+    return with_ell_layout(graph, max_fill=AUTO_MAX_FILL if aggregation == "auto" else None)
+
+
 def pad_vertex_array(x: np.ndarray, n_vertex: int, value: float = 0.0) -> np.ndarray:
     """Pads a per-vertex array `[n, ...]` to `[n_vertex, ...]` with `value`."""
     x = np.asarray(x)

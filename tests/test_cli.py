@@ -22,6 +22,7 @@ from dmd_jax import baselines, checkpoints, inference
 from dmd_jax.cli import main
 from dmd_jax.config import preset
 from dmd_jax.io import load_mesh, save_mesh
+from dmd_jax.policy import DenoisePolicy
 from dmd_jax.mesh import mean_edge_length
 from dmd_jax.metrics import mesh_metrics, metrics_legend
 
@@ -697,55 +698,67 @@ def test_export_weights_says_which_step(capsys, tmp_path):
     assert code == 0, err
     assert "step 7" in out and str(ckpt) in out and "preset test" in out
     assert checkpoints.load_weights(tmp_path / "w.msgpack").meta["step"] == 7
-    assert checkpoints.load_weights(tmp_path / "w.msgpack").config.model.pass_tolerance == 0.0
+    assert checkpoints.load_weights(tmp_path / "w.msgpack").policy == DenoisePolicy()
     args = ("export-weights", ckpt, "-o", tmp_path / "t.msgpack", "--pass-tolerance", "0.25")
     code, out, err = run(capsys, *args)
     assert code == 0, err
-    assert checkpoints.load_weights(tmp_path / "t.msgpack").config.model.pass_tolerance == 0.25
+    # A tolerance on a one-pass policy gets the pass cap such weights always had.
+    policy = checkpoints.load_weights(tmp_path / "t.msgpack").policy
+    assert (policy.pass_tolerance, policy.max_passes) == (0.25, 8)
     # A weights file in: the same params and provenance, a new pre-smoothing rule.
     args = ("export-weights", tmp_path / "t.msgpack", "-o", tmp_path / "p.msgpack")
     code, out, err = run(capsys, *args, "--presmooth", "30", "4")
     assert code == 0, err
     before, after = (checkpoints.load_weights(tmp_path / n) for n in ("t.msgpack", "p.msgpack"))
-    model = after.config.model
-    assert (model.presmooth_start, model.presmooth_per_step, model.pass_tolerance) == (30, 4, 0.25)
+    rule = after.policy
+    assert (rule.presmooth_start, rule.presmooth_per_step, rule.pass_tolerance) == (30, 4, 0.25)
+    assert after.config == before.config
+    code, out, err = run(capsys, "info", "--weights", tmp_path / "p.msgpack")
+    assert code == 0 and "pass_tolerance 0.25" in out and "presmooth_start 30.0" in out
+    args = ("export-weights", tmp_path / "p.msgpack", "-o", tmp_path / "r.msgpack")
+    code, _, err = run(capsys, *args, "--max-passes", "3", "--relax-steps", "2")
+    assert code == 0, err
+    rule = checkpoints.load_weights(tmp_path / "r.msgpack").policy
+    assert (rule.max_passes, rule.relax_steps, rule.pass_tolerance) == (3, 2, 0.25)
+    code, _, err = run(capsys, *args, "--overwrite", "--max-passes", "1000")
+    assert code != 0 and "max_passes must be at most 64" in err
     assert after.meta["step"] == 7 and after.meta["exported_from"] == str(tmp_path / "t.msgpack")
     for a, b in zip(jax.tree.leaves(before.params), jax.tree.leaves(after.params), strict=True):
         np.testing.assert_array_equal(a, b)
 
 
 def test_train_init_from_weights_file_or_checkpoint(tmp_path):
-    """`train --init-from` takes a weights file or a checkpoint; settings without
-    parameters (vertex iterations, pass tolerance) may differ, parameter shapes may not."""
+    """`train --init-from` (`train.init_params_from`) takes a weights file or a checkpoint;
+    settings without parameters (vertex iterations, pass tolerance) may differ, parameter
+    shapes may not."""
     import jax.numpy as jnp
 
     from dmd_jax.checkpoints import checkpoint_managers, save_checkpoint, save_weights
-    from dmd_jax.cli import _init_params
-    from dmd_jax.train import TrainState
+    from dmd_jax.train import TrainState, init_params_from
     from dmd_jax.train import split_params as split
 
     params = tiny_params()
-    source = TINY_CONFIG.with_edits({"model": {"pass_tolerance": 0.2}})
-    save_weights(tmp_path / "w.msgpack", params, source)
+    source = TINY_CONFIG
+    save_weights(tmp_path / "w.msgpack", params, source, policy=DenoisePolicy(pass_tolerance=0.2))
     latest, _ = checkpoint_managers(tmp_path / "run", 1)
     save_checkpoint(latest, TrainState(jnp.asarray(3), split(params), {}), source)
     run_cfg = TINY_CONFIG.with_edits({"model": {"vertex_iterations": 20}})
     for path in (tmp_path / "w.msgpack", tmp_path / "run" / "checkpoints" / "latest"):
-        got = _init_params(path, run_cfg)
+        got = init_params_from(path, run_cfg)
         for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(got), strict=True):
             np.testing.assert_array_equal(a, b)
     wider = TINY_CONFIG.with_edits({"model": {"width": TINY_CONFIG.model.width * 2}})
     with pytest.raises(ValueError, match="do not fit.*width"):
-        _init_params(tmp_path / "w.msgpack", wider)
+        init_params_from(tmp_path / "w.msgpack", wider)
     with pytest.raises(FileNotFoundError):
-        _init_params(tmp_path / "missing.msgpack", run_cfg)
+        init_params_from(tmp_path / "missing.msgpack", run_cfg)
     # A trained normal-first head grows the zero-initialised consistency input.
     from dmd_jax.model import init_params
 
     normal = preset("test")
     trained = init_params(normal.model, jax.random.PRNGKey(1))
     save_weights(tmp_path / "n.msgpack", trained, normal)
-    grown = _init_params(
+    grown = init_params_from(
         tmp_path / "n.msgpack", normal.with_edits({"model": {"head_consistency": True}})
     )
     old = {jax.tree_util.keystr(k): v for k, v in jax.tree_util.tree_flatten_with_path(trained)[0]}

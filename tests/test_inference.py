@@ -119,14 +119,13 @@ def test_fine_padding_of_large_meshes_changes_nothing(mesh, bundle, reference, m
 
 
 def test_pass_tolerance_repeats_passes_while_they_move_the_mesh(mesh, bundle, reference):
-    from dmd_jax import inference
-    from dmd_jax.checkpoints import ModelBundle
+    from dmd_jax.policy import DenoisePolicy
 
     v, f = mesh
-    info = {}
-    # The default policy of a model with pass_tolerance 0: one pass.
-    np.testing.assert_array_equal(denoise(v, f, bundle, info=info), reference)
-    assert info["passes"] == 1
+    # The default policy (a weights file saved without one): one pass.
+    out, info = denoise(v, f, bundle, return_info=True)
+    np.testing.assert_array_equal(out, reference)
+    assert info.passes == 1 and info.policy == DenoisePolicy()
     moves = []
     x = v
     for _ in range(2):
@@ -138,24 +137,22 @@ def test_pass_tolerance_repeats_passes_while_they_move_the_mesh(mesh, bundle, re
     # and the second, two; a tiny tolerance, the most allowed.
     mid = (moves[0] + moves[1]) / 2
     assert moves[1] < mid < moves[0]
-    for tolerance, passes in (
-        (moves[0] * 1.01, 1),
-        (mid, 2),
-        (1e-12, inference.AUTO_MAX_PASSES),
-    ):
-        edited = bundle.config.with_edits({"model": {"pass_tolerance": float(tolerance)}})
-        out = denoise(v, f, ModelBundle(params=bundle.params, config=edited, meta={}), info=info)
-        assert info["passes"] == passes
+    for tolerance, passes in ((moves[0] * 1.01, 1), (mid, 2), (1e-12, 5)):
+        policy = DenoisePolicy(max_passes=5, pass_tolerance=float(tolerance))
+        out, info = denoise(v, f, bundle, policy=policy, return_info=True)
+        assert info.passes == passes
         np.testing.assert_allclose(out, denoise(v, f, bundle, iterations=passes), atol=1e-6)
-    # The patch-by-patch path follows the same rule.
-    edited = bundle.config.with_edits({"model": {"pass_tolerance": float(mid)}})
-    out = denoise(
-        v, f, ModelBundle(params=bundle.params, config=edited, meta={}), patch_size=60, info=info
-    )
-    assert info["path"] == "patches" and info["passes"] == 2
+    # The patch-by-patch path follows the same rule; a policy stored in the bundle is the
+    # default.
+    policy = DenoisePolicy(max_passes=8, pass_tolerance=float(mid))
+    out, info = denoise(v, f, bundle._replace(policy=policy), patch_size=60, return_info=True)
+    assert info.path == "patches" and info.passes == 2 and info.policy == policy
     np.testing.assert_allclose(out, denoise(v, f, bundle, iterations=2), atol=1e-4)
-    for bad in (0, -1, 1.5, True, "2"):
-        with pytest.raises(ValueError, match="iterations must be a positive integer"):
+    # A fixed iteration count overrides the rule.
+    _, info = denoise(v, f, bundle._replace(policy=policy), iterations=3, return_info=True)
+    assert info.passes == 3 and info.policy.pass_tolerance == 0
+    for bad in (0, -1, 1.5, True, "2", 10**9, float("inf")):
+        with pytest.raises(ValueError, match="iterations must be a whole number from 1 to 64"):
             denoise(v, f, bundle, iterations=bad)
 
 

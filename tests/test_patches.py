@@ -27,7 +27,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import shortest_path
 
 import dmd_jax
-from dmd_jax import inference, patches
+from dmd_jax import forward, memory_plan, patch_runner, patches
 from dmd_jax.checkpoints import ModelBundle
 from dmd_jax.config import ModelConfig, preset
 from dmd_jax.encoding import mesh_frame
@@ -124,7 +124,7 @@ def test_a_perturbed_vertex_moves_nothing_beyond_the_receptive_field(edits):
     graph = jax.tree.map(jnp.asarray, build_mesh_graph(f, v.shape[0]))
     x = jnp.asarray(v / 3.0)
     _, state = jax.jit(lambda x: model.apply({"params": params}, x, graph, mutable=True))(x)
-    pooled = {k: val[0] for k, val in inference._find_sown(state.get("intermediates", {}))}
+    pooled = {k: val[0] for k, val in forward._find_sown(state.get("intermediates", {}))}
     # The pools are the only non-local quantities: with them fixed, outputs are local.
     run = jax.jit(lambda x: model.apply({"params": params}, x, graph, pooled=pooled)[0])
     base = run(x)
@@ -248,7 +248,7 @@ def test_morton_order_is_a_permutation():
 def test_lean_frame_equals_mesh_frame(encoding):
     v, f = strip(30, 8)
     a = mesh_frame(encoding, v, f)
-    b = inference.lean_mesh_frame(encoding, v, f)
+    b = patch_runner.lean_mesh_frame(encoding, v, f)
     np.testing.assert_allclose(b.centre, a.centre, rtol=0, atol=0)
     assert b.scale == pytest.approx(a.scale, rel=1e-12)
 
@@ -334,14 +334,14 @@ def test_two_iterations_and_float32_patchwise(paper16):
     [("8GB", 8 * 10**9), ("6GiB", 6 * 2**30), ("500M", 5 * 10**8), (" 1.5 gib", 3 * 2**29)],
 )
 def test_parse_memory(text, expected):
-    assert inference.parse_memory(text) == expected
-    assert inference.parse_memory(expected) == expected
+    assert memory_plan.parse_memory(text) == expected
+    assert memory_plan.parse_memory(expected) == expected
 
 
 @pytest.mark.parametrize("bad", ["lots", "8 parsecs", "-1GB", 0, True, None])
 def test_parse_memory_refuses_nonsense(bad):
     with pytest.raises(ValueError, match="memory"):
-        inference.parse_memory(bad)
+        memory_plan.parse_memory(bad)
 
 
 def test_a_budget_too_small_for_one_patch_is_a_clear_error():
@@ -355,10 +355,10 @@ def test_the_budget_chooses_patches_and_the_result_is_the_same(paper16):
     bundle = paper16
     v, f = strip(150, 6)
     whole = dmd_jax.denoise(v, f, bundle)
-    per_vertex = inference.network_bytes_per_vertex(bundle.config.model)
-    per_vertex += inference.HOST_BYTES_PER_PADDED_VERTEX
+    per_vertex = memory_plan.network_bytes_per_vertex(bundle.config.model)
+    per_vertex += memory_plan.HOST_BYTES_PER_PADDED_VERTEX
     # Room for 500 padded vertices per patch: the 900-vertex strip is split.
-    budget = inference._mesh_bytes(v.shape[0], f.shape[0]) + 500 * per_vertex
+    budget = memory_plan.mesh_bytes(v.shape[0], f.shape[0]) + 500 * per_vertex
     patched = dmd_jax.denoise(v, f, bundle, max_memory=budget)
     np.testing.assert_allclose(patched, whole, rtol=0, atol=TOL_EDGES)
 
