@@ -19,7 +19,7 @@ is the compile time), then these cases are timed round-robin:
 * `network (segment_sum)`: the same network on the same batch without the tables, so
   every aggregation is a sorted `segment_sum` (as in training);
 * `build_mesh_graph`: the host-side graph construction alone;
-* `pymeshlab two_step` (at `--pymeshlab-faces`): `evaluate.pymeshlab_filter(v, f,
+* `pymeshlab two_step` (at `--pymeshlab-faces`): `baselines.meshlab.pymeshlab_filter(v, f,
   "two_step")`, the classic two-step filter (Sun et al. 2007, 20 normal and 50 vertex
   iterations), for the ratio against `denoise` at that size;
 * `bnf` (at the same size): `dmd_jax.baselines.bnf(v, f)` with its defaults, the
@@ -142,8 +142,8 @@ def measure(
     from dmd_jax import config, encoding, inference, model
     from dmd_jax import graph as graph_lib
     from dmd_jax.baselines import bnf
+    from dmd_jax.baselines.meshlab import pymeshlab_filter
     from dmd_jax.checkpoints import ModelBundle, load_pretrained
-    from dmd_jax.evaluate import pymeshlab_filter
 
     load = os.getloadavg()[0]
     if preset == "small":

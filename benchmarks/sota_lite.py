@@ -116,7 +116,7 @@ def mesh_files(mesh_dir, skip=()) -> list[Path]:
 
 def _runner(method: str, faces, bundle):
     from dmd_jax import baselines as classic
-    from dmd_jax.evaluate import pymeshlab_filter
+    from dmd_jax.baselines.meshlab import pymeshlab_filter
     from dmd_jax.inference import denoise
 
     if method in REFERENCE:
@@ -472,8 +472,9 @@ def run(
             else ""
         )
         + ". `best` names the library denoiser with the lowest error; MeshLab Taubin and "
-        "two-step are pymeshlab's filters (`dmd_jax.evaluate.PYMESHLAB_FILTERS`), shown as "
-        "a reference and never counted as best; every other column is `dmd_jax.baselines` "
+        "two-step are pymeshlab's filters (`dmd_jax.baselines.meshlab.PYMESHLAB_FILTERS`), "
+        "shown as a reference and never counted as best; every other column is "
+        "`dmd_jax.baselines` "
         "with its defaults (CNR with its bundled weights). `DMD-Net margin` = DMD-Net "
         "minus the best other library denoiser (negative: DMD-Net wins). Noise seeds: "
         "CRC32 of `<file>|<σ>` (column `seed` of the CSV, which also holds vertex and "

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import NamedTuple
 
@@ -124,6 +125,19 @@ def _describe(bundle, weights) -> str:
     )
 
 
+def _markdown_table(header: Sequence[str], rows: Sequence[Sequence]) -> str:
+    """A GitHub markdown table; floats printed with 3 decimals (4 significant if small)."""
+
+    def fmt(x):
+        if isinstance(x, float):
+            return f"{x:.4g}" if abs(x) < 0.01 and x != 0 else f"{x:.3f}"
+        return str(x)
+
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(fmt(x) for x in row) + " |" for row in rows]
+    return "\n".join(lines) + "\n"
+
+
 def _timed(fn):
     start = time.perf_counter()
     out = fn()
@@ -157,8 +171,8 @@ def run_demo(
       FileNotFoundError, ValueError: the weights cannot be loaded.
     """
     from dmd_jax import baselines, inference
+    from dmd_jax.baselines.meshlab import pymeshlab_filter
     from dmd_jax.data import generate_shape
-    from dmd_jax.evaluate import markdown_table, pymeshlab_filter
     from dmd_jax.io import save_mesh
     from dmd_jax.metrics import (
         DEFAULT_METRICS,
@@ -210,7 +224,7 @@ def run_demo(
         [_LABELS[name], *metric_cells(m), "—" if name == "noisy" else f"{m['seconds']:.2f}"]
         for name, m in metrics.items()
     ]
-    table = markdown_table(
+    table = _markdown_table(
         ["method", *(metric_header(s) for s in DEFAULT_METRICS), "time (s)"], rows
     )
     echo("")

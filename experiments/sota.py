@@ -190,8 +190,8 @@ def build_methods(
     """
     from dmd_jax import baselines
     from dmd_jax.baselines import cascaded_regression
+    from dmd_jax.baselines.meshlab import PYMESHLAB_FILTERS, pymeshlab_filter
     from dmd_jax.checkpoints import pretrained_path
-    from dmd_jax.evaluate import PYMESHLAB_FILTERS, pymeshlab_filter
 
     unknown = sorted(set(names) - set(METHODS))
     if unknown:

@@ -363,6 +363,19 @@ def _bbox(v):
     return float(np.ptp(v, axis=0).max())
 
 
+def test_meshlab_reference_filters_are_pymeshlabs_with_the_listed_settings(fandisk_crop):
+    from dmd_jax.baselines.meshlab import PYMESHLAB_FILTERS, pymeshlab_filter
+
+    v, f = fandisk_crop
+    noisy = _noisy(v, f, 0.3)
+    for name, (filter_name, params) in PYMESHLAB_FILTERS.items():
+        out = pymeshlab_filter(noisy, f, name)
+        assert out.dtype == np.float64
+        np.testing.assert_array_equal(out, _pymeshlab(noisy, f, filter_name, **params))
+    with pytest.raises(ValueError, match="unknown pymeshlab filter"):
+        pymeshlab_filter(noisy, f, "laplacian")
+
+
 @pytest.mark.parametrize("mesh", ["knight", "fandisk_crop"])
 def test_taubin_matches_pymeshlab(mesh, request):
     if mesh == "knight":

@@ -1,8 +1,13 @@
-"""Evaluation helpers: pymeshlab reference filters and markdown result tables."""
+"""MeshLab's own smoothing filters through pymeshlab, as reference points for the baselines.
+
+`taubin` and `two_step` run pymeshlab's implementations of Taubin 1995 and Sun et al.
+2007 (the method `dmd_jax.baselines.fefp` re-implements), so a comparison table can show
+what the reference library gives next to this package's versions. They are not in
+`dmd_jax.baselines.REGISTRY`: they need the optional `pymeshlab` package, run on the CPU
+in MeshLab's own frame, and are never counted as a competing method.
+"""
 
 from __future__ import annotations
-
-from collections.abc import Sequence
 
 import numpy as np
 
@@ -22,10 +27,18 @@ def pymeshlab_filter(vertices, faces, name: str, **params) -> np.ndarray:
     """Runs a pymeshlab smoothing filter and returns vertices in the input order.
 
     Args:
-      vertices: `[n, 3]`.
-      faces: `[f, 3]`.
+      vertices: `[n, 3]` positions.
+      faces: `[f, 3]` vertex indices.
       name: `taubin` or `two_step` (keys of `PYMESHLAB_FILTERS`).
-      **params: override the filter's parameters.
+      **params: override the filter's parameters (pymeshlab's names).
+
+    Returns:
+      `[n, 3]` float64 filtered positions.
+
+    Raises:
+      ValueError: an unknown filter name.
+      RuntimeError: pymeshlab changed the vertex count.
+      ImportError: pymeshlab is not installed.
     """
     import pymeshlab
 
@@ -41,16 +54,3 @@ def pymeshlab_filter(vertices, faces, name: str, **params) -> np.ndarray:
     if out.shape != np.shape(vertices):
         raise RuntimeError(f"pymeshlab {filter_name} changed the vertex count")
     return np.asarray(out, np.float64)
-
-
-def markdown_table(header: Sequence[str], rows: Sequence[Sequence]) -> str:
-    """A GitHub markdown table; floats printed with 3 decimals (4 significant if small)."""
-
-    def fmt(x):
-        if isinstance(x, float):
-            return f"{x:.4g}" if abs(x) < 0.01 and x != 0 else f"{x:.3f}"
-        return str(x)
-
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    lines += ["| " + " | ".join(fmt(x) for x in row) + " |" for row in rows]
-    return "\n".join(lines) + "\n"
