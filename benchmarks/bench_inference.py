@@ -3,7 +3,7 @@
 Meshes are triangulated grids (`bench_aggregation.grid_faces`: interior valence 6, as a
 remeshed surface) of 1k to 1M faces, bent into a wavy height field and given Gaussian
 noise of 0.2 edge lengths. `small` runs the bundled weights, whose pass rule
-(`ModelConfig.pass_tolerance`) gives these meshes one pass (the JSON's `passes`); `paper`
+(the weights' policy) gives these meshes one pass (the JSON's `passes`); `paper`
 params are freshly initialised (`model.init_params`): the cost of a forward pass does not
 depend on their values.
 
@@ -139,7 +139,7 @@ def measure(
     import jax
     import jax.numpy as jnp
 
-    from dmd_jax import config, encoding, inference, model
+    from dmd_jax import config, encoding, forward, inference, model
     from dmd_jax import graph as graph_lib
     from dmd_jax.baselines import bnf
     from dmd_jax.baselines.meshlab import pymeshlab_filter
@@ -148,7 +148,7 @@ def measure(
     load = os.getloadavg()[0]
     if preset == "small":
         # The bundled weights: their config decides how many passes `denoise` runs
-        # (`ModelConfig.pass_tolerance`), so the measured call is the one users make.
+        # (its policy's pass rule), so the measured call is the one users make.
         bundle = load_pretrained()
         cfg = bundle.config
     else:
@@ -160,12 +160,12 @@ def measure(
 
     # The network on the padded batch `denoise` builds, compiled ahead of time: the jit
     # cache then holds it, and `denoise` below does not compile again.
-    predict = inference._predictor(cfg)
+    predict = forward.predictor(cfg)
     x = encoding.mesh_frame(cfg.model.encoding, v, f).apply(v)
     # The padded graph exactly as `denoise` builds it (its padding policy and ELL
     # tables); the same graph without the tables, aggregated by segment sums, is the
     # comparison.
-    graph = inference._prepared_graph(f, v.shape[0], "auto")
+    graph = inference.whole_mesh_graph(f, v.shape[0], "auto")
     noisy = jnp.asarray(graph_lib.pad_vertex_array(x.astype(np.float32), graph.n_vertex))
     graph_ell = jax.tree.map(jnp.asarray, graph)
     graph_seg = jax.tree.map(jnp.asarray, graph._replace(vertex_ell=None, face_ell=None))
@@ -176,8 +176,7 @@ def measure(
     temp_gib = None if temp is None else temp.temp_size_in_bytes / 2**30
 
     start, cpu_start = time.perf_counter(), time.process_time()
-    info = {}
-    out = inference.denoise(v, f, bundle, info=info)
+    out, info = inference.denoise(v, f, bundle, return_info=True)
     first_s = time.perf_counter() - start
     cpu_s = time.process_time() - cpu_start
     if not np.all(np.isfinite(out)) or out.shape != v.shape:
@@ -224,7 +223,7 @@ def measure(
         "padded_faces": int(graph.n_face),
         "load_1min": load,
         "compile_s": compile_s,
-        "passes": info.get("passes", 1),
+        "passes": info.passes,
         "first_call_s": first_s,
         "first_call_cpu_s": cpu_s,
         "denoise_cpu_s": cpu_times[warmup:],

@@ -31,6 +31,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -79,7 +80,7 @@ def worker(preset: str, n_face: int, mode: str, mesh_dir: Path, budget: str) -> 
     import jax
 
     import dmd_jax
-    from dmd_jax import config, inference, model
+    from dmd_jax import config, memory_plan, model, patch_runner
     from dmd_jax.checkpoints import ModelBundle
 
     load = os.getloadavg()[0]
@@ -91,47 +92,39 @@ def worker(preset: str, n_face: int, mode: str, mesh_dir: Path, budget: str) -> 
         cfg = config.preset(preset)
         bundle = ModelBundle(model.init_params(cfg.model, jax.random.PRNGKey(0)), cfg, {})
     rss_before = peak_rss_gib()
-    info: dict = {}
     start, cpu = time.perf_counter(), time.process_time()
     if mode == "default":
-        out = dmd_jax.denoise(v, f, bundle, max_memory=budget, info=info)
+        out, info = dmd_jax.denoise(v, f, bundle, max_memory=budget, return_info=True)
     elif mode == "patches":
+        # The patch path forced, sized from the same budget (`memory_plan.plan` would
+        # take the whole-mesh path where it fits); the weights' own pass policy.
         vv, ff = dmd_jax.mesh.validate_mesh(v, f)
-        out = inference._denoise_patches(
-            vv,
-            ff,
-            bundle,
-            v.dtype,
-            # The default mode's pass policy (the weights' `pass_tolerance`).
-            inference._pass_plan(None, bundle.config.model),
-            "auto",
-            inference.parse_memory(budget),
-            None,
-            None,
-            False,
-            info,
+        out, stats = patch_runner.denoise_patches(
+            vv, ff, bundle, bundle.policy, "auto", memory_plan.parse_memory(budget)
         )
+        info = SimpleNamespace(path="patches", budget_bytes=memory_plan.parse_memory(budget))
+        info.__dict__.update(stats._asdict())
     else:
-        out = dmd_jax.denoise(v, f, bundle, max_memory=10**15, info=info)
+        out, info = dmd_jax.denoise(v, f, bundle, max_memory=10**15, return_info=True)
     wall = time.perf_counter() - start
     cpu = time.process_time() - cpu
     if out.shape != v.shape or not np.all(np.isfinite(out)):
         raise AssertionError("denoise returned a wrong shape or non-finite vertices")
-    budget_bytes = info.get("budget_bytes")
+    budget_bytes = info.budget_bytes
     return {
         "preset": preset,
         "mode": mode,
         "faces": int(f.shape[0]),
         "vertices": int(v.shape[0]),
-        "path": info.get("path"),
+        "path": info.path,
         "wall_s": wall,
         "cpu_s": cpu,
         "peak_rss_gib": peak_rss_gib(),
         "rss_before_gib": rss_before,
-        "patch_size": info.get("patch_size"),
-        "patches": info.get("patches"),
-        "largest_padded_vertices": info.get("largest_padded_vertices"),
-        "halo_rings": info.get("halo_rings"),
+        "patch_size": getattr(info, "patch_size", None),
+        "patches": getattr(info, "patches", None),
+        "largest_padded_vertices": getattr(info, "largest_padded_vertices", None),
+        "halo_rings": getattr(info, "halo_rings", None),
         "budget_gib": None if budget_bytes in (None, 10**15) else budget_bytes / 2**30,
         "load_1min": load,
     }
@@ -139,12 +132,12 @@ def worker(preset: str, n_face: int, mode: str, mesh_dir: Path, budget: str) -> 
 
 def whole_fits(preset: str, n_face: int) -> bool:
     """Whether the whole-mesh path's estimate fits 80 % of the memory available."""
-    from dmd_jax import config, inference
+    from dmd_jax import config, memory_plan
 
     cfg = config.preset(preset).model
-    per_vertex = inference.network_bytes_per_vertex(cfg)
-    per_vertex += inference.WHOLE_HOST_BYTES_PER_PADDED_VERTEX
-    est = per_vertex * inference._padded_vertices_estimate(n_face // 2, n_face)
+    per_vertex = memory_plan.network_bytes_per_vertex(cfg)
+    per_vertex += memory_plan.WHOLE_HOST_BYTES_PER_PADDED_VERTEX
+    est = per_vertex * memory_plan.padded_vertices_estimate(n_face // 2, n_face)
     return est <= 0.8 * available_gib() * 2**30
 
 

@@ -84,7 +84,7 @@ class DenoiseInfo:
     devices: int | None = None
 
 
-def _prepared_graph(faces: np.ndarray, n_vertex: int, aggregation: str):
+def whole_mesh_graph(faces: np.ndarray, n_vertex: int, aggregation: str):
     """The padded graph the whole-mesh path runs on (edge lists, and ELL tables unless
     `aggregation="segment_sum"`), as NumPy."""
     graph = build_mesh_graph(faces, n_vertex)
@@ -99,7 +99,7 @@ def _denoise_whole(v, f, bundle, policy: DenoisePolicy, aggregation: str):
     """The whole mesh at once; float64 positions in the input frame and the passes run."""
     # The padded graph does not change between passes: build it (edge lists, ELL
     # tables) and move it to the device once, not once per pass.
-    graph = _prepared_graph(f, v.shape[0], aggregation)
+    graph = whole_mesh_graph(f, v.shape[0], aggregation)
     edges = undirected_vertex_edges(graph)
     frame = mesh_frame(bundle.config.model.encoding, v, f, edges=edges)
     x = frame.apply(v)

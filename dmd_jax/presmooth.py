@@ -16,8 +16,9 @@ smooth one: at most 23° over the validation split and 27° over `shared/meshes`
 grows with the noise until, beyond about two edges of noise, it saturates near 115°.
 The number of steps is a straight line in it, `round((roughness − start) / per_step)`
 clipped to `[0, MAX_STEPS]`, whose two numbers are a property of trained weights
-(`ModelConfig.presmooth_start`, `ModelConfig.presmooth_per_step`), fitted on the
-validation split of `shared/meshes/train` by `benchmarks/presmooth_fit.py`.
+stored in the weights' policy (`policy.DenoisePolicy.presmooth_start`,
+`presmooth_per_step`), fitted on the validation split of `shared/meshes/train`
+(`make calibrate`).
 """
 
 from __future__ import annotations

@@ -196,11 +196,10 @@ fa, fb = face_adjacency(faces, len(clean))  # faces sharing an edge
 dihedral = np.degrees(np.arccos(np.clip(np.sum(fn[fa] * fn[fb], axis=1), -1, 1)))
 on_crease = np.zeros(len(faces), bool)
 on_crease[fa[dihedral > 30]] = on_crease[fb[dihedral > 30]] = True
-info = {}
-denoise(noisy, faces, bundle, info=info)
+_, info = denoise(noisy, faces, bundle, return_info=True)
 print(
-    f"roughness of the noisy part {info['roughness']:.1f}°: "
-    f"{info['presmooth_steps']} Laplacian steps before the network"
+    f"roughness of the noisy part {info.roughness:.1f}°: "
+    f"{info.presmooth_steps} Laplacian steps before the network"
 )
 by_region = {
     name: (err[on_crease].mean(), err[~on_crease].mean())
@@ -215,7 +214,7 @@ for label, kwargs in (
 for name, (crease, flat) in by_region.items():
     print(f"{name:20s} crease faces {crease:5.1f}°   other faces {flat:5.1f}°")
 print(f"{on_crease.sum()} of {len(faces)} faces touch a crease")
-assert info["presmooth_steps"] > 0
+assert info.presmooth_steps > 0
 for region in (0, 1):
     assert by_region["DMD-Net"][region] < by_region["Taubin"][region] < by_region["BNF"][region]
     assert by_region["DMD-Net, presmooth=0"][region] > by_region["DMD-Net"][region] + 3
@@ -228,17 +227,18 @@ for region in (0, 1):
 # depends on the model and on the noise: a network trained on one noise level may keep
 # smoothing (lowering the vertex error while the normal error rises again) or stop
 # changing the mesh once the noise is gone. Without `iterations`, `denoise` follows the
-# weights' own rule (`ModelConfig.pass_tolerance`): the bundled weights run a second
-# pass, and more, only while the last pass moved the vertices by over 0.17 mean edges
-# on average, which on the validation split happened after heavy noise only
-# (`benchmarks/results/pass_tolerance.md`). `info` reports how many passes ran.
+# weights' own policy (`bundle.policy`, printed below): the bundled weights run a
+# second pass, and more, only while the last pass moved the vertices by more than its
+# `pass_tolerance` in mean edges on average, which on the validation split happened
+# after heavy noise only. `return_info=True` reports how many passes ran.
 
 # %%
+print(bundle.policy)
 for k in (1, 2, 3, None):
-    info = {}
-    m = mesh_metrics(denoise(noisy, faces, bundle, iterations=k, info=info), clean, faces)
+    out, info = denoise(noisy, faces, bundle, iterations=k, return_info=True)
+    m = mesh_metrics(out, clean, faces)
     print(
-        f"iterations={k} ({info['passes']} pass{'es' * (info['passes'] > 1)}): "
+        f"iterations={k} ({info.passes} pass{'es' * (info.passes > 1)}): "
         + "  ".join(f"{s.name} {format_metric(s, m[s.key])} ({s.unit})" for s in DEFAULT_METRICS)
     )
 

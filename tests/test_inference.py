@@ -113,7 +113,7 @@ def test_fine_padding_of_large_meshes_changes_nothing(mesh, bundle, reference, m
 
     v, f = mesh
     monkeypatch.setattr(inference, "FINE_PADDING_MIN_FACES", 0)
-    graph = inference._prepared_graph(f, len(v), "auto")
+    graph = inference.whole_mesh_graph(f, len(v), "auto")
     assert graph.n_face <= (len(f) + 1) * (1 + 1 / 16)
     np.testing.assert_allclose(denoise(v, f, bundle), reference, atol=1e-5)
 
