@@ -67,6 +67,9 @@ def add_noise(
 
     if isinstance(seed, (bool, np.bool_)):
         raise ValueError(f"seed must be an integer or a jax.random key, got {seed!r}")
+    if isinstance(seed, (int, np.integer)) and not -(2**63) <= int(seed) < 2**63:
+        # jax.random.PRNGKey takes a 64-bit signed integer and overflows past it.
+        raise ValueError(f"seed must lie in [-2**63, 2**63), got {seed}")
     key = jax.random.PRNGKey(int(seed)) if isinstance(seed, (int, np.integer)) else seed
     level = noise.check_level(level)
     dtype = _float_dtype(vertices)

@@ -54,8 +54,14 @@ def _zero_area_faces(vertices, faces) -> int:
 
     v = np.asarray(vertices, np.float64)
     f = np.asarray(faces)
+    # Scaled to at most 1 first: coordinates near 1e300 (or 1e-300) would overflow (or
+    # underflow) in the cross products, with a NumPy warning per operation.
+    largest = float(np.abs(v).max()) if v.size else 0.0
+    if largest == 0.0:
+        return len(f)
+    v = v / largest
     doubled = np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
-    side = float(np.ptp(v, axis=0).max()) if len(v) else 0.0
+    side = float(np.ptp(v, axis=0).max())
     return int(np.count_nonzero(doubled <= 1e-12 * side * side))
 
 
@@ -327,12 +333,8 @@ def _in_gt_order(v, f, gt_v, gt_f, path, gt_path):
         if (v[order_v] == gt_v[order_gt]).all() and len(np.unique(v, axis=0)) == len(v):
             perm = np.empty(len(v), np.int64)
             perm[order_gt] = order_v
-            inverse = np.argsort(perm)
-            ours = np.sort(np.sort(inverse[f], axis=1), axis=0)
-            theirs = np.sort(np.sort(gt_f, axis=1), axis=0)
-            if (np.unique(ours, axis=0).shape == np.unique(theirs, axis=0).shape) and (
-                np.unique(ours, axis=0) == np.unique(theirs, axis=0)
-            ).all():
+            ours = np.unique(np.sort(np.argsort(perm)[f], axis=1), axis=0)
+            if np.array_equal(ours, np.unique(np.sort(gt_f, axis=1), axis=0)):
                 _note(f"{path}: vertices matched to {gt_path} by position (another order)")
                 return v[perm]
         raise ValueError(
@@ -340,9 +342,7 @@ def _in_gt_order(v, f, gt_v, gt_f, path, gt_path):
             "(an STL output renumbers vertices; evaluate the OBJ, OFF or PLY output, "
             "which keeps the input's order)"
         )
-    raise ValueError(
-        f"{path}: vertex/face correspondence with {gt_path} is required ({counts})"
-    )
+    raise ValueError(f"{path}: vertex/face correspondence with {gt_path} is required ({counts})")
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
@@ -387,6 +387,12 @@ def _cmd_render(args: argparse.Namespace) -> int:
         raise ValueError(f"{args.output}: write a .png (static picture) or .html (3-D page)")
     if args.range is not None and not args.range[0] < args.range[1]:
         raise ValueError(f"--range needs LOW < HIGH, got {args.range[0]:g} {args.range[1]:g}")
+    from dmd_jax.render import MAX_PANEL_SIZE
+
+    if not 0 < args.panel_size <= MAX_PANEL_SIZE:  # NaN fails too
+        raise ValueError(
+            f"--panel-size must be in (0, {MAX_PANEL_SIZE:g}] inches, got {args.panel_size:g}"
+        )
     _check_output(args.output, args.inputs + ([args.gt] if args.gt else []), args.overwrite)
     meshes = [_load_input(p) for p in args.inputs]
     titles = args.titles.split(",") if args.titles else [Path(p).stem for p in args.inputs]

@@ -20,8 +20,14 @@ from dmd_jax import losses
 from dmd_jax.graph import bucket_size
 from dmd_jax.mesh import canonical_frame
 
+# A prediction farther than this from the ground truth (in the ground truth's canonical
+# frame, where it spans 1) or smaller than its inverse is scored with the safeguards of
+# `_scale_safe`: float32 squares overflow near 1e19 and underflow near 1e-19, and lose
+# their precision long before.
+_SAFE_RANGE = 1e6
 
-def _in_gt_frame(pred_vertices, gt_vertices, faces):
+
+def _checked(pred_vertices, gt_vertices, faces):
     pred = np.asarray(pred_vertices, np.float64)
     gt = np.asarray(gt_vertices, np.float64)
     f = np.asarray(faces)
@@ -36,8 +42,51 @@ def _in_gt_frame(pred_vertices, gt_vertices, faces):
         raise ValueError(f"faces must be integer [n_face, 3], got {f.dtype} {f.shape}")
     if f.size and (f.min() < 0 or f.max() >= gt.shape[0]):
         raise ValueError(f"face indices must lie in [0, {gt.shape[0]})")
+    return pred, gt, f
+
+
+def _scale_safe(pred, gt):
+    """`(pred, gt, pred for normals, far)` in the ground truth's frame, float64.
+
+    Normals do not change under a uniform scale and a shift, so a prediction of an
+    extreme size (a copy of the ground truth 1e15 times larger, say) has its normals
+    taken in its own canonical frame, where float32 cannot overflow or underflow; `far`
+    (its largest coordinate in the ground truth's frame) says whether the vertex and
+    chamfer errors need float64 too.
+    """
     frame = canonical_frame(gt)
-    return jnp.asarray(frame.apply(pred)), jnp.asarray(frame.apply(gt)), jnp.asarray(f)
+    with np.errstate(over="ignore", invalid="ignore"):
+        p = frame.apply(pred)
+        far = float(np.abs(p).max()) if p.size else 0.0
+        extent = float(np.ptp(p, axis=0).max()) if p.size else 0.0
+    for_normals = p
+    if np.all(np.isfinite(pred)) and not (1 / _SAFE_RANGE <= extent <= _SAFE_RANGE):
+        try:
+            for_normals = canonical_frame(pred).apply(pred)
+        except ValueError:  # zero extent: every face degenerate whatever the frame
+            pass
+    return p, frame.apply(gt), for_normals, far
+
+
+def _in_gt_frame(pred_vertices, gt_vertices, faces):
+    pred, gt, f = _checked(pred_vertices, gt_vertices, faces)
+    _, g, for_normals, _ = _scale_safe(pred, gt)
+    return jnp.asarray(for_normals), jnp.asarray(g), jnp.asarray(f)
+
+
+def _far_errors(pred: np.ndarray, gt: np.ndarray) -> tuple[float, float]:
+    """`(vertex, chamfer)` in float64 on the host, for a prediction far off the ground
+    truth (the same definitions as `losses.vertex_loss` and `losses.chamfer_distance`)."""
+    from scipy.spatial import cKDTree
+
+    with np.errstate(over="ignore", invalid="ignore"):
+        vertex = float(np.mean(np.sum((pred - gt) ** 2, axis=1)))
+        if not np.all(np.isfinite(pred)):
+            return vertex, math.inf
+        to_gt = cKDTree(gt).query(pred)[0]
+        to_pred = cKDTree(pred).query(gt)[0]
+        chamfer = float(np.mean(to_gt**2) + np.mean(to_pred**2))
+    return vertex, chamfer
 
 
 def mesh_metrics(
@@ -63,9 +112,14 @@ def mesh_metrics(
       `normal_deg`: mean angle between face normals in degrees, zero-area ground-truth
         faces left out (`losses.normal_loss`);
       `chamfer`: symmetric chamfer distance of the vertex sets (`losses.chamfer_distance`).
-      All lengths in the ground truth's canonical frame.
+      All lengths in the ground truth's canonical frame. Honest at every scale: a
+      prediction far off the ground truth is scored in float64 (`inf` only where even
+      float64 overflows), never as a small or perfect error; `normal_deg` is NaN when
+      no ground-truth face has a non-zero area (the normal error is then undefined).
     """
-    pred, gt, f = _in_gt_frame(pred_vertices, gt_vertices, faces)
+    pred64, gt64, f64 = _checked(pred_vertices, gt_vertices, faces)
+    p64, g64, for_normals, far = _scale_safe(pred64, gt64)
+    pred, gt, f = jnp.asarray(for_normals), jnp.asarray(g64), jnp.asarray(f64)
     # One compiled program per size bucket, not per mesh: the arrays are padded (zeros,
     # faces (0, 0, 0)) and the padding masked, which changes no sum.
     n_vertex, n_face = pred.shape[0], f.shape[0]
@@ -73,7 +127,10 @@ def mesh_metrics(
     # Faces follow the vertex bucket (f <= 2v for a closed mesh, fewer with boundaries),
     # so the bucket pair, hence the program, is one per vertex bucket.
     rows_f = max(2 * rows_v, bucket_size(n_face))
-    vertex, normal, chamfer = _padded_metrics(
+    # Far off: float32 would overflow; _far_errors replaces these two numbers below.
+    p_rows = _pad_rows(p64 if far <= _SAFE_RANGE else np.zeros_like(p64), rows_v)
+    vertex, normal, chamfer, n_normal = _padded_metrics(
+        p_rows,
         _pad_rows(pred, rows_v),
         _pad_rows(gt, rows_v),
         _pad_rows(f, rows_f),
@@ -81,11 +138,14 @@ def mesh_metrics(
         jnp.arange(rows_f) < n_face,
         chamfer_block,
     )
+    vertex, chamfer = float(vertex), float(chamfer)
+    if not far <= _SAFE_RANGE:  # NaN included
+        vertex, chamfer = _far_errors(p64, g64)
     return {
-        "vertex": float(vertex),
-        "vertex_per_coord": float(vertex) / 3.0,
-        "normal_deg": float(normal),
-        "chamfer": float(chamfer),
+        "vertex": vertex,
+        "vertex_per_coord": vertex / 3.0,
+        "normal_deg": float(normal) if int(n_normal) else math.nan,
+        "chamfer": chamfer,
     }
 
 
@@ -94,14 +154,14 @@ def _pad_rows(x, rows: int):
     return jnp.asarray(np.concatenate([x, np.zeros((rows - x.shape[0],) + x.shape[1:], x.dtype)]))
 
 
-@partial(jax.jit, static_argnums=5)
-def _padded_metrics(pred, gt, faces, vertex_mask, face_mask, chamfer_block):
+@partial(jax.jit, static_argnums=6)
+def _padded_metrics(pred, for_normals, gt, faces, vertex_mask, face_mask, chamfer_block):
     vertex = losses.vertex_loss(pred, gt, vertex_mask=vertex_mask)
-    normal = losses.normal_loss(pred, gt, faces, face_mask=face_mask, degrees=True)
+    normal = losses.normal_term(for_normals, gt, faces, face_mask=face_mask)
     chamfer = losses.chamfer_distance(
         pred, gt, a_mask=vertex_mask, b_mask=vertex_mask, block_size=chamfer_block
     )
-    return vertex, normal, chamfer
+    return vertex, normal.mean() * (180.0 / math.pi), chamfer, normal.count
 
 
 def face_normal_errors_deg(pred_vertices, gt_vertices, faces, *, undefined=0.0) -> np.ndarray:

@@ -30,6 +30,10 @@ from dmd_jax.mesh import canonical_frame, face_normals_np
 _ELEV, _AZIM = 20.0, -60.0
 UP_AXES = ("z", "y", "auto")
 _GREY = np.array([0.74, 0.77, 0.84])
+# Bounds on the picture: a panel's longer side in inches, and the whole canvas in
+# pixels (Agg allocates 4 bytes a pixel at once; 100 M pixels is 400 MB).
+MAX_PANEL_SIZE = 20.0
+MAX_PIXELS = 100e6
 _TITLE_IN = 0.3  # inches of title strip above the first row
 _BAR_IN = 0.62  # inches of colour-bar strip under the values row
 
@@ -271,8 +275,11 @@ def render_meshes(
     face_values = list(face_values) if has_values else [None] * n_col
     if len(titles) != n_col or len(face_values) != n_col:
         raise ValueError("titles and face_values need one entry per mesh")
-    if panel_size <= 0:
-        raise ValueError(f"panel_size must be positive, got {panel_size}")
+    if not (isinstance(panel_size, int | float) and 0 < panel_size <= MAX_PANEL_SIZE):
+        # A bound, not only a sign: 150 inches asks Agg for a 1 GB canvas and dies in C++.
+        raise ValueError(
+            f"panel_size must be in (0, {MAX_PANEL_SIZE:g}] inches, got {panel_size!r}"
+        )
     prepared = []
     for i, (v, f) in enumerate(meshes):
         v = np.asarray(v, np.float64)
@@ -328,6 +335,13 @@ def render_meshes(
         rows.append("zoom")
     if has_values:
         rows.append("values")
+    pixels = n_col * panel_w * len(rows) * panel_h * dpi * dpi
+    if pixels > MAX_PIXELS:
+        raise ValueError(
+            f"a {n_col} x {len(rows)} picture of {panel_size:g}-inch panels at {dpi} dpi "
+            f"has {pixels / 1e6:.0f} M pixels, over the {MAX_PIXELS / 1e6:.0f} M limit "
+            "(fewer panels, a smaller panel_size or dpi)"
+        )
     title_in = _TITLE_IN * (1 + max(t.count("\n") for t in titles)) if any(titles) else 0.0
     # The colour bar goes into the values cell of a mesh without values (the reference,
     # which would only repeat its shaded panel), else into a strip under the figure.

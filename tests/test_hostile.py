@@ -235,3 +235,155 @@ def test_case14_symlink_loop_is_not_a_missing_file(tmp_path):
     os.symlink(tmp_path / "gone.obj", dangling)
     with pytest.raises(FileNotFoundError, match="dangling.obj: a symbolic link to .*gone.obj"):
         load_mesh(dangling)
+
+
+# --------------------------------------------------------------------------------------
+# CLI helpers
+# --------------------------------------------------------------------------------------
+
+
+def run(capsys, *argv):
+    """`dmd-jax ARGV`: `(exit code, stdout, stderr)`."""
+    from dmd_jax.cli import main
+
+    code = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def _one_line_error(err: str, *words: str) -> None:
+    lines = [ln for ln in err.strip().splitlines() if not ln.startswith("note: ")]
+    assert len(lines) == 1 and "error: " in lines[0], err
+    assert "Traceback" not in err
+    for w in words:
+        assert w in lines[0], (w, lines[0])
+
+
+@pytest.fixture
+def sphere_files(tmp_path):
+    from conftest import icosphere
+
+    v, f = icosphere(2)
+    save_mesh(tmp_path / "gt.off", v, f)
+    return tmp_path, v, f
+
+
+# --------------------------------------------------------------------------------------
+# 3. evaluate --json is valid JSON and never scores a ruined or degenerate mesh well
+# --------------------------------------------------------------------------------------
+
+
+def _strict_json(text: str):
+    import json
+
+    def refuse(name):
+        raise AssertionError(f"not JSON: {name}")
+
+    return json.loads(text, parse_constant=refuse)
+
+
+def test_case3_evaluate_json_of_a_far_off_mesh_is_valid_and_honest(capsys, sphere_files):
+    tmp, v, f = sphere_files
+    save_mesh(tmp / "big.off", v * 1e39, f)
+    code, out, err = run(
+        capsys, "evaluate", "--gt", tmp / "gt.off", "--mesh", tmp / "big.off", "--json"
+    )
+    assert code == 0, err
+    (row,) = _strict_json(out)
+    # 1e39 times too large: a huge vertex and chamfer error (not Infinity, not 0.0), and
+    # the normals of a uniformly scaled copy are the ground truth's (not 90°).
+    assert 1e76 < row["vertex"] < 1e79 and 1e76 < row["chamfer"] < 1e79
+    assert row["normal_deg"] < 1e-3
+
+
+@pytest.mark.parametrize("scale", [1e-15, 1e15, 1e30])
+def test_case3_scaled_copy_has_the_ground_truths_normals(scale):
+    from conftest import icosphere
+
+    from dmd_jax.metrics import face_normal_errors_deg, mesh_metrics
+
+    v, f = icosphere(2)
+    assert mesh_metrics(v * scale, v, f)["normal_deg"] < 1e-3
+    assert face_normal_errors_deg(v * scale, v, f).max() < 1e-2
+
+
+def test_case3_evaluate_refuses_an_overflowing_error(capsys, sphere_files):
+    tmp, v, f = sphere_files
+    save_mesh(tmp / "huge.off", v * 1e300, f)
+    code, out, err = run(
+        capsys, "evaluate", "--gt", tmp / "gt.off", "--mesh", tmp / "huge.off", "--json"
+    )
+    assert code == 2 and out == ""
+    _one_line_error(err, "huge.off", "overflows float64")
+
+
+def test_case3_zero_area_ground_truth_is_refused_not_a_perfect_score(capsys, sphere_files):
+    from dmd_jax.metrics import mesh_metrics
+
+    tmp, v, f = sphere_files
+    flat = v.copy()
+    flat[:, 1:] = 0.0  # every face collapses onto the x axis
+    save_mesh(tmp / "flat.off", flat, f)
+    assert np.isnan(mesh_metrics(flat, flat, f)["normal_deg"])
+    code, out, err = run(
+        capsys, "evaluate", "--gt", tmp / "flat.off", "--mesh", tmp / "flat.off", "--json"
+    )
+    assert code == 2 and out == ""
+    _one_line_error(err, "flat.off", "no face of the ground truth has a non-zero area")
+    # A prediction collapsed to zero area is scored as bad, not perfect.
+    m = mesh_metrics(np.zeros_like(v), v, f)
+    assert m["normal_deg"] > 80 and m["chamfer"] > 0.1
+
+
+# --------------------------------------------------------------------------------------
+# 8. add-noise --seed beyond 64 bits
+# --------------------------------------------------------------------------------------
+
+
+def test_case8_huge_seed_is_a_clear_error(capsys, sphere_files):
+    import dmd_jax
+
+    tmp, v, f = sphere_files
+    code, _, err = run(
+        capsys,
+        "add-noise",
+        tmp / "gt.off",
+        "-o",
+        tmp / "n.off",
+        "--level",
+        "0.01",
+        "--seed",
+        "1180591620717411303424",
+    )
+    assert code == 2
+    _one_line_error(err, "seed must lie in [-2**63, 2**63)", "1180591620717411303424")
+    assert not (tmp / "n.off").exists()
+    with pytest.raises(ValueError, match="seed must lie in"):
+        dmd_jax.add_noise(2**70, v, f, "gaussian", 0.01)
+    dmd_jax.add_noise(2**63 - 1, v, f, "gaussian", 0.01)  # the largest seed works
+
+
+# --------------------------------------------------------------------------------------
+# 9. render --panel-size is bounded
+# --------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("size", ["1000", "150", "0", "-1", "nan"])
+def test_case9_render_panel_size_is_bounded(capsys, sphere_files, size):
+    tmp, _, _ = sphere_files
+    for out in ("r.png", "r.html"):
+        code, _, err = run(capsys, "render", tmp / "gt.off", "-o", tmp / out, "--panel-size", size)
+        assert code == 2
+        _one_line_error(err, "--panel-size must be in (0, 20] inches")
+        assert not (tmp / out).exists()
+
+
+def test_case9_render_meshes_refuses_a_huge_canvas(sphere_files):
+    from dmd_jax.render import render_meshes
+
+    tmp, v, f = sphere_files
+    with pytest.raises(ValueError, match="panel_size must be in"):
+        render_meshes([(v, f)], tmp / "x.png", panel_size=150)
+    with pytest.raises(ValueError, match="M pixels, over the 100 M limit"):
+        render_meshes([(v, f)] * 40, tmp / "x.png", panel_size=20)
+    assert not (tmp / "x.png").exists()
