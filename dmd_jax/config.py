@@ -41,8 +41,7 @@ from typing import Any
 
 from flax import struct
 
-from dmd_jax.encoding import ENCODINGS, FILTER_RANGE_SIGMAS, local_dims
-from dmd_jax.noise import NOISE_KINDS
+from dmd_jax.constants import ENCODINGS, FILTER_RANGE_SIGMAS, NOISE_KINDS, local_dims
 
 VARIANT_NAMES = ("fgt8", "fgt3", "wo_t", "mt", "do_2s", "do_1s", "fgt_1s")
 SCHEMES = ("joint", "alter", "two_phase", "u_fe")

@@ -45,26 +45,24 @@ import jax.numpy as jnp
 import numpy as np
 
 from dmd_jax import geometry, ops
+from dmd_jax.constants import (  # noqa: F401  (the layout is re-exported from here)
+    ENCODINGS,
+    FILTER_RANGE_SIGMAS,
+    FILTER_SNAPSHOTS,
+    TAUBIN_SNAPSHOTS,
+    candidate_labels,
+    local_dims,
+    n_candidates,
+    snapshot_passes,
+    taubin_snapshots,
+)
 from dmd_jax.mesh import CanonicalFrame, canonical_frame, mean_edge_length
 
-ENCODINGS = ("xyz", "local")
-# Default range σs of the bilateral pre-filters on |n_i − n_j| (unit normals), one filter
-# each (`ModelConfig.filter_sigmas`): from edge preserving (0.2: neighbours more than ~25°
-# apart barely mix) to smoothing.
-FILTER_RANGE_SIGMAS = (0.2, 0.35, 0.6)
-# Each filter's normals are kept after these fractions of `filter_iterations` passes.
-# The dual graph gives a face only 3 neighbours (BNF's vertex ring ~12), so it takes
-# ~60 passes to smooth a flat region as much as BNF's 20; measured on fandisk and block
-# at 0.3 mean edges of noise along normals, σ 0.35 after 8 / 30 / 60 passes, followed by
-# the vertex update, gives 12.8° / 3.8° / 3.1° (BNF 3.2°) and 14.0° / 6.3° / 4.5° (BNF
-# 3.7°), while on bunny at 0.1 the 8-pass field is the best (8.5°; BNF 14.0°).
-FILTER_SNAPSHOTS = (2 / 15, 1 / 2, 1.0)
 # Spatial σ of the pre-filters, in mean edge lengths (the frame's unit).
 FILTER_SPATIAL_SIGMA = 1.0
-# Taubin smoothing of the optional smoothed-mesh candidates: pymeshlab's λ and μ, kept
-# after these fractions of `ModelConfig.taubin_iterations` λ|μ pairs.
+# Taubin smoothing of the optional smoothed-mesh candidates: pymeshlab's λ and μ (kept
+# after `TAUBIN_SNAPSHOTS` of `ModelConfig.taubin_iterations` λ|μ pairs).
 TAUBIN_LAMBDA_MU = (0.5, -0.53)
-TAUBIN_SNAPSHOTS = (3 / 10, 1.0)
 
 
 def mesh_frame(encoding: str, vertices, faces, *, edges=None) -> CanonicalFrame:
@@ -124,46 +122,6 @@ def laplacian_coordinates(x, graph):
         count = jax.ops.segment_sum(keep, r, num_segments=n, indices_are_sorted=True)
     mean = total / jnp.maximum(count, 1.0)[:, None]
     return jnp.where(count[:, None] > 0, x - mean, 0.0)
-
-
-def _snapshots(fractions, iterations: int) -> tuple[int, ...]:
-    out = []
-    for frac in fractions:
-        out.append(max(round(frac * iterations), out[-1] + 1 if out else 1))
-    return tuple(out)
-
-
-def snapshot_passes(filter_iterations: int) -> tuple[int, ...]:
-    """The pass counts after which each pre-filter's normals are kept (increasing)."""
-    return _snapshots(FILTER_SNAPSHOTS, filter_iterations)
-
-
-def taubin_snapshots(taubin_iterations: int) -> tuple[int, ...]:
-    """The λ|μ pair counts after which the Taubin-smoothed mesh is kept; `()` for 0."""
-    return _snapshots(TAUBIN_SNAPSHOTS, taubin_iterations) if taubin_iterations else ()
-
-
-def n_candidates(taubin_iterations: int = 0, filter_sigmas=FILTER_RANGE_SIGMAS) -> int:
-    """Candidate normals of the normal-first head: noisy, pre-filtered, Taubin-smoothed."""
-    filtered = len(filter_sigmas) * len(FILTER_SNAPSHOTS)
-    return 1 + filtered + len(taubin_snapshots(taubin_iterations))
-
-
-def candidate_labels(
-    filter_iterations: int, taubin_iterations: int = 0, filter_sigmas=FILTER_RANGE_SIGMAS
-) -> list[str]:
-    """Names of the `n_candidates(...)` candidate normals in `local_features`' order:
-    `"noisy"`, then `"σ{range σ} ×{passes}"` per pre-filter and snapshot, then
-    `"Taubin ×{pairs}"` per Taubin snapshot."""
-    passes = snapshot_passes(filter_iterations)
-    labels = ["noisy"] + [f"σ{s} ×{p}" for s in filter_sigmas for p in passes]
-    return labels + [f"Taubin ×{p}" for p in taubin_snapshots(taubin_iterations)]
-
-
-def local_dims(taubin_iterations: int = 0, filter_sigmas=FILTER_RANGE_SIGMAS) -> tuple[int, int]:
-    """`(vertex columns, face columns)` of `local_features`."""
-    k = n_candidates(taubin_iterations, filter_sigmas)
-    return 6 + 3 * (k - 1) + 3 * len(taubin_snapshots(taubin_iterations)), 3 * k
 
 
 # Candidates and columns of `local_features` with the default filters and without

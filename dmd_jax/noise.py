@@ -54,10 +54,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dmd_jax.graph import vertex_edges
+from dmd_jax.constants import NOISE_KINDS
 from dmd_jax.mesh import mean_edge_length
+from dmd_jax.topology import vertex_edges
 
-NOISE_KINDS = ("gaussian", "uniform", "gamma", "impulse")
 NOISE_UNITS = ("canonical", "edge")
 IMPULSE_MODES = ("coordinate", "vertex")
 # "isotropic": every coordinate gets its own draw; "normal": one draw per vertex, along
