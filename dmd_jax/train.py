@@ -20,6 +20,13 @@ groups' loss terms (`losses.Term`: sums and counts) are added across devices, an
 batch, up to the order of float sums. Training on one device is the same code on a
 one-device mesh, with a batch of one group.
 
+The loop: `train_and_evaluate(cfg, workdir)` runs an experiment from its config alone
+(as Flax's `examples/ogbg_molpcba/train.py`): it reads the training and evaluation sets
+(`dmd_jax.data.training_sets`), the fine-tune's starting params (`TrainConfig.init_from`,
+`init_params_from`), and calls `train`, the loop over given meshes, which resumes,
+evaluates, logs and checkpoints. `dmd-jax train` only turns its flags into the config.
+`TrainHook`s watch (or, in tests, steer) the loop: `StopAfter`, `InjectNaN`.
+
 Checkpoints are Orbax (`dmd_jax.checkpoints`): ``<workdir>/checkpoints/latest`` keeps the
 last ``ckpt_keep`` states and ``<workdir>/checkpoints/best`` the one with the lowest
 normal error of the evaluation set that picks it. A run restarted in the same workdir
@@ -29,6 +36,7 @@ resumed run is bit-identical to an uninterrupted one.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -46,19 +54,25 @@ from jax.sharding import PartitionSpec as P
 
 from dmd_jax import geometry, losses, metrics, parallel
 from dmd_jax.checkpoints import (
+    check_params,
     checkpoint_managers,
+    graft_params,
+    load_model,
     restore_checkpoint,
     save_checkpoint,
 )
-from dmd_jax.config import SCHEMES, ExperimentConfig, LossConfig, NoiseConfig
+from dmd_jax.config import SCHEMES, ExperimentConfig, LossConfig, ModelConfig, NoiseConfig
 from dmd_jax.graph import MeshGraph
 from dmd_jax.io import write_text_atomic
 from dmd_jax.model import DMDNet
+from dmd_jax.model import init_params as init_model_params
 from dmd_jax.pipeline import (
+    BENCHMARK_NOISE,
     Batch,
     MeshExample,
     evaluation_batches,
     largest_sizes,
+    make_examples,
     training_batch,
     unpadded_mesh,
 )
@@ -69,6 +83,9 @@ FE_PREFIX = "feature_extractor"
 # the data can form (one program; right for short runs, where compiling, ~15 s of CPU a
 # program for the `test` preset on 2 cores, costs more than the padding).
 PAD_MODES = ("bucket", "largest")
+# `train_and_evaluate(pad="auto")` pads every batch to one shape for runs of at most this
+# many steps (the test preset's 40 compile once instead of 5-6 times on a tiny dataset).
+AUTO_PAD_MAX_STEPS = 500
 # Which param halves a phase trains.
 PHASE_PARTS = {"all": ("fe", "rest"), "fe": ("fe",), "rest": ("rest",)}
 
@@ -385,8 +402,79 @@ def _plot_curves(log_path: Path, png_path: Path) -> None:
     plt.close(fig)
 
 
-def _nan_batch(batch: Batch) -> Batch:
-    return batch._replace(noisy=np.full_like(batch.noisy, np.nan))
+def _same_config(stored: dict, current: dict) -> bool:
+    """Whether a workdir's `config.json` holds this run's config (`to_dict` form).
+
+    A key the stored config lacks is a setting added since it was written (e.g.
+    `data.dataset_dir`): it matches whatever this run sets, so older runs still resume.
+    """
+    if set(stored) - set(current):
+        return False
+    for key, value in stored.items():
+        mine = current[key]
+        if isinstance(value, dict) and isinstance(mine, dict):
+            if not _same_config(value, mine):
+                return False
+        elif value != mine:
+            return False
+    return True
+
+
+class TrainHook:
+    """Watches the training loop, and may steer it (a base class; override either method).
+
+    `train` calls `before_step` with each step's batch before the step runs, and
+    `after_step` with its metrics once the step has run and its loss is finite. A hook
+    that returns True from `after_step` ends the run there as if `train.steps` were
+    reached early (the last rows are logged and the state is checkpointed; no final
+    evaluation), so a later `train` call in the same workdir resumes from it.
+    """
+
+    def before_step(self, step: int, batch: Batch) -> Batch:
+        """The batch step `step` (0-based) trains on; this one returns it unchanged.
+
+        Args:
+          step: the step about to run.
+          batch: its batch, `noisy`/`clean` `[n_group, n_vertex, 3]`.
+        """
+        return batch
+
+    def after_step(self, step: int, metrics: dict[str, Any]) -> bool | None:
+        """Called after step `step` (0-based) ran; True stops the run after it.
+
+        Args:
+          step: the step that ran (`step + 1` steps are done).
+          metrics: its `loss`, `grad_norm` and loss terms (scalar arrays).
+        """
+        return None
+
+
+class StopAfter(TrainHook):
+    """Stops after `steps` steps of this `train` call, as a killed run would have left
+    it (resume tests); the stop checkpoints, as a graceful one does."""
+
+    def __init__(self, steps: int):
+        if steps < 1:
+            raise ValueError(f"StopAfter needs at least 1 step, got {steps}")
+        self.steps = steps
+        self._done = 0
+
+    def after_step(self, step: int, metrics: dict[str, Any]) -> bool:
+        self._done += 1
+        return self._done >= self.steps
+
+
+class InjectNaN(TrainHook):
+    """Replaces the noisy input of step `step` with NaNs (fault-injection tests): the
+    loss turns non-finite and `train` raises `NonFiniteLossError`."""
+
+    def __init__(self, step: int):
+        self.step = step
+
+    def before_step(self, step: int, batch: Batch) -> Batch:
+        if step != self.step:
+            return batch
+        return batch._replace(noisy=np.full_like(batch.noisy, np.nan))
 
 
 def train(
@@ -396,13 +484,12 @@ def train(
     *,
     eval_sets: dict[str, Sequence[MeshExample]] | None = None,
     progress: bool = True,
-    stop_after: int | None = None,
-    inject_nan_at: int | None = None,
     init_params: dict | None = None,
     data_parallel: bool = False,
     eval_noise: NoiseConfig | None = None,
     pad_to: str = "bucket",
     verbose: bool = False,
+    hooks: Sequence[TrainHook] = (),
 ) -> dict:
     """Trains (or resumes) a run in `workdir`; returns the final evaluation.
 
@@ -412,8 +499,6 @@ def train(
       workdir: where checkpoints, `log.jsonl`, `config.json` and `loss_curve.png` go.
       eval_sets: e.g. `{"test_intra": [...], "test_inter": [...]}`.
       progress: show a tqdm bar.
-      stop_after: stop (as if killed) after this many steps of this call (for tests).
-      inject_nan_at: replace the batch of this step with NaNs (fault-injection tests).
       init_params: start from these params (fine-tuning) instead of a fresh init; the
         optimizer starts fresh. Ignored when the workdir already holds a checkpoint.
       eval_noise: the noise of the evaluation sets (default: the training noise).
@@ -430,6 +515,12 @@ def train(
         set can form, every evaluation mesh to the largest evaluation mesh: one training
         and one evaluation program); `PAD_MODES`.
       verbose: print a line when a program is compiled and how long it took.
+      hooks: `TrainHook`s, called in order at every step (e.g. `StopAfter`, `InjectNaN`).
+
+    Returns:
+      `step` (the steps done), `compiles`, `eval_compiles`, the last evaluation's
+      `<set>/<metric>` means (with `kind` and `step`) if there was one, and `state`, the
+      final `TrainState`.
 
     Raises:
       NonFiniteLossError: the loss became NaN/inf; the last good checkpoint is kept.
@@ -476,7 +567,7 @@ def train(
     cfg_path = workdir / "config.json"
     if cfg_path.exists():
         old = json.loads(cfg_path.read_text())
-        if old != cfg.to_dict():
+        if not _same_config(old, cfg.to_dict()):
             raise ValueError(
                 f"{workdir} holds a run with a different config; use another --workdir"
             )
@@ -506,7 +597,7 @@ def train(
     }
     log_path = workdir / "log.jsonl"
     start = int(state.step)
-    end = t.steps if stop_after is None else min(t.steps, start + stop_after)
+    end = t.steps
     bar = tqdm(total=t.steps, initial=start, disable=not progress, desc="train", unit="step")
     last_eval: dict = {}
     t0 = time.time()
@@ -523,8 +614,8 @@ def train(
                     log.write("\n")  # a killed run's cut-off row must not swallow the next
         for step in range(start, end):
             batch = make_batch(step)
-            if inject_nan_at is not None and step == inject_nan_at:
-                batch = _nan_batch(batch)
+            for hook in hooks:
+                batch = hook.before_step(step, batch)
             compiled = trainer.compiles
             started = time.perf_counter()
             new_state, out = trainer.train_step(state, batch)
@@ -543,6 +634,10 @@ def train(
                 )
             state = new_state
             done = step + 1
+            # Every hook sees every step (no short-circuit); a stop ends the run here.
+            stops = [bool(hook.after_step(step, out)) for hook in hooks]
+            if any(stops):
+                end = done
             if (t.log_every and done % t.log_every == 0) or done == end:
                 row = {
                     "kind": "train",
@@ -576,6 +671,8 @@ def train(
             if (t.ckpt_every and done % t.ckpt_every == 0) or done == end:
                 log.flush()
                 save_checkpoint(latest, state, cfg)
+            if done == end:
+                break  # a hook stopped the run (or this was the last step)
     bar.close()
     if primary:
         _plot_curves(log_path, workdir / "loss_curve.png")
@@ -586,3 +683,135 @@ def train(
         **last_eval,
         "state": state,
     }
+
+
+# ------------------------------------------------------------- experiment
+
+
+def train_and_evaluate(
+    cfg: ExperimentConfig,
+    workdir,
+    *,
+    pad: str = "auto",
+    data_parallel: bool = False,
+    progress: bool = True,
+    verbose: bool = False,
+    hooks: Sequence[TrainHook] = (),
+) -> dict:
+    """Trains (or resumes) the run `cfg` describes in `workdir`, evaluating as it goes.
+
+    The config alone says what the run is: the dataset and the evaluation sets
+    (`cfg.data`, read by `data.training_sets.training_sets`), real-mesh patches and the
+    `val` set that then picks the best checkpoint (`cfg.data.real_root`, evaluated with
+    `pipeline.BENCHMARK_NOISE`), and the params a fine-tune starts from
+    (`cfg.train.init_from`, `init_params_from`). The keywords only say how it runs.
+
+    Args:
+      cfg: the experiment; `cfg.data.dataset_dir` must name a dataset.
+      workdir: the run directory (`train`'s layout); a run there resumes.
+      pad: `"bucket"`, `"largest"` (`train`'s `pad_to`) or `"auto"`: `"largest"` for
+        runs of at most `AUTO_PAD_MAX_STEPS` steps, where compiling one program per
+        vertex bucket (~15 s of CPU each for the test preset on 2 cores) would cost more
+        than the padding, else `"bucket"`.
+      data_parallel: split each batch over every device of every process (`train`).
+      progress: a progress bar (process 0 only).
+      verbose: print what is trained on, and when a program compiles (process 0 only).
+      hooks: `TrainHook`s for the loop (`train`).
+
+    Returns:
+      `train`'s result (`step`, `compiles`, `eval_compiles`, the last evaluation, the
+      final `state`) and `wall_time_s`, the seconds `train` took.
+
+    Raises:
+      ValueError: no dataset, an `init_from` whose params do not fit, a bad `pad`, or
+        any of `train`'s.
+      FileNotFoundError: a missing dataset, real-mesh folder or `init_from`.
+      NonFiniteLossError: the loss became NaN/inf.
+    """
+    from dmd_jax.data.training_sets import training_sets
+
+    modes = ("auto", *PAD_MODES)
+    if pad not in modes:
+        raise ValueError(f"pad must be one of {modes}, got {pad!r}")
+    primary = jax.process_index() == 0
+    sets = training_sets(cfg.data, seed=cfg.train.seed)
+    train_ex = make_examples(sets.train)
+    evals = {name: make_examples(meshes) for name, meshes in sets.evals.items()}
+    if verbose and primary:
+        print(
+            f"training {cfg.name} on {len(train_ex)} meshes from {cfg.data.dataset_dir}; "
+            "evaluating on "
+            + ", ".join(f"{k}: {len(v)}" for k, v in evals.items())
+            + (f"; data-parallel over {jax.device_count()} devices" if data_parallel else "")
+        )
+    init = None
+    if cfg.train.init_from is not None:
+        init = init_params_from(cfg.train.init_from, cfg)
+    if pad == "auto":
+        pad = "largest" if cfg.train.steps <= AUTO_PAD_MAX_STEPS else "bucket"
+    t0 = time.time()
+    result = train(
+        cfg,
+        train_ex,
+        workdir,
+        eval_sets=evals,
+        progress=progress and primary,
+        init_params=init,
+        data_parallel=data_parallel,
+        # The real validation split is scored as the benchmark scores (Gaussian noise
+        # along normals), and with it every other set, so their numbers compare.
+        eval_noise=BENCHMARK_NOISE if cfg.data.real_root is not None else None,
+        pad_to=pad,
+        verbose=verbose,
+        hooks=hooks,
+    )
+    result["wall_time_s"] = time.time() - t0
+    return result
+
+
+def init_params_from(path, cfg: ExperimentConfig) -> dict:
+    """The params a fine-tune starts from: those of a checkpoint or weights file.
+
+    The source's model may differ from `cfg.model` only in settings that hold no
+    parameters (its params must pass `checkpoints.check_params` against `cfg`: the same
+    paths, shapes and dtypes, finite), or by the added `head_consistency` input, whose
+    zero-initialised layer is grafted on.
+
+    Args:
+      path: an Orbax checkpoint directory or a weights file (`checkpoints.load_model`).
+      cfg: the fine-tune's config.
+
+    Returns:
+      The params, a nested dict of arrays shaped as `cfg.model`'s.
+
+    Raises:
+      ValueError: the params do not fit `cfg`'s model; the message names the differing
+        model settings.
+      FileNotFoundError: no such checkpoint or weights file.
+    """
+    source = load_model(path)
+    src = source.config.model
+    try:
+        check_params(source.params, cfg, "the source")
+        return source.params
+    except ValueError as exc:
+        problem = f"{exc}; model config differs: {_model_diff(src, cfg.model)}"
+    if cfg.model.head_consistency and not src.head_consistency:
+        # Adding the consistency input to a trained head: its Dense layer starts at
+        # zero, so the run starts from the trained model's outputs.
+        fresh = init_model_params(cfg.model, jax.random.PRNGKey(cfg.train.seed))
+        try:
+            return graft_params(fresh, source.params)
+        except ValueError as exc:
+            problem = f"{exc}; {problem}"
+    raise ValueError(f"{path}: its parameters do not fit this run's model ({problem})")
+
+
+def _model_diff(a: ModelConfig, b: ModelConfig) -> str:
+    """`"width 8 vs 16; ..."`: the fields two model configs set differently."""
+    diff = [
+        f"{f.name} {getattr(a, f.name)!r} vs {getattr(b, f.name)!r}"
+        for f in dataclasses.fields(a)
+        if getattr(a, f.name) != getattr(b, f.name)
+    ]
+    return "; ".join(diff) or "same fields"

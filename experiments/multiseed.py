@@ -42,7 +42,7 @@ from dmd_jax.pipeline import (
     training_batch,
     unpadded_mesh,
 )
-from dmd_jax.train import Trainer, make_train_step, merge_params, phase_of
+from dmd_jax.train import Trainer, TrainHook, make_train_step, merge_params, phase_of
 
 
 def same_but_seed(cfgs: Sequence[ExperimentConfig]) -> None:
@@ -142,9 +142,9 @@ def train_seeds(
     *,
     eval_sets: dict[str, Sequence[MeshExample]] | None = None,
     progress: bool = True,
-    stop_after: int | None = None,
     desc: str = "train",
     eval_seed: int | None = None,
+    hooks: Sequence[TrainHook] = (),
 ) -> list[dict]:
     """Trains (or resumes) several seeds of one config together; evaluates each.
 
@@ -156,11 +156,13 @@ def train_seeds(
       eval_sets: e.g. `{"test_intra": [...], "test_inter": [...]}`, evaluated after the
         last step with each seed's own fixed evaluation noise (`train`'s protocol).
       progress: a tqdm bar over steps with the remaining-time estimate.
-      stop_after: stop (as if killed) after this many steps of this call (tests).
       desc: the progress bar's label.
       eval_seed: the key of the evaluation noise, the same for every seed, so that all
         seeds (and all rows) are scored on the same noisy test meshes; `None` gives each
         seed its own, `train.seed + 12345`, as `dmd_jax.train.train` does.
+      hooks: `dmd_jax.train.TrainHook`s, as in `train.train`: `before_step` sees the
+        seeds' stacked batch, `after_step` their stacked metrics (`[n_seed]` arrays); a
+        stop (e.g. `train.StopAfter`) checkpoints every seed there.
 
     Returns:
       Per seed: `status` (`ok` or `diverged`), `error`, `step` (the last good step),
@@ -195,7 +197,7 @@ def train_seeds(
     if start:
         states = [restore_checkpoint(m, s) for m, s in zip(managers, states, strict=True)]
     state = stack_trees(states)
-    end = t.steps if stop_after is None else min(t.steps, start + stop_after)
+    end = t.steps
     fns: dict[str, Callable] = {}
     alive = [True] * n
     last_good = [start] * n
@@ -219,6 +221,8 @@ def train_seeds(
                 fns[phase] = seeds_step(cfgs[0], phase)
             compiling = fns[phase]._cache_size() == 0
             batch = seeds_batch(train_examples, cfgs, step)
+            for hook in hooks:
+                batch = hook.before_step(step, batch)
             ts = time.perf_counter()
             rngs = step_rngs(cfgs, step)
             new, out = fns[phase](state, batch.noisy, batch.clean, batch.graph, rngs)
@@ -233,6 +237,10 @@ def train_seeds(
                     # last good checkpoint, as `train` does.
                     alive[i] = False
                     errors[i] = f"non-finite loss ({float(loss[i])}) at step {step}"
+            # Every hook sees every step (no short-circuit); a stop ends the run here.
+            stops = [bool(hook.after_step(step, out)) for hook in hooks]
+            if any(stops):
+                end = done
             write_log = (t.log_every and done % t.log_every == 0) or done == end
             save = (t.ckpt_every and done % t.ckpt_every == 0) or done == end
             if write_log or save:
@@ -251,6 +259,8 @@ def train_seeds(
                         last_good[i] = done
             bar.set_postfix(loss=" ".join(f"{x:.3g}" for x in loss))
             bar.update(1)
+            if done == end:
+                break  # a hook stopped the run (or this was the last step)
     finally:
         bar.close()
         for fh in logs:

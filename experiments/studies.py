@@ -457,6 +457,23 @@ _LATER_MODEL_FIELDS = {
 }
 
 
+# Data and training settings added later (what `train.train_and_evaluate` reads), at the
+# value that leaves a run as it was: left out of the hashes for the same reason.
+_LATER_FIELDS = {
+    "data": {
+        "dataset_dir": None,
+        "eval_meshes_per_split": 8,
+        "real_root": None,
+        "real_patch_faces": 6000,
+        "real_faces_per_patch": 12000,
+        "real_patches_per_mesh": 8,
+        "real_val_patch_faces": 4000,
+        "real_val_patches_per_mesh": 1,
+    },
+    "train": {"init_from": None},
+}
+
+
 def _hashed(cfg: ExperimentConfig) -> dict:
     data = cfg.to_dict()
     data.pop("name", None)
@@ -464,6 +481,10 @@ def _hashed(cfg: ExperimentConfig) -> dict:
     for key, value in _LATER_MODEL_FIELDS.items():
         if model.get(key) == value:
             model.pop(key)
+    for section, fields in _LATER_FIELDS.items():
+        for key, value in fields.items():
+            if data[section].get(key, value) == value:
+                data[section].pop(key, None)
     return data
 
 

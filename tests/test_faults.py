@@ -30,7 +30,7 @@ from conftest import REPO, icosphere
 from dmd_jax.checkpoints import load_params
 from dmd_jax.config import preset
 from dmd_jax.pipeline import make_examples, training_batch
-from dmd_jax.train import NonFiniteLossError, phase_of, train
+from dmd_jax.train import InjectNaN, NonFiniteLossError, StopAfter, phase_of, train
 
 STEPS = 6
 CKPT_EVERY = 2
@@ -124,7 +124,7 @@ def test_nan_crash_then_resume_is_bit_identical_to_an_uninterrupted_run(tmp_path
     # (b) A NaN batch stops the run with a clear error; the last good checkpoint stays.
     workdir = tmp_path / "crashed"
     with pytest.raises(NonFiniteLossError) as info:
-        train(cfg, examples, workdir, progress=False, inject_nan_at=NAN_STEP)
+        train(cfg, examples, workdir, progress=False, hooks=[InjectNaN(NAN_STEP)])
     last_good = (NAN_STEP // CKPT_EVERY) * CKPT_EVERY
     message = str(info.value)
     assert f"non-finite loss (nan) at step {NAN_STEP}" in message
@@ -139,7 +139,7 @@ def test_nan_crash_then_resume_is_bit_identical_to_an_uninterrupted_run(tmp_path
 
     # (a) Resume the crashed run, stop after one step (a graceful stop checkpoints), and
     # resume again to the end: every leaf of the final state equals the reference's.
-    stopped = train(cfg, examples, workdir, progress=False, stop_after=1)
+    stopped = train(cfg, examples, workdir, progress=False, hooks=[StopAfter(1)])
     assert stopped["step"] == last_good + 1
     assert _saved_steps(ckpt)[-1] == last_good + 1
     final = train(cfg, examples, workdir, progress=False)

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from dmd_jax.train import train
+from dmd_jax.train import StopAfter, train
 from experiments import multiseed, runner
 from experiments import studies as st
 
@@ -83,7 +83,8 @@ def test_a_killed_group_resumes_to_the_same_models(tiny, tmp_path):
         cfgs, train_ex, [tmp_path / "f0", tmp_path / "f1"], eval_sets=evals, progress=False
     )
     dirs = [tmp_path / "k0", tmp_path / "k1"]
-    multiseed.train_seeds(cfgs, train_ex, dirs, eval_sets=evals, progress=False, stop_after=2)
+    stop = [StopAfter(2)]
+    multiseed.train_seeds(cfgs, train_ex, dirs, eval_sets=evals, progress=False, hooks=stop)
     assert [multiseed.resume_step(d) for d in dirs] == [2, 2]
     resumed = multiseed.train_seeds(cfgs, train_ex, dirs, eval_sets=evals, progress=False)
     for a, b in zip(full, resumed, strict=True):

@@ -415,7 +415,7 @@ TRAIN_LOOP_SCRIPT = textwrap.dedent(
 
     single, single_rows = run("single")
     multi, multi_rows = run("multi", data_parallel=True)
-    stopped, _ = run("resumed", data_parallel=True, stop_after=1)
+    stopped, _ = run("resumed", data_parallel=True, hooks=[train.StopAfter(1)])
     resumed, resumed_rows = run("resumed", data_parallel=True)
 
     def params(out):
@@ -432,7 +432,7 @@ TRAIN_LOOP_SCRIPT = textwrap.dedent(
     )
     scale = max(float(np.max(np.abs(a))) for a in params(single))
     try:
-        run("nan", data_parallel=True, inject_nan_at=1)
+        run("nan", data_parallel=True, hooks=[train.InjectNaN(1)])
         nan_error = None
     except train.NonFiniteLossError as exc:
         nan_error = str(exc)
@@ -572,7 +572,7 @@ MULTI_PROCESS_TRAIN_SCRIPT = textwrap.dedent(
     evals = {{"test_intra": examples[1:]}}
     run = Path(work) / "run"
     kwargs = dict(eval_sets=evals, progress=False, data_parallel=True)
-    stopped = train.train(cfg, examples, run, stop_after=1, **kwargs)
+    stopped = train.train(cfg, examples, run, hooks=[train.StopAfter(1)], **kwargs)
     final = train.train(cfg, examples, run, **kwargs)
     params = jax.tree.map(lambda a: np.asarray(a.addressable_data(0)), final["state"].params)
     result = {{"pid": pid, "step": [stopped["step"], final["step"]],

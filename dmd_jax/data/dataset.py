@@ -870,3 +870,48 @@ def convert_folder(
     )
     _write_manifest(out_dir, manifest)
     return load_dataset(out_dir)
+
+
+def build_dataset(
+    out_dir,
+    *,
+    from_folder=None,
+    per_category: int | None = None,
+    categories: Sequence[str] | None = None,
+    test_inter: Sequence[str] | None = None,
+    remesh: bool = False,
+    **common,
+) -> Dataset:
+    """`dmd-jax make-dataset`: procedural shapes (`make_dataset`) or a converted mesh
+    folder (`convert_folder`), whichever the arguments name.
+
+    Args:
+      out_dir: the dataset directory to write.
+      from_folder: a `category/*.obj|off|ply` folder to convert; None: procedural.
+      per_category: procedural shapes per category (required without `from_folder`).
+      categories: procedural categories (None or empty: all).
+      test_inter: categories held out whole; None: `DEFAULT_TEST_INTER` for procedural
+        data, none for a folder; `()` holds out nothing.
+      remesh: remesh folder meshes into the vertex range.
+      **common: `seed`, `intra_fraction`, `workers`, `min_vertices`, `max_vertices`,
+        `progress`, `overwrite` of both writers.
+
+    Raises:
+      ValueError: procedural-only arguments with `from_folder`, or no `per_category`
+        without it.
+    """
+    if from_folder:
+        if per_category is not None or categories:
+            raise ValueError(
+                "--per-category and --categories apply to procedural data, not --from-folder"
+            )
+        return convert_folder(from_folder, out_dir, test_inter=test_inter, remesh=remesh, **common)
+    if per_category is None:
+        raise ValueError("--per-category is required (or give --from-folder)")
+    return make_dataset(
+        out_dir,
+        per_category=per_category,
+        categories=categories or None,
+        test_inter=DEFAULT_TEST_INTER if test_inter is None else test_inter,
+        **common,
+    )
