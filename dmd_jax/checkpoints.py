@@ -115,6 +115,10 @@ def _parse_section(path, payload: dict, name: str, parse):
         return parse(json.loads(payload[name]))
     except (TypeError, ValueError) as exc:  # JSONDecodeError is a ValueError
         raise ValueError(f"{path}: unreadable {name} in the weights file ({exc})") from exc
+    except RecursionError:  # JSON nested thousands deep: no config is, so no traceback
+        raise ValueError(
+            f"{path}: unreadable {name} in the weights file (JSON nested too deeply)"
+        ) from None
 
 
 def read_weights_payload(path, *, fmt: str, versions: tuple[int, ...], kind: str) -> dict:

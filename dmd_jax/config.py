@@ -268,7 +268,15 @@ def _from_json(value: Any, hint: Any, where: str) -> Any:
     if hint is float:
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise ValueError(f"{where}: expected a number, got {value!r}")
-        return float(value)
+        try:
+            number = float(value)
+        except OverflowError:  # an integer of hundreds of digits
+            number = math.inf
+        # No config field means anything by inf or NaN (JSON has neither, Python's json
+        # module reads both): refusing them here covers every float of every section.
+        if not math.isfinite(number):
+            raise ValueError(f"{where}: expected a finite number, got {value!r}")
+        return number
     if hint is str:
         if not isinstance(value, str):
             raise ValueError(f"{where}: expected a string, got {value!r}")
@@ -284,6 +292,31 @@ def _from_json(value: Any, hint: Any, where: str) -> Any:
 # ModelConfig fields of configs saved before 2026-12-02 that now live in
 # `dmd_jax.policy.DenoisePolicy` (`policy.from_legacy_model_fields`).
 LEGACY_POLICY_FIELDS = ("pass_tolerance", "presmooth_start", "presmooth_per_step")
+
+
+# Upper bounds on every count a model config carries. A weights file is untrusted input
+# and each of these multiplies the work of one denoise (`filter_iterations = 10**7` ran
+# for ever): the bounds sit far above any trained model (the bundled one: width 32,
+# 120 filter passes, 10 Taubin pairs, 10 vertex iterations; the paper's width 512).
+MODEL_COUNT_LIMITS = {
+    "width": 4096,
+    "fe_two_streams": 16,
+    "depth": 16,
+    "transformer_width": 4096,
+    "n_agg": 16,
+    "dense_layers": 16,
+    "mt_transforms": 16,
+    "stn_width": 4096,
+    "vertex_iterations": 1000,
+    "filter_iterations": 1000,
+    "taubin_iterations": 1000,
+}
+# A bilateral filter's range σ acts on differences of unit normals (0 to 2): below 0.01
+# every weight but a face's own underflows (1e-300 divided by zero), above 10 the
+# filter is a plain average.
+FILTER_SIGMA_RANGE = (0.01, 10.0)
+MAX_FILTERS = 16
+MAX_HEAD_INIT_SCALE = 100.0
 
 
 @struct.dataclass
@@ -425,6 +458,28 @@ class ModelConfig(_ConfigMixin):
         _check(
             not self.head_consistency or self.head == "normal",
             "head_consistency needs head='normal' (it describes the candidate normals)",
+        )
+        for name, most in MODEL_COUNT_LIMITS.items():
+            value = getattr(self, name)
+            _check(
+                value is None or value <= most,
+                f"{name} must be at most {most:,}, got {value!r} (a bound on the work one "
+                "denoise may take)",
+            )
+        low, high = FILTER_SIGMA_RANGE
+        _check(
+            len(self.filter_sigmas) <= MAX_FILTERS
+            and all(
+                not isinstance(s, bool) and math.isfinite(s) and low <= s <= high
+                for s in self.filter_sigmas
+            ),
+            f"filter_sigmas must be at most {MAX_FILTERS} numbers in [{low:g}, {high:g}] "
+            f"(range σ of unit-normal differences), got {self.filter_sigmas!r}",
+        )
+        _check(
+            math.isfinite(self.head_init_scale) and self.head_init_scale <= MAX_HEAD_INIT_SCALE,
+            f"head_init_scale must be a finite number <= {MAX_HEAD_INIT_SCALE:g}, "
+            f"got {self.head_init_scale!r}",
         )
 
     # Derived structure, one place for every variant's switches.

@@ -387,3 +387,107 @@ def test_case9_render_meshes_refuses_a_huge_canvas(sphere_files):
     with pytest.raises(ValueError, match="M pixels, over the 100 M limit"):
         render_meshes([(v, f)] * 40, tmp / "x.png", panel_size=20)
     assert not (tmp / "x.png").exists()
+
+
+# --------------------------------------------------------------------------------------
+# 6, 7, 10. Weights files: nested JSON, tiny filter sigmas, unbounded counts
+# --------------------------------------------------------------------------------------
+
+
+def _bundled_payload() -> dict:
+    from flax import serialization
+
+    from dmd_jax.checkpoints import pretrained_path
+
+    return serialization.msgpack_restore(pretrained_path().read_bytes())
+
+
+def _weights_with(tmp_path, payload: dict, name: str = "w.msgpack"):
+    from flax import serialization
+
+    path = tmp_path / name
+    path.write_bytes(serialization.msgpack_serialize(payload))
+    return path
+
+
+def _with_model_field(payload: dict, field: str, value) -> dict:
+    import json
+
+    config = json.loads(payload["config"])
+    config["model"][field] = value
+    return {**payload, "config": json.dumps(config)}
+
+
+@pytest.mark.parametrize("section", ["config", "meta", "policy"])
+def test_case6_deeply_nested_json_in_weights_is_one_value_error(tmp_path, capsys, section):
+    from dmd_jax.checkpoints import load_weights
+
+    payload = _bundled_payload()
+    if section not in payload:
+        pytest.skip(f"this weights format has no {section} section")
+    payload[section] = "[" * 100_000 + "]" * 100_000
+    path = _weights_with(tmp_path, payload)
+    with pytest.raises(ValueError, match=f"w.msgpack: unreadable {section} .*nested too deeply"):
+        load_weights(path)
+    save_mesh(tmp_path / "t.off", TET_V, TET_F)
+    code, _, err = run(
+        capsys, "denoise", tmp_path / "t.off", "-o", tmp_path / "o.off", "--weights", path
+    )
+    assert code == 2
+    _one_line_error(err, "w.msgpack", "nested too deeply")
+
+
+@pytest.mark.parametrize("sigma", [1e-300, 0.0, 1e-5, 1e6, float("nan"), float("inf")])
+def test_case7_filter_sigmas_out_of_range_are_refused_on_load(tmp_path, sigma):
+    from dmd_jax.checkpoints import load_weights
+
+    path = _weights_with(
+        tmp_path, _with_model_field(_bundled_payload(), "filter_sigmas", [0.2, sigma])
+    )
+    with pytest.raises(ValueError, match=r"w.msgpack: unreadable config .*(filter_sigmas|finite)"):
+        load_weights(path)
+
+
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("filter_iterations", 10**7),
+        ("vertex_iterations", 10**6),
+        ("taubin_iterations", 10**6),
+        ("width", 10**6),
+        ("depth", 1000),
+        ("fe_two_streams", 1000),
+        ("n_agg", 1000),
+        ("dense_layers", 1000),
+        ("stn_width", 10**6),
+        ("transformer_width", 10**6),
+        ("filter_sigmas", [0.2] * 100),
+        ("head_init_scale", 1e300),
+        ("dropout", float("nan")),
+    ],
+)
+def test_case10_every_count_of_a_weights_file_is_bounded(tmp_path, field, value):
+    from dmd_jax.checkpoints import load_weights
+
+    path = _weights_with(tmp_path, _with_model_field(_bundled_payload(), field, value))
+    with pytest.raises(ValueError, match=f"w.msgpack: unreadable config .*{field}") as info:
+        load_weights(path)
+    assert "\n" not in str(info.value)
+
+
+def test_case10_non_finite_numbers_anywhere_in_a_config_are_refused():
+    from dmd_jax.config import ExperimentConfig, preset
+
+    base = preset("small").to_dict()
+    for section, field in [("train", "lr"), ("loss", "gamma_h"), ("train", "grad_clip")]:
+        for bad in (float("inf"), float("nan"), 10**400):
+            data = {**base, section: {**base[section], field: bad}}
+            with pytest.raises(ValueError, match=f"{field}: expected a finite number"):
+                ExperimentConfig.from_dict(data)
+
+
+def test_case10_the_bounds_hold_every_preset():
+    from dmd_jax.config import preset
+
+    for name in ("paper", "small", "test"):
+        preset(name)  # builds, so its model sits inside every bound
