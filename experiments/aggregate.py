@@ -1110,8 +1110,8 @@ resolve", not a failed run.
   the paper's side of 0, *contradicted with confidence* when it lies on the other side,
   and *undecided* when it contains 0. Each interval is a 95 % statement on its own:
   among dozens of (row, column) pairs a few confident verdicts are expected by chance
-  alone. `cpu/` and `cpu-recipe/` hold one seed per row and no per-mesh values, so they
-  have no intervals.
+  alone. `cpu-recipe/` holds one seed per row and no per-mesh values, so it has no
+  intervals.
 * Even the `cpu` preset's 1,000 steps are far from the paper's 60 epochs of 10⁴ meshes:
   the verdicts are about these short trainings.
 """
@@ -1140,7 +1140,7 @@ def write_index(results_root, presets: Sequence[str] | None = None) -> Path:
         summary = json.loads((d / "summary.json").read_text())
         done = [k for k, v in summary["studies"].items() if v.get("finished_rows")]
         lines += [
-            f"## Preset `{summary['preset']}` ([README]({d.name}/README.md))",
+            f"## `{d.name}/`: preset `{summary['preset']}` ([README]({d.name}/README.md))",
             "",
             f"Finished studies: {', '.join(done) or 'none'}. "
             + (
