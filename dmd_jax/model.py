@@ -22,7 +22,7 @@ Top-level parameter collections are `feature_extractor`, `transformer`, `denoise
 `stn` (each present only when the variant has it), so training schemes can freeze the
 feature extractor by its subtree.
 
-Choices where the paper is silent (see README, "Architecture"):
+Choices where the paper is silent (see docs/design-decisions.md, "Model"):
 
 * AGG bias is added after aggregation, `ReLU(Â X W + b)`, so it is not reweighted by
   the normalised adjacency; residual `h = g(X) + X` when widths match (appendix B).
