@@ -92,7 +92,7 @@ def main(argv=None) -> int:
             )
             per.append(err(frame.invert(np.asarray(moved, np.float64)), clean, faces))
         model = err(dmd_jax.denoise(noisy, faces, bundle), clean, faces)
-        taubin_err = err(baselines.denoise_with("taubin", noisy, faces), clean, faces)
+        taubin_err = err(baselines.run_baseline("taubin", noisy, faces), clean, faces)
         rows.append([model, taubin_err, min(per), *per])
         table.append(
             [name, f"{model:.2f}", f"{taubin_err:.2f}", f"{min(per):.2f}"]

@@ -80,7 +80,7 @@ def measure(val_dir, bundle, max_faces: int = MAX_FACES, echo=print):
     from dmd_jax.inference import denoise
     from dmd_jax.io import load_mesh
     from dmd_jax.metrics import mesh_metrics
-    from dmd_jax.noise import add_noise
+    from dmd_jax.noise import add_noise_jax
     from dmd_jax.presmooth import MAX_STEPS, laplacian_steps, roughness
 
     rows, clean_roughness = [], {}
@@ -95,7 +95,7 @@ def measure(val_dir, bundle, max_faces: int = MAX_FACES, echo=print):
             name = condition_name(direction, level)
             seed = zlib.crc32(f"{path.name}|{name}".encode())
             noisy = np.asarray(
-                add_noise(
+                add_noise_jax(
                     jax.random.PRNGKey(seed),
                     clean,
                     faces,
@@ -112,7 +112,7 @@ def measure(val_dir, bundle, max_faces: int = MAX_FACES, echo=print):
                     x = laplacian_steps(x, faces, 1)
                 out = denoise(x, faces, bundle, presmooth=0)
                 errs.append(mesh_metrics(np.asarray(out, np.float64), clean, faces)["normal_deg"])
-            lap = baselines.denoise_with("laplacian", noisy, faces)
+            lap = baselines.run_baseline("laplacian", noisy, faces)
             lap_err = mesh_metrics(np.asarray(lap, np.float64), clean, faces)["normal_deg"]
             rough = roughness(noisy, faces)
             rows.append([path.name, len(faces), name, seed, rough, lap_err, *errs])

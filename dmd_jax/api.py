@@ -40,7 +40,7 @@ def add_noise(
     impulse_mode: str = "coordinate",
     direction: str = "isotropic",
 ) -> np.ndarray:
-    """`dmd_jax.noise.add_noise` for NumPy users: an integer seed, NumPy out, dtype kept.
+    """`dmd_jax.noise.add_noise_jax` for NumPy users: an integer seed, NumPy out, dtype kept.
 
     Args:
       seed: an `int` (as `dmd-jax add-noise --seed`) or a `jax.random` key.
@@ -50,7 +50,7 @@ def add_noise(
       level: σ for Gaussian, the amplitude for the other kinds, in `units`.
       units: `"canonical"` (fraction of the longest bounding-box side) or `"edge"`
         (× mean edge length).
-      impulse_p, impulse_q, impulse_mode: see `dmd_jax.noise.add_noise`.
+      impulse_p, impulse_q, impulse_mode: see `dmd_jax.noise.add_noise_jax`.
       direction: `"isotropic"` (per coordinate) or `"normal"` (one draw per vertex along
         its vertex normal: the mesh-denoising benchmark protocol).
 
@@ -80,7 +80,7 @@ def add_noise(
     along_normal = direction == "normal"
     if along_normal and faces is None:
         raise ValueError("direction='normal' needs the faces of the mesh")
-    # noise.add_noise's unit draws (float32) and noise unit, combined in float64.
+    # noise.add_noise_jax's unit draws (float32) and noise unit, combined in float64.
     x = noise.unit_noise(
         key,
         (v.shape[0], 1) if along_normal else v.shape,
@@ -156,5 +156,5 @@ def denoise_with(
         params = {**params, "weights": weights}
     out = vertices
     for _ in range(1 if iterations is None else int(iterations)):
-        out = baselines.denoise_with(method, out, faces, **params)
+        out = baselines.run_baseline(method, out, faces, **params)
     return np.asarray(out).astype(dtype, copy=False)

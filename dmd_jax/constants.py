@@ -13,7 +13,7 @@ from __future__ import annotations
 # Noise
 # --------------------------------------------------------------------------------------
 
-# The distributions of `noise.add_noise` (`NoiseConfig.kinds`).
+# The distributions of `noise.add_noise_jax` (`NoiseConfig.kinds`).
 NOISE_KINDS = ("gaussian", "uniform", "gamma", "impulse")
 
 # --------------------------------------------------------------------------------------

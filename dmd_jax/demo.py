@@ -213,7 +213,7 @@ def run_demo(
     results["dmd"] = _timed(lambda: inference.denoise(noisy, faces, bundle))
     results["taubin"] = _timed(lambda: pymeshlab_filter(noisy, faces, "taubin"))
     results[FEATURE_BASELINE] = _timed(
-        lambda: baselines.denoise_with(FEATURE_BASELINE, noisy, faces)
+        lambda: baselines.run_baseline(FEATURE_BASELINE, noisy, faces)
     )
 
     metrics = {}

@@ -1,7 +1,8 @@
 """Synthetic vertex noise with explicit PRNG keys: Gaussian, uniform, gamma, impulse.
 
-`add_noise(key, vertices, faces, kind, level)` adds `level · X` to every coordinate,
-with `level` measured in one of two units:
+`add_noise_jax(key, vertices, faces, kind, level)` adds `level · X` to every coordinate,
+with `level` measured in one of two units (`dmd_jax.add_noise(seed, ...)` is the NumPy
+version, with an integer seed):
 
 * `units="canonical"` (the paper's convention): `level` is a length in the canonical
   frame of the mesh (bounding box longest side 1), so the noise added to world
@@ -36,7 +37,7 @@ mesh, kind and level give bit-identical noise on the same backend.
 Compilation: outside `jit`, each new array shape compiles a new program, and sampling
 programs take about a second to compile. So the unit noise of a concrete shape is drawn
 for a row count rounded up to a power of two of at least 4,096 (`_noise_rows`) and
-sliced on the host, and `add_noise` combines on the host: a training epoch over meshes
+sliced on the host, and `add_noise_jax` combines on the host: a training epoch over meshes
 of hundreds of sizes up to 4,096 vertices compiles one program per noise kind and
 direction instead of one per mesh. The rounding changes no value: with JAX's
 partitionable threefry (the default) the draws of the first rows do not depend on how
@@ -259,7 +260,7 @@ def noise_unit_length(vertices, faces, units):
     return jnp.mean(jnp.linalg.norm(v[a] - v[b], axis=-1))
 
 
-def add_noise(
+def add_noise_jax(
     key,
     vertices,
     faces,
@@ -272,7 +273,10 @@ def add_noise(
     impulse_mode="coordinate",
     direction="isotropic",
 ):
-    """Adds noise of one kind and level to the vertices of a mesh.
+    """Adds noise of one kind and level to the vertices of a mesh, from a `jax.random` key.
+
+    JAX arrays in and out, traceable under `jit` except with `direction="normal"`;
+    `dmd_jax.add_noise(seed, ...)` is the same noise for NumPy users.
 
     Args:
       key: a `jax.random` key; the same key gives the same noise.
@@ -444,7 +448,7 @@ def add_mixed_noise(
         p_normal=p_normal,
         p_clean=p_clean,
     )
-    noisy = add_noise(
+    noisy = add_noise_jax(
         k_noise,
         vertices,
         faces,
@@ -457,3 +461,19 @@ def add_mixed_noise(
         direction=spec.direction,
     )
     return noisy, spec
+
+
+def __getattr__(name: str):
+    # `noise.add_noise` was this module's name for `add_noise_jax` until it clashed with
+    # the root `dmd_jax.add_noise(seed, ...)`; old code keeps working, with a warning.
+    if name == "add_noise":
+        import warnings
+
+        warnings.warn(
+            "dmd_jax.noise.add_noise is deprecated: use dmd_jax.noise.add_noise_jax (a "
+            "jax.random key) or dmd_jax.add_noise (an integer seed)",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return add_noise_jax
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -435,7 +435,7 @@ def noise_evaluation(bundle, examples, kind: str, level: float, *, seed: int = E
 
     from dmd_jax.inference import denoise
     from dmd_jax.metrics import mesh_metrics
-    from dmd_jax.noise import add_noise
+    from dmd_jax.noise import add_noise_jax
 
     row = [(k, lv) for k, lv, _ in st.NOISE_ROWS].index((kind, level))
     key = jax.random.fold_in(jax.random.PRNGKey(seed), row)
@@ -443,7 +443,7 @@ def noise_evaluation(bundle, examples, kind: str, level: float, *, seed: int = E
     for i, ex in enumerate(examples):
         clean = np.asarray(ex.vertices, np.float64)
         noisy = np.asarray(
-            add_noise(jax.random.fold_in(key, i), clean, ex.faces, kind, level), np.float64
+            add_noise_jax(jax.random.fold_in(key, i), clean, ex.faces, kind, level), np.float64
         )
         out = denoise(noisy, ex.faces, bundle)
         den.append(mesh_metrics(out, clean, ex.faces))

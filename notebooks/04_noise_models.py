@@ -1,7 +1,7 @@
 # %% [markdown]
 # # 04 · Noise models, noise units, and how the metrics respond
 #
-# `dmd_jax.noise.add_noise(key, vertices, faces, kind, level, units=...)` moves every
+# `dmd_jax.noise.add_noise_jax(key, vertices, faces, kind, level, units=...)` moves every
 # coordinate by $\text{level}\cdot u\cdot X$, where $X$ is drawn independently per
 # coordinate from one of four unit distributions and $u$ is the length one level unit
 # stands for:
@@ -119,7 +119,7 @@ print(f"{'kind':8s} {'level':>6s} {metric_header(VERTEX):>15s} {'level²·E[X²]
 for kind in KINDS:
     for level in noise.PAPER_LEVELS[kind]:
         noisy = np.asarray(
-            noise.add_noise(jax.random.fold_in(key, 100), blob_v, blob_f, kind, level)
+            noise.add_noise_jax(jax.random.fold_in(key, 100), blob_v, blob_f, kind, level)
         )
         m = mesh_metrics(noisy, blob_v, blob_f)
         rows.append((kind, level, m))
@@ -154,7 +154,7 @@ rms = 0.01
 panels, errors = [(blob_v, blob_f)], [None]  # None: plain grey shading
 for kind in KINDS:
     level = rms / np.sqrt(SECOND_MOMENT[kind])
-    noisy = np.asarray(noise.add_noise(jax.random.fold_in(key, 7), blob_v, blob_f, kind, level))
+    noisy = np.asarray(noise.add_noise_jax(jax.random.fold_in(key, 7), blob_v, blob_f, kind, level))
     panels.append((noisy, blob_f))
     errors.append(face_normal_errors_deg(noisy, blob_v, blob_f))
 show_render(
@@ -205,7 +205,9 @@ for name, (v, f) in resolutions.items():
         normal_error[name, units] = [
             face_normal_errors_deg(
                 np.asarray(
-                    noise.add_noise(jax.random.fold_in(key, 3), v, f, "gaussian", lv, units=units)
+                    noise.add_noise_jax(
+                        jax.random.fold_in(key, 3), v, f, "gaussian", lv, units=units
+                    )
                 ),
                 v,
                 f,
@@ -270,7 +272,7 @@ for kind in KINDS:
     for i, target in enumerate(rms_grid):
         level = target / np.sqrt(SECOND_MOMENT[kind])
         noisy = np.asarray(
-            noise.add_noise(jax.random.fold_in(key, 1000 + i), blob_v, blob_f, kind, level)
+            noise.add_noise_jax(jax.random.fold_in(key, 1000 + i), blob_v, blob_f, kind, level)
         )
         response[kind].append(mesh_metrics(noisy, blob_v, blob_f))
 

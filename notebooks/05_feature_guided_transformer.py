@@ -86,7 +86,9 @@ def noisy_batch(seed, kind="gaussian", level=0.3, units="edge"):
     noisy, clean = [], []
     for i, (v, f) in enumerate(clean_meshes.values()):
         x = np.asarray(
-            noise.add_noise(jax.random.PRNGKey(1000 * seed + i), v, f, kind, level, units=units),
+            noise.add_noise_jax(
+                jax.random.PRNGKey(1000 * seed + i), v, f, kind, level, units=units
+            ),
             float,
         )
         frame = encoding.mesh_frame(cfg.model.encoding, x, f)

@@ -19,7 +19,7 @@ import numpy as np
 from IPython.display import HTML, Image, Markdown, display
 
 from dmd_jax import denoise, load_pretrained, load_weights, noise
-from dmd_jax.baselines import DEFAULTS, denoise_with
+from dmd_jax.baselines import DEFAULTS, run_baseline
 from dmd_jax.data import generate_shape
 from dmd_jax.graph import face_adjacency
 from dmd_jax.io import load_mesh, save_mesh
@@ -85,7 +85,7 @@ print(
 
 # %%
 noisy = np.asarray(
-    noise.add_noise(jax.random.PRNGKey(0), clean, faces, "gaussian", 0.3, units="edge"), float
+    noise.add_noise_jax(jax.random.PRNGKey(0), clean, faces, "gaussian", 0.3, units="edge"), float
 )
 print(f"RMS displacement: {np.sqrt(np.mean((noisy - clean) ** 2)):.3f} units")
 
@@ -108,9 +108,9 @@ seconds["DMD-Net"] = time.perf_counter() - start
 
 for name, label in (("taubin", "Taubin"), ("bnf", "BNF")):
     print(f"{label} defaults: {DEFAULTS[name]}")
-    denoise_with(name, noisy, faces)  # compiles
+    run_baseline(name, noisy, faces)  # compiles
     start = time.perf_counter()
-    results[label] = denoise_with(name, noisy, faces)
+    results[label] = run_baseline(name, noisy, faces)
     seconds[label] = time.perf_counter() - start
 for name, out in results.items():
     print(

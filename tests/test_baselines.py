@@ -19,7 +19,7 @@ from dmd_jax.graph import face_adjacency
 from dmd_jax.io import load_mesh
 from dmd_jax.mesh import mean_edge_length
 from dmd_jax.metrics import face_normal_errors_deg
-from dmd_jax.noise import add_noise
+from dmd_jax.noise import add_noise_jax
 
 METHODS = ("laplacian", "taubin", "bmd", "nifp", "fefp", "bnf", "gnf", "l0")
 FEATURE_PRESERVING = ("bmd", "nifp", "fefp", "bnf", "gnf", "l0")
@@ -34,7 +34,7 @@ CORE_NAME = {"laplacian": "lambda_mu", "taubin": "lambda_mu"}
 def _noisy(v, f, level, seed=0):
     """Gaussian noise of `level` × mean edge length per coordinate (project convention)."""
     key = jax.random.PRNGKey(seed)
-    return np.asarray(add_noise(key, v, f, "gaussian", level, units="edge"), np.float64)
+    return np.asarray(add_noise_jax(key, v, f, "gaussian", level, units="edge"), np.float64)
 
 
 @pytest.fixture(scope="module")
@@ -326,22 +326,30 @@ def test_registry_lists_every_method_with_the_design_defaults():
     assert d["l0"]["beta_max"] == 1e3 and d["l0"]["beta_rate"] == pytest.approx(2**0.5)
 
 
-def test_denoise_with_rejects_unknown_methods_parameters_and_values():
+def test_old_name_denoise_with_still_works_with_a_deprecation_warning():
+    with pytest.warns(DeprecationWarning, match="run_baseline"):
+        assert baselines.denoise_with is baselines.run_baseline
+    assert "denoise_with" not in baselines.__all__
+    with pytest.raises(AttributeError, match="no attribute 'denoise'"):
+        baselines.denoise  # noqa: B018
+
+
+def test_run_baseline_rejects_unknown_methods_parameters_and_values():
     v, f = icosphere(1)
     with pytest.raises(ValueError, match="unknown denoiser 'median'"):
-        baselines.denoise_with("median", v, f)
+        baselines.run_baseline("median", v, f)
     with pytest.raises(ValueError, match="unknown parameter.*sigma"):
-        baselines.denoise_with("taubin", v, f, sigma=1.0)
+        baselines.run_baseline("taubin", v, f, sigma=1.0)
     with pytest.raises(ValueError, match="iterations"):
-        baselines.denoise_with("laplacian", v, f, iterations=-1)
+        baselines.run_baseline("laplacian", v, f, iterations=-1)
     with pytest.raises(ValueError, match="threshold"):
-        baselines.denoise_with("fefp", v, f, threshold=1.5)
+        baselines.run_baseline("fefp", v, f, threshold=1.5)
     with pytest.raises(ValueError, match="sigma_r"):
-        baselines.denoise_with("gnf", v, f, sigma_r=0.0)
+        baselines.run_baseline("gnf", v, f, sigma_r=0.0)
     with pytest.raises(ValueError, match="neighbourhood"):
-        baselines.denoise_with("fefp", v, f, neighbourhood="ring")
+        baselines.run_baseline("fefp", v, f, neighbourhood="ring")
     with pytest.raises(ValueError, match="faces"):
-        baselines.denoise_with("bnf", v, f[:, :2])
+        baselines.run_baseline("bnf", v, f[:, :2])
 
 
 # --------------------------------------------------------------------------------------
@@ -532,7 +540,7 @@ def crop_results(fandisk_crop):
         noisy = _noisy(v, f, level)
         out[level] = {"noisy": noisy}
         for name in METHODS:
-            out[level][name] = baselines.denoise_with(name, noisy, f)
+            out[level][name] = baselines.run_baseline(name, noisy, f)
     return out
 
 
@@ -580,7 +588,7 @@ def test_full_fandisk_quality(name, fandisk):
     v, f = fandisk
     noisy = _noisy(v, f, 0.3)
     before = face_normal_errors_deg(noisy, v, f).mean()
-    after = face_normal_errors_deg(baselines.denoise_with(name, noisy, f), v, f).mean()
+    after = face_normal_errors_deg(baselines.run_baseline(name, noisy, f), v, f).mean()
     assert after < 0.7 * before
 
 
@@ -593,10 +601,10 @@ def test_full_fandisk_quality(name, fandisk):
 def test_second_call_reuses_the_compiled_core(name, knight):
     _, f, noisy = knight
     core = CORE_NAME.get(name, name)
-    first = baselines.denoise_with(name, noisy, f)
+    first = baselines.run_baseline(name, noisy, f)
     traces = TRACE_COUNTS[core]
     assert traces >= 1
-    second = baselines.denoise_with(name, noisy, f)
+    second = baselines.run_baseline(name, noisy, f)
     np.testing.assert_array_equal(first, second)
     changed = {
         "laplacian": {"lam": 0.25, "iterations": 3},
@@ -608,7 +616,7 @@ def test_second_call_reuses_the_compiled_core(name, knight):
         "gnf": {"sigma_s": 1.5, "normal_iterations": 2, "vertex_iterations": 3},
         "l0": {"lam": 0.3, "beta_max": 10.0},
     }[name]
-    baselines.denoise_with(name, noisy, f, **changed)
+    baselines.run_baseline(name, noisy, f, **changed)
     # Parameters and iteration counts are traced values: no new trace. (NIFP's and
     # BMD's pair lists may land in another size bucket; the same settings do not.)
     if name not in ("nifp",):
@@ -624,8 +632,8 @@ def _rotation(seed):
 def test_translation_scale_rotation_equivariance(name, knight):
     _, f, noisy = knight
     rot, scale, shift = _rotation(1), 37.5, np.array([4.0, -120.0, 9.0])
-    out = baselines.denoise_with(name, noisy, f)
-    moved = baselines.denoise_with(name, scale * noisy @ rot.T + shift, f)
+    out = baselines.run_baseline(name, noisy, f)
+    moved = baselines.run_baseline(name, scale * noisy @ rot.T + shift, f)
     np.testing.assert_allclose(moved, scale * out @ rot.T + shift, atol=1e-7 * scale * _bbox(noisy))
 
 
@@ -636,8 +644,8 @@ def test_fix_boundary_holds_open_boundary_vertices(name, fandisk_crop):
     edges = _edge_faces(f)
     boundary = sorted({u for e, fs in edges.items() if len(fs) == 1 for u in e})
     assert len(boundary) > 50
-    held = baselines.denoise_with(name, noisy, f, fix_boundary=True)
-    free = baselines.denoise_with(name, noisy, f)
+    held = baselines.run_baseline(name, noisy, f, fix_boundary=True)
+    free = baselines.run_baseline(name, noisy, f)
     # Held exactly, up to the round trip through the canonical frame.
     np.testing.assert_allclose(held[boundary], noisy[boundary], rtol=0, atol=1e-12 * _bbox(v))
     assert np.abs(free[boundary] - noisy[boundary]).max() > 0.01 * mean_edge_length(v, f)
@@ -656,11 +664,11 @@ def _odd_meshes():
 def test_tiny_open_and_isolated_meshes_give_finite_output(mesh):
     v, f = _odd_meshes()[mesh]
     for name in METHODS:
-        out = baselines.denoise_with(name, v, f)
+        out = baselines.run_baseline(name, v, f)
         assert out.shape == v.shape and out.dtype == np.float64
         assert np.all(np.isfinite(out)), name
     if mesh == "isolated":
         # Only NIFP (a point-set method) may move a vertex no face contains.
         for name in METHODS:
             if name != "nifp":
-                np.testing.assert_allclose(baselines.denoise_with(name, v, f)[-1], v[-1])
+                np.testing.assert_allclose(baselines.run_baseline(name, v, f)[-1], v[-1])

@@ -176,7 +176,7 @@ def test_method_taubin(files, capsys, tmp_path):
     assert code == 0 and "taubin" in out
     noisy_v, f = load_mesh(files / "noisy.obj")
     got, _ = load_mesh(out_path)
-    np.testing.assert_allclose(got, baselines.denoise_with("taubin", noisy_v, f), atol=1e-12)
+    np.testing.assert_allclose(got, baselines.run_baseline("taubin", noisy_v, f), atol=1e-12)
     clean_v, _ = load_mesh(files / "clean.obj")
     assert (
         mesh_metrics(got, clean_v, f)["normal_deg"]
@@ -808,7 +808,7 @@ def test_add_noise_and_denoise_with_at_the_root(files):
         dmd_jax.add_noise(0, clean, f, "gaussian", -1.0)
     # One call for every method; the same result as each method's own entry point.
     np.testing.assert_allclose(
-        dmd_jax.denoise_with("taubin", noisy, f), baselines.denoise_with("taubin", noisy, f)
+        dmd_jax.denoise_with("taubin", noisy, f), baselines.run_baseline("taubin", noisy, f)
     )
     assert dmd_jax.denoise_with("bnf", noisy32, f).dtype == np.float32
     with pytest.raises(ValueError, match="dmd, laplacian"):

@@ -13,7 +13,7 @@ from dmd_jax.baselines import cascaded_regression as C
 from dmd_jax.baselines._common import TRACE_COUNTS
 from dmd_jax.io import load_mesh
 from dmd_jax.metrics import mesh_metrics
-from dmd_jax.noise import add_noise
+from dmd_jax.noise import add_noise_jax
 
 TINY = C.CNRConfig(
     sigma_s=(1.0, 2.0), sigma_r=(0.35, None), iterations=(1, 2), guide=(1, 1, 1),
@@ -23,7 +23,7 @@ TINY = C.CNRConfig(
 
 def _noisy(v, f, level, seed=0):
     return np.asarray(
-        add_noise(jax.random.PRNGKey(seed), v, f, "gaussian", level, units="edge"), np.float64
+        add_noise_jax(jax.random.PRNGKey(seed), v, f, "gaussian", level, units="edge"), np.float64
     )
 
 
@@ -230,7 +230,7 @@ def test_bundled_cnr_reduces_the_normal_error(bundled):
     v, f = load_mesh(shared_mesh_path("fandisk.off"))
     v, f = crop_mesh(v, f, np.array([3.5, 14.3, -1.4]), 1.2)
     noisy = _noisy(v, f, 0.3)
-    out = baselines.denoise_with("cnr", noisy, f)
+    out = baselines.run_baseline("cnr", noisy, f)
     assert out.shape == v.shape and np.all(np.isfinite(out))
     before = mesh_metrics(noisy, v, f)["normal_deg"]
     after = mesh_metrics(out, v, f)["normal_deg"]
@@ -289,4 +289,4 @@ def test_bad_arguments_raise():
     with pytest.raises(ValueError, match="weights"):
         C.cnr(v, f, weights=42)
     with pytest.raises(ValueError, match="unknown parameter"):
-        baselines.denoise_with("cnr", v, f, sigma=1.0)
+        baselines.run_baseline("cnr", v, f, sigma=1.0)

@@ -12,7 +12,7 @@ from scipy.spatial import cKDTree
 
 from dmd_jax.io import load_mesh
 from dmd_jax.metrics import face_normal_errors_deg, mesh_metrics
-from dmd_jax.noise import add_noise
+from dmd_jax.noise import add_noise_jax
 
 
 def np_metrics(pred, gt, faces):
@@ -36,7 +36,7 @@ def np_metrics(pred, gt, faces):
 @pytest.fixture(scope="module")
 def bunny_pair():
     v, f = load_mesh(shared_mesh_path("bunny.off"))
-    noisy = np.asarray(add_noise(jax.random.PRNGKey(0), v, f, "gaussian", 0.3, units="edge"))
+    noisy = np.asarray(add_noise_jax(jax.random.PRNGKey(0), v, f, "gaussian", 0.3, units="edge"))
     return noisy, v, f
 
 

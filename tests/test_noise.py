@@ -18,7 +18,7 @@ from dmd_jax.noise import (
     PAPER_LEVELS,
     NoiseSpec,
     add_mixed_noise,
-    add_noise,
+    add_noise_jax,
     sample_noise_spec,
 )
 
@@ -32,7 +32,7 @@ def _cube_points(n=20000, seed=0):
 
 def _displacement(kind, level, n=20000, **kwargs):
     v = _cube_points(n)
-    noisy = add_noise(jax.random.PRNGKey(1), v, None, kind, level, **kwargs)
+    noisy = add_noise_jax(jax.random.PRNGKey(1), v, None, kind, level, **kwargs)
     return np.asarray(noisy) - v
 
 
@@ -44,9 +44,9 @@ def _displacement(kind, level, n=20000, **kwargs):
 @pytest.mark.parametrize("kind", NOISE_KINDS)
 def test_same_key_same_bits_different_key_different_noise(kind):
     v, f = icosphere(2)
-    a = np.asarray(add_noise(jax.random.PRNGKey(7), v, f, kind, 0.02))
-    b = np.asarray(add_noise(jax.random.PRNGKey(7), v, f, kind, 0.02))
-    c = np.asarray(add_noise(jax.random.PRNGKey(8), v, f, kind, 0.02))
+    a = np.asarray(add_noise_jax(jax.random.PRNGKey(7), v, f, kind, 0.02))
+    b = np.asarray(add_noise_jax(jax.random.PRNGKey(7), v, f, kind, 0.02))
+    c = np.asarray(add_noise_jax(jax.random.PRNGKey(8), v, f, kind, 0.02))
     assert a.dtype == np.float64
     assert np.array_equal(a.view(np.uint64), b.view(np.uint64))
     assert not np.array_equal(a, c)
@@ -149,9 +149,9 @@ def test_paper_noise_table_reference_vertex_errors(kind, level, paper_reference)
 def test_canonical_units_follow_the_bounding_box(kind):
     v, f = icosphere(2)
     key = jax.random.PRNGKey(4)
-    base = np.asarray(add_noise(key, v, f, kind, 0.02)) - v
+    base = np.asarray(add_noise_jax(key, v, f, kind, 0.02)) - v
     scale, shift = 37.5, np.array([3.0, -20.0, 1e3])
-    moved = np.asarray(add_noise(key, v * scale + shift, f, kind, 0.02)) - (v * scale + shift)
+    moved = np.asarray(add_noise_jax(key, v * scale + shift, f, kind, 0.02)) - (v * scale + shift)
     np.testing.assert_allclose(moved, base * scale, rtol=1e-9, atol=1e-9)
     # The noise is level × (longest bounding-box side) × unit noise.
     unit = np.asarray(noise.unit_noise(key, v.shape, kind, dtype=np.float64))
@@ -164,7 +164,7 @@ def test_edge_units_follow_the_mean_edge_length(kind):
     coarse, f_coarse = icosphere(1)
     fine, f_fine = icosphere(3)
     for v, f in [(coarse, f_coarse), (fine, f_fine)]:
-        d = np.asarray(add_noise(key, v, f, kind, 0.3, units="edge")) - v
+        d = np.asarray(add_noise_jax(key, v, f, kind, 0.3, units="edge")) - v
         unit = np.asarray(noise.unit_noise(key, v.shape, kind, dtype=np.float64))
         np.testing.assert_allclose(d, 0.3 * mean_edge_length(v, f) * unit, rtol=1e-12, atol=1e-15)
     # Same bounding box, edges 4x shorter: canonical noise keeps its size, edge noise shrinks.
@@ -174,14 +174,14 @@ def test_edge_units_follow_the_mean_edge_length(kind):
 
 def test_integer_vertices_become_float():
     v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]])
-    out = add_noise(jax.random.PRNGKey(0), v, np.array([[0, 1, 2]]), "gaussian", 0.1)
+    out = add_noise_jax(jax.random.PRNGKey(0), v, np.array([[0, 1, 2]]), "gaussian", 0.1)
     assert np.issubdtype(np.asarray(out).dtype, np.floating)
 
 
 def test_zero_level_is_identity():
     v, f = icosphere(1)
     for kind in NOISE_KINDS:
-        out = add_noise(jax.random.PRNGKey(0), v, f, kind, 0.0)
+        out = add_noise_jax(jax.random.PRNGKey(0), v, f, kind, 0.0)
         np.testing.assert_array_equal(np.asarray(out), v)
 
 
@@ -224,13 +224,13 @@ def test_sample_noise_spec_options():
     assert spec == sample_noise_spec(keys[0])
 
 
-def test_add_mixed_noise_matches_add_noise():
+def test_add_mixed_noise_matches_add_noise_jax():
     v, f = icosphere(1)
     key = jax.random.PRNGKey(11)
     noisy, spec = add_mixed_noise(key, v, f)
     k_spec, k_noise = jax.random.split(key)
     assert spec == sample_noise_spec(k_spec)
-    ref = add_noise(k_noise, v, f, spec.kind, spec.level, units=spec.units)
+    ref = add_noise_jax(k_noise, v, f, spec.kind, spec.level, units=spec.units)
     np.testing.assert_array_equal(np.asarray(noisy), np.asarray(ref))
 
 
@@ -243,25 +243,25 @@ def test_bad_arguments_raise_value_error():
     v, f = icosphere(1)
     key = jax.random.PRNGKey(0)
     with pytest.raises(ValueError, match="kind"):
-        add_noise(key, v, f, "poisson", 0.1)
+        add_noise_jax(key, v, f, "poisson", 0.1)
     with pytest.raises(ValueError, match="units"):
-        add_noise(key, v, f, "gaussian", 0.1, units="metres")
+        add_noise_jax(key, v, f, "gaussian", 0.1, units="metres")
     with pytest.raises(ValueError, match=">= 0"):
-        add_noise(key, v, f, "gaussian", -0.1)
+        add_noise_jax(key, v, f, "gaussian", -0.1)
     with pytest.raises(ValueError, match=">= 0"):
-        add_noise(key, v, f, "gaussian", math.nan)
+        add_noise_jax(key, v, f, "gaussian", math.nan)
     with pytest.raises(ValueError, match="number"):
-        add_noise(key, v, f, "gaussian", "big")
+        add_noise_jax(key, v, f, "gaussian", "big")
     with pytest.raises(ValueError, match="faces"):
-        add_noise(key, v, None, "gaussian", 0.1, units="edge")
+        add_noise_jax(key, v, None, "gaussian", 0.1, units="edge")
     with pytest.raises(ValueError, match="vertices"):
-        add_noise(key, v[:, :2], f, "gaussian", 0.1)
+        add_noise_jax(key, v[:, :2], f, "gaussian", 0.1)
     with pytest.raises(ValueError, match="impulse_p"):
-        add_noise(key, v, f, "impulse", 0.1, impulse_p=1.5)
+        add_noise_jax(key, v, f, "impulse", 0.1, impulse_p=1.5)
     with pytest.raises(ValueError, match="<= 1"):
-        add_noise(key, v, f, "impulse", 0.1, impulse_p=0.6, impulse_q=0.6)
+        add_noise_jax(key, v, f, "impulse", 0.1, impulse_p=0.6, impulse_q=0.6)
     with pytest.raises(ValueError, match="impulse_mode"):
-        add_noise(key, v, f, "impulse", 0.1, impulse_mode="face")
+        add_noise_jax(key, v, f, "impulse", 0.1, impulse_mode="face")
     with pytest.raises(ValueError, match="kind"):
         sample_noise_spec(key, kinds=["gaussian", "speckle"])
     with pytest.raises(ValueError, match="p_edge"):
@@ -282,7 +282,9 @@ def test_normal_noise_moves_each_vertex_along_its_normal():
 
     v, f = icosphere(2)
     noisy = np.asarray(
-        add_noise(jax.random.PRNGKey(3), v, f, "gaussian", 0.2, units="edge", direction="normal")
+        add_noise_jax(
+            jax.random.PRNGKey(3), v, f, "gaussian", 0.2, units="edge", direction="normal"
+        )
     )
     d = noisy - v
     n = vertex_normals_np(v, f)
@@ -310,9 +312,9 @@ def test_vertex_normals_np_matches_geometry():
 def test_normal_direction_errors():
     v, f = icosphere(1)
     with pytest.raises(ValueError, match="unknown noise direction"):
-        add_noise(jax.random.PRNGKey(0), v, f, "gaussian", 0.1, direction="tangent")
+        add_noise_jax(jax.random.PRNGKey(0), v, f, "gaussian", 0.1, direction="tangent")
     with pytest.raises(ValueError, match="needs concrete vertices and the faces"):
-        add_noise(jax.random.PRNGKey(0), v, None, "gaussian", 0.1, direction="normal")
+        add_noise_jax(jax.random.PRNGKey(0), v, None, "gaussian", 0.1, direction="normal")
 
 
 def test_sampler_draws_normal_direction_and_clean_inputs():
@@ -353,3 +355,12 @@ def test_unit_noise_draws_do_not_depend_on_the_rows_drawn():
                 for rows in (1000, 8192)
             )
             np.testing.assert_array_equal(small, big[:1000], err_msg=f"{kind} {tail}")
+
+
+def test_old_name_add_noise_still_works_with_a_deprecation_warning():
+    from dmd_jax import noise
+
+    with pytest.warns(DeprecationWarning, match="add_noise_jax"):
+        assert noise.add_noise is add_noise_jax
+    with pytest.raises(AttributeError, match="no attribute 'add_nois'"):
+        noise.add_nois  # noqa: B018

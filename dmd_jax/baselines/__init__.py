@@ -21,7 +21,7 @@ gnf        Zhang, Deng, Zhang, Bouaziz & Liu 2015, guided normal filtering
 l0         He & Schaefer 2013, L0 minimization (area-based edge operator)
 =========  =================================================================
 
-Learned baselines live in `LEARNED` (same signature; `denoise_with` and `DEFAULTS`
+Learned baselines live in `LEARNED` (same signature; `run_baseline` and `DEFAULTS`
 cover them too): `cnr`, Wang, Liu & Tong 2016, cascaded normal regression, with the
 bundled weights `dmd_jax/weights/cnr_small.msgpack` (see `dmd_jax.baselines.cascaded_regression`).
 """
@@ -60,7 +60,7 @@ _ALL = {**REGISTRY, **LEARNED}
 DEFAULTS: dict[str, dict] = {name: default_params(fn) for name, fn in _ALL.items()}
 
 
-def denoise_with(name: str, vertices, faces, **params) -> np.ndarray:
+def run_baseline(name: str, vertices, faces, **params) -> np.ndarray:
     """Runs the denoiser `name` with its defaults overridden by `params`.
 
     Args:
@@ -93,7 +93,7 @@ __all__ = [
     "bmd",
     "bnf",
     "cnr",
-    "denoise_with",
+    "run_baseline",
     "fefp",
     "gnf",
     "l0",
@@ -101,3 +101,19 @@ __all__ = [
     "nifp",
     "taubin",
 ]
+
+
+def __getattr__(name: str):
+    # `baselines.denoise_with` was `run_baseline`'s name until it clashed with the root
+    # `dmd_jax.denoise_with` (which also runs DMD-Net); old code keeps working, warned.
+    if name == "denoise_with":
+        import warnings
+
+        warnings.warn(
+            "dmd_jax.baselines.denoise_with is deprecated: use dmd_jax.baselines.run_baseline "
+            "(or dmd_jax.denoise_with, which also runs DMD-Net)",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return run_baseline
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
