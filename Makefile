@@ -36,8 +36,6 @@ bench: $(STAMP)
 	GLIBC_TUNABLES=glibc.malloc.hugetlb=1 $(BIN)/python benchmarks/bench_aggregation.py
 	$(BIN)/python benchmarks/bench_aggregation.py --name aggregation_default_malloc \
 		--sizes 100000 300000 1000000 --widths 64 --methods ell --meshes
-	GLIBC_TUNABLES=glibc.malloc.hugetlb=1 $(BIN)/python benchmarks/bench_aggregation_variants.py
-	$(BIN)/python benchmarks/bench_allocation.py
 	$(MAKE) bench-inference bench-training
 
 # Inference scaling and training throughput, each command under 10 minutes (--append
@@ -74,9 +72,10 @@ bench-training: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/dmd-jax demo --out out/demo --overwrite $(if $(WEIGHTS),--weights $(WEIGHTS))
 
+# Quality scripts live in benchmarks/quality/ (the protocol: dmd_jax/protocol.py).
 # Every mesh of ../shared/meshes at 3 noise levels; writes benchmarks/results/sota_lite.{md,csv}.
 sota-lite: $(STAMP)
-	$(BIN)/python benchmarks/sota_lite.py $(if $(WEIGHTS),--weights $(WEIGHTS))
+	$(BIN)/python benchmarks/quality/sota_lite.py $(if $(WEIGHTS),--weights $(WEIGHTS))
 
 # Executes the notebook scripts notebooks/NN_*.py (percent format, the only source); the
 # executed notebooks go to notebooks/executed/ (git-ignored).
@@ -86,10 +85,10 @@ notebooks: $(STAMP)
 	$(if $(WEIGHTS),DMD_JAX_WEIGHTS=$(WEIGHTS)) $(BIN)/python notebooks/_run.py
 
 # The paper's Table II protocol and its DMD-Net vs CNR table, written to
-# experiments/results/sota/ (experiments/sota.py). WEIGHTS=path (weights file or
+# experiments/results/sota/ (benchmarks/quality/table2.py). WEIGHTS=path (weights file or
 # checkpoint directory) adds that DMD-Net as a column next to the bundled one.
 sota: $(STAMP)
-	$(BIN)/python experiments/sota.py --table all --dmd-passes 8 $(if $(WEIGHTS),--weights checkpoint=$(WEIGHTS))
+	$(BIN)/python benchmarks/quality/table2.py --table all --dmd-passes 8 $(if $(WEIGHTS),--weights checkpoint=$(WEIGHTS))
 
 # The paper's ablation studies (experiments/): every study at $(ABLATE_PRESET) (cpu: 29
 # rows x 3 seeds of 1000 steps, each row's seeds trained together, sized for <= 3 h on two

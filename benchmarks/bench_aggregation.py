@@ -41,6 +41,8 @@ from benchmarks.common import (  # noqa: E402
     Timing,
     environment,
     format_timing,
+    gcn_edges,
+    grid_faces,
     markdown_table,
     peak_rss_gib,
     plot_loglog,
@@ -71,44 +73,6 @@ MESHES = ("armadillo.obj", "truck.obj")
 # --------------------------------------------------------------------------------------
 # Graphs
 # --------------------------------------------------------------------------------------
-
-
-def grid_faces(n_target: int) -> tuple[np.ndarray, int]:
-    """A `side × side` triangulated grid with `side = round(sqrt(n_target))`.
-
-    Every quad is split along the same diagonal, so interior vertices have valence 6
-    (the regular-mesh average) and vertices are numbered row by row, as a scanned or
-    remeshed surface usually is.
-
-    Returns:
-      `([n_face, 3] int64 faces, n_vertex)`.
-    """
-    side = max(int(round(np.sqrt(n_target))), 2)
-    idx = np.arange(side * side, dtype=np.int64).reshape(side, side)
-    a, b = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel()
-    c, d = idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
-    faces = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
-    return faces, side * side
-
-
-def gcn_edges(faces: np.ndarray, n_vertex: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The primal graph of `build_mesh_graph`: senders, receivers (sorted) and weights.
-
-    The same edges and weights as `build_mesh_graph(faces, n_vertex).vertex_*` (the smoke
-    test checks), without the dual graph and with a sort-based deduplication: NumPy 2.4's
-    `np.unique` took 24 s for 6M keys here, `np.sort` under 1 s.
-    """
-    f = np.asarray(faces, np.int64)
-    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    loops = np.arange(n_vertex, dtype=np.int64)
-    r = np.concatenate([e[:, 0], e[:, 1], loops])
-    s = np.concatenate([e[:, 1], e[:, 0], loops])
-    key = np.sort(r * n_vertex + s)
-    key = key[np.concatenate([[True], key[1:] != key[:-1]])]
-    r, s = np.divmod(key, n_vertex)
-    degree = np.bincount(r, minlength=n_vertex).astype(np.float64)
-    weight = 1.0 / np.sqrt(degree[s] * degree[r])
-    return s.astype(np.int32), r.astype(np.int32), weight.astype(np.float32)
 
 
 # --------------------------------------------------------------------------------------
@@ -492,6 +456,7 @@ def main(argv=None) -> int:
         intro="\n\n".join(__doc__.split("\n\n")[1:3]),
         env=env,
         sections=sections,
+        weights=None,  # no trained model: sparse aggregation only
     )
     write_csv(out / f"{args.name}.csv", CSV_HEADERS, csv_rows(rows + mesh_rows))
     if rows:

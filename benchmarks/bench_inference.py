@@ -1,6 +1,6 @@
 """`dmd_jax.denoise` time and peak memory against mesh size, `small` and `paper` presets.
 
-Meshes are triangulated grids (`bench_aggregation.grid_faces`: interior valence 6, as a
+Meshes are triangulated grids (`common.grid_faces`: interior valence 6, as a
 remeshed surface) of 1k to 1M faces, bent into a wavy height field and given Gaussian
 noise of 0.2 edge lengths. `small` runs the bundled weights, whose pass rule
 (the weights' policy) gives these meshes one pass (the JSON's `passes`); `paper`
@@ -48,16 +48,17 @@ import numpy as np
 if __package__ in (None, ""):  # run as a script: make `benchmarks` importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.bench_aggregation import grid_faces  # noqa: E402
 from benchmarks.common import (  # noqa: E402
     REPO,
     RESULTS_DIR,
+    available_gib,
     command_line,
     environment,
     format_ms,
     format_timing,
     markdown_table,
     median,
+    noisy_grid,
     peak_rss_gib,
     plot_loglog,
     time_interleaved,
@@ -88,24 +89,6 @@ HARD_CAP_S = 400.0
 # --------------------------------------------------------------------------------------
 # Meshes
 # --------------------------------------------------------------------------------------
-
-
-def noisy_grid(n_face: int, *, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """A noisy wavy height field of about `n_face` faces.
-
-    Returns:
-      `(vertices float64 [n, 3], faces int32 [f, 3])`, `f = 2 (side - 1)²`.
-    """
-    side = max(int(round(np.sqrt(n_face / 2.0))) + 1, 2)
-    faces, n_vertex = grid_faces(side * side)
-    t = np.linspace(0.0, 1.0, side)
-    x, y = (a.ravel() for a in np.meshgrid(t, t, indexing="ij"))
-    z = 0.1 * np.sin(3 * np.pi * x) * np.sin(2 * np.pi * y)
-    v = np.stack([x, y, z], axis=1)
-    spacing = 1.0 / (side - 1)
-    v += np.random.default_rng(seed).normal(scale=0.2 * spacing, size=v.shape)
-    assert v.shape[0] == n_vertex
-    return v, faces.astype(np.int32)
 
 
 # --------------------------------------------------------------------------------------
@@ -261,17 +244,6 @@ def run_worker(preset: str, n_face: int, args) -> dict:
         tail = proc.stderr.strip().splitlines()[-1:] or [f"exit {proc.returncode}"]
         return {"error": f"exit {proc.returncode}: {tail[0][:200]}"}
     return json.loads(proc.stdout.strip().splitlines()[-1])
-
-
-def available_gib() -> float:
-    """`MemAvailable` of /proc/meminfo in GiB (inf where unknown)."""
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable"):
-                return int(line.split()[1]) / 2**20
-    except OSError:
-        pass
-    return float("inf")
 
 
 def cpu_seconds(row: dict) -> float:

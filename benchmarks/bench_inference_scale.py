@@ -1,6 +1,6 @@
 """`dmd_jax.denoise` on meshes of millions of faces under a memory budget (issue 17).
 
-Meshes are the noisy wavy grids of `bench_inference.noisy_grid` (interior valence 6,
+Meshes are the noisy wavy grids of `common.noisy_grid` (interior valence 6,
 Gaussian noise of 0.2 edge lengths), generated once per size by this process and handed
 to a FRESH worker process as `.npy` files, so the worker's peak resident memory
 (`ru_maxrss`, GiB = 2^30 bytes) holds only the mesh, the runtime and `denoise`. The
@@ -38,13 +38,14 @@ import numpy as np
 if __package__ in (None, ""):  # run as a script: make `benchmarks` importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.bench_inference import available_gib, noisy_grid  # noqa: E402
 from benchmarks.common import (  # noqa: E402
     REPO,
     RESULTS_DIR,
+    available_gib,
     command_line,
     environment,
     markdown_table,
+    noisy_grid,
     peak_rss_gib,
     write_csv,
     write_report,

@@ -1,7 +1,7 @@
 """Reading and writing large binary PLY meshes with `dmd_jax.io` (issue 17).
 
 For each size a FRESH worker process writes the noisy grid of
-`bench_inference.noisy_grid` with `save_mesh(".ply")` (binary, float32 coordinates,
+`common.noisy_grid` with `save_mesh(".ply")` (binary, float32 coordinates,
 through trimesh) and reads it back with `load_mesh`, timing each and reporting the
 peak resident memory (`ru_maxrss`) after each step. The mesh is generated in the worker
 before the clock starts; its arrays are part of the peak (a user holds them too).
@@ -23,13 +23,13 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script: make `benchmarks` importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.bench_inference import noisy_grid  # noqa: E402
 from benchmarks.common import (  # noqa: E402
     REPO,
     RESULTS_DIR,
     command_line,
     environment,
     markdown_table,
+    noisy_grid,
     peak_rss_gib,
     write_report,
     write_text,
@@ -110,6 +110,7 @@ def main(argv=None) -> int:
         env=env,
         sections=[("Results", markdown_table(headers, table))],
         command=command_line(),
+        weights=None,  # mesh files only
     )
     return 0
 

@@ -362,6 +362,7 @@ def main(argv=None) -> int:
         intro="\n\n".join(__doc__.split("\n\n")[1:2]),
         env=env,
         sections=sections,
+        weights=None,  # trains from fresh params
     )
     write_csv(out / f"{args.name}.csv", CSV_HEADERS, csv_rows(rows))
     if rows:

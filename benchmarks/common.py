@@ -1,4 +1,9 @@
-"""Timing, environment and report helpers shared by the benchmark scripts.
+"""Timing, environment, test-mesh and report helpers shared by the benchmark scripts.
+
+A library module, not a script: every script of `benchmarks/` (speed) and
+`benchmarks/quality/` imports its shared helpers from here and never from another
+script. Every report goes through `write_report`, whose header names the git commit
+and the weights file (SHA-256) it was made with (`provenance`).
 
 The machine these run on is shared and noisy, so the helpers favour robust statistics:
 every case is warmed up (compiled) first, cases are timed round-robin (A, B, C, A, B,
@@ -30,6 +35,8 @@ import numpy as np
 
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
 REPO = Path(__file__).resolve().parents[1]
+# `write_report(..., weights=BUNDLED)`: the report used the bundled weights.
+BUNDLED = "bundled"
 
 
 def block(value):
@@ -147,18 +154,65 @@ def _version(package: str) -> str:
         return "not installed"
 
 
-def _git_commit() -> str:
+def _git(*args: str) -> str | None:
     try:
-        commit = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"],
-            cwd=REPO,
-            capture_output=True,
-            text=True,
-            check=True,
+        return subprocess.run(
+            ["git", *args], cwd=REPO, capture_output=True, text=True, check=True
         ).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-    return commit
+        return None
+
+
+def _git_commit() -> str:
+    return _git("rev-parse", "--short", "HEAD") or "unknown"
+
+
+def _weights_file(weights) -> Path | None:
+    """The weights file a report used: the bundled one for `BUNDLED`, else `weights`."""
+    if weights == BUNDLED:
+        from dmd_jax.checkpoints import pretrained_path
+
+        return pretrained_path()
+    return Path(weights)
+
+
+def file_sha256(path, length: int = 12) -> str:
+    """The first `length` hex digits of a file's SHA-256."""
+    import hashlib
+
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(chunk)
+    return digest.hexdigest()[:length]
+
+
+def provenance(weights=BUNDLED) -> str:
+    """The line that says what a report was made with: commit and weights file.
+
+    Args:
+      weights: `BUNDLED` (the bundled weights), a weights file or checkpoint directory,
+        or None for a report that used no trained weights.
+
+    Returns:
+      e.g. ``Made at commit `abc1234` with weights `dmd_small.msgpack` (SHA-256
+      `0123456789ab`).``, with "(plus uncommitted changes)" after the commit when
+      tracked files differed from it.
+    """
+    commit = f"`{_git_commit()}`"
+    if _git("status", "--porcelain", "--untracked-files=no"):
+        commit += " (plus uncommitted changes)"
+    if weights is None:
+        return f"Made at commit {commit}, with no trained weights."
+    path = _weights_file(weights)
+    name = ("bundled " if weights == BUNDLED else "") + f"`{path.name}`"
+    if path.is_file():
+        what = f"{name} (SHA-256 `{file_sha256(path)}`)"
+    elif path.is_dir():
+        what = f"{name} (a checkpoint directory)"
+    else:
+        what = f"{name} (missing)"
+    return f"Made at commit {commit} with weights {what}."
 
 
 def environment(packages: Sequence[str] = ("jax", "jaxlib", "numpy", "scipy")) -> dict[str, str]:
@@ -248,8 +302,9 @@ def write_report(
     sections: Sequence[tuple[str, str]],
     intro: str = "",
     command: str | None = None,
+    weights=BUNDLED,
 ) -> Path:
-    """Writes a markdown report: title, intro, command, environment, then sections.
+    """Writes a markdown report: title, provenance, intro, command, environment, sections.
 
     Args:
       path: the `.md` file.
@@ -258,8 +313,10 @@ def write_report(
       sections: `(heading, markdown body)` pairs, in order.
       intro: a paragraph under the title.
       command: the command line (default: this process's).
+      weights: the weights the report used, for its provenance line (`provenance`):
+        `BUNDLED`, a path, or None for none.
     """
-    parts = [f"# {title}", ""]
+    parts = [f"# {title}", "", provenance(weights), ""]
     if intro:
         parts += [intro.strip(), ""]
     parts += ["```bash", command or command_line(), "```", ""]
@@ -350,8 +407,83 @@ def plot_loglog(
     return path
 
 
+def available_gib() -> float:
+    """`MemAvailable` of /proc/meminfo in GiB (inf where unknown)."""
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable"):
+                return int(line.split()[1]) / 2**20
+    except OSError:
+        pass
+    return float("inf")
+
+
 def peak_rss_gib() -> float:
     """Peak resident memory of this process so far (Linux `ru_maxrss`), in GiB."""
     import resource
 
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+
+
+# --------------------------------------------------------------------------------------
+# Synthetic meshes and graphs of any size
+# --------------------------------------------------------------------------------------
+
+
+def grid_faces(n_target: int) -> tuple[np.ndarray, int]:
+    """A `side × side` triangulated grid with `side = round(sqrt(n_target))`.
+
+    Every quad is split along the same diagonal, so interior vertices have valence 6
+    (the regular-mesh average) and vertices are numbered row by row, as a scanned or
+    remeshed surface usually is.
+
+    Returns:
+      `([n_face, 3] int64 faces, n_vertex)`.
+    """
+    side = max(int(round(np.sqrt(n_target))), 2)
+    idx = np.arange(side * side, dtype=np.int64).reshape(side, side)
+    a, b = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel()
+    c, d = idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
+    faces = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
+    return faces, side * side
+
+
+def gcn_edges(faces: np.ndarray, n_vertex: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The primal graph of `build_mesh_graph`: senders, receivers (sorted) and weights.
+
+    The same edges and weights as `build_mesh_graph(faces, n_vertex).vertex_*` (the smoke
+    test checks), without the dual graph and with a sort-based deduplication: NumPy 2.4's
+    `np.unique` took 24 s for 6M keys here, `np.sort` under 1 s.
+
+    Returns:
+      `(senders [e] int32, receivers [e] int32, weights [e] float32)`, self loops included.
+    """
+    f = np.asarray(faces, np.int64)
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    loops = np.arange(n_vertex, dtype=np.int64)
+    r = np.concatenate([e[:, 0], e[:, 1], loops])
+    s = np.concatenate([e[:, 1], e[:, 0], loops])
+    key = np.sort(r * n_vertex + s)
+    key = key[np.concatenate([[True], key[1:] != key[:-1]])]
+    r, s = np.divmod(key, n_vertex)
+    degree = np.bincount(r, minlength=n_vertex).astype(np.float64)
+    weight = 1.0 / np.sqrt(degree[s] * degree[r])
+    return s.astype(np.int32), r.astype(np.int32), weight.astype(np.float32)
+
+
+def noisy_grid(n_face: int, *, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """A noisy wavy height field of about `n_face` faces.
+
+    Returns:
+      `(vertices float64 [n, 3], faces int32 [f, 3])`, `f = 2 (side - 1)²`.
+    """
+    side = max(int(round(np.sqrt(n_face / 2.0))) + 1, 2)
+    faces, n_vertex = grid_faces(side * side)
+    t = np.linspace(0.0, 1.0, side)
+    x, y = (a.ravel() for a in np.meshgrid(t, t, indexing="ij"))
+    z = 0.1 * np.sin(3 * np.pi * x) * np.sin(2 * np.pi * y)
+    v = np.stack([x, y, z], axis=1)
+    spacing = 1.0 / (side - 1)
+    v += np.random.default_rng(seed).normal(scale=0.2 * spacing, size=v.shape)
+    assert v.shape[0] == n_vertex
+    return v, faces.astype(np.int32)

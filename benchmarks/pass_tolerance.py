@@ -38,7 +38,7 @@ from benchmarks.common import (  # noqa: E402
     write_csv,
     write_report,
 )
-from benchmarks.sota_lite import MAX_FACES, crop, noise_seed  # noqa: E402
+from dmd_jax.protocol import MAX_FACES, crop, noise_seed  # noqa: E402
 
 LEVELS = (0.05, 0.1, 0.2, 0.3, 0.5)
 BENCHMARK_LEVELS = (0.1, 0.2, 0.3)
@@ -50,11 +50,11 @@ def measure(val_dir, bundle, levels=LEVELS, max_faces: int = MAX_FACES, echo=pri
     """Rows of `HEADER`: per validation mesh and level, the errors after one and two
     passes and the mean vertex move of each pass (mean edges of the pass's input)."""
     from dmd_jax.data.real import mesh_files
-    from dmd_jax.demo import gaussian_edge_noise
     from dmd_jax.inference import denoise
     from dmd_jax.io import load_mesh
     from dmd_jax.mesh import mean_edge_length
     from dmd_jax.metrics import mesh_metrics
+    from dmd_jax.protocol import benchmark_noise as gaussian_edge_noise
 
     rows = []
     for path in mesh_files(val_dir, "val"):

@@ -40,7 +40,7 @@ from benchmarks.common import (  # noqa: E402
     write_csv,
     write_report,
 )
-from benchmarks.sota_lite import crop  # noqa: E402
+from dmd_jax.protocol import crop  # noqa: E402
 
 # Crops of at most this many faces (sota_lite.py's are 15,000; 21 denoise calls per mesh
 # and noise make this script's cost, and the roughness does not depend on the size).

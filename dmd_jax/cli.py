@@ -10,13 +10,14 @@ from __future__ import annotations
 import argparse
 import sys
 
-# METHODS: every denoiser `--method` accepts, the names of `dmd_jax.denoise_with`
-# (dmd_jax.api imports only NumPy, so `--help` stays quick).
+# METHODS: every denoiser `--method` accepts, the names of `dmd_jax.denoise_with`;
+# MESH_SUFFIXES: the files `dmd_jax.io` reads (both import only NumPy, so `--help`
+# stays quick).
 from dmd_jax.api import METHODS
+from dmd_jax.io import SUPPORTED_EXTENSIONS as MESH_SUFFIXES
 
 # The methods that read `--weights`: DMD-Net and the learned CNR baseline.
 WEIGHTED_METHODS = ("dmd", "cnr")
-MESH_SUFFIXES = (".obj", ".off", ".ply", ".stl")
 
 
 class _HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):

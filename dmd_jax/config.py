@@ -712,8 +712,9 @@ class DataConfig(_ConfigMixin):
       real_root: a folder of real meshes (e.g. `shared/meshes/train`), or None. Its
         training split (`data.real`) is added to the training set as connected patches;
         its fixed validation split is evaluated as `val`, picks the best checkpoint, and
-        every evaluation set then uses the benchmark noise (`pipeline.BENCHMARK_NOISE`)
-        instead of the training noise. The patches are drawn with `train.seed`.
+        every evaluation set then uses the benchmark noise
+        (`protocol.benchmark_noise_config()`) instead of the training noise. The
+        patches are drawn with `train.seed`.
       real_patch_faces: faces of a training patch at most (a smaller mesh stays whole).
       real_faces_per_patch: a training mesh of `F` faces gives
         `F // real_faces_per_patch + 1` patches, at most `real_patches_per_mesh`.

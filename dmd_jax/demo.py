@@ -2,9 +2,10 @@
 
 Everything the demo needs is generated here, so it runs on a fresh install with no data:
 a `fastener` (chamfered nut or bolt, sharp edges) from the project's procedural
-generator, Gaussian noise of 0.2 × the mean edge length, then DMD-Net with the bundled
-weights, pymeshlab's Taubin smoothing and bilateral normal filtering (`bnf`). It prints
-the paper's three metrics for each and writes the meshes and a colour-mapped render.
+generator, the benchmark noise of `dmd_jax.protocol` at 0.2 × the mean edge length
+(Gaussian, along the vertex normals), then DMD-Net with the bundled weights, pymeshlab's
+Taubin smoothing and bilateral normal filtering (`bnf`). It prints the paper's three
+metrics for each and writes the meshes and a colour-mapped render.
 
 `fastener` is one of the categories the procedural training set holds out whole
 (`dmd_jax.data.DEFAULT_TEST_INTER`), and the demo's dataset seed is not the training
@@ -57,37 +58,6 @@ class DemoResult(NamedTuple):
     files: dict  # name -> Path
     table: str  # the markdown table printed to the terminal
     model: str  # one line describing the weights used
-
-
-def gaussian_edge_noise(
-    vertices, faces, level: float, seed: int, direction: str = "normal"
-) -> np.ndarray:
-    """`vertices` plus Gaussian noise of σ = `level` × mean edge length, in float64.
-
-    The mesh-denoising benchmark protocol (CNR, GCN-Denoiser): by default one draw per
-    vertex along its vertex normal. `dmd_jax.add_noise(seed, vertices, faces, "gaussian",
-    level, units="edge", direction=direction)` (and `dmd-jax add-noise --units edge
-    --direction normal --seed SEED`): float32 unit draws from `jax.random`, so the same
-    seed gives the same noise whether or not JAX's float64 mode is on.
-
-    Args:
-      vertices: `[n_vertex, 3]`.
-      faces: `[n_face, 3]`.
-      level: σ in mean edge lengths.
-      seed: PRNG seed.
-      direction: `"normal"` (default) or `"isotropic"` (per coordinate).
-    """
-    from dmd_jax.api import add_noise
-
-    return add_noise(
-        seed,
-        np.asarray(vertices, np.float64),
-        faces,
-        "gaussian",
-        level,
-        units="edge",
-        direction=direction,
-    )
 
 
 def load_bundle(weights=None):
@@ -184,6 +154,7 @@ def run_demo(
         metric_header,
         metrics_legend,
     )
+    from dmd_jax.protocol import benchmark_noise
 
     out = Path(out_dir)
     names = list(MESH_FILES.values()) + [METRICS_FILE] + ([RENDER_FILE] if render else [])
@@ -200,7 +171,7 @@ def run_demo(
 
     start = time.perf_counter()
     clean, faces = generate_shape(DEMO_CATEGORY, DEMO_SEED, DEMO_INSTANCE)
-    noisy = gaussian_edge_noise(clean, faces, NOISE_LEVEL, NOISE_SEED)
+    noisy = benchmark_noise(clean, faces, NOISE_LEVEL, NOISE_SEED)
     echo(
         f"demo mesh: procedural {DEMO_CATEGORY!r} (seed {DEMO_SEED}, instance "
         f"{DEMO_INSTANCE}), {len(clean)} vertices, {len(faces)} faces; Gaussian noise "

@@ -53,14 +53,6 @@ class Batch(NamedTuple):
     graph: MeshGraph
 
 
-# The mesh-denoising benchmark protocol: Gaussian noise along the vertex normals of
-# 0.1, 0.2 or 0.3 mean edge lengths (CNR, GCN-Denoiser). Used to evaluate and to pick
-# checkpoints.
-BENCHMARK_NOISE = NoiseConfig(
-    kinds=("gaussian",), edge_levels=(0.1, 0.2, 0.3), p_edge=1.0, p_normal=1.0
-)
-
-
 def make_examples(meshes: Sequence[tuple[np.ndarray, np.ndarray]]) -> list[MeshExample]:
     """Builds the host-side graph of every `(vertices, faces)` pair once."""
     out = []

@@ -67,7 +67,6 @@ from dmd_jax.io import write_text_atomic
 from dmd_jax.model import DMDNet
 from dmd_jax.model import init_params as init_model_params
 from dmd_jax.pipeline import (
-    BENCHMARK_NOISE,
     Batch,
     MeshExample,
     evaluation_batches,
@@ -76,6 +75,7 @@ from dmd_jax.pipeline import (
     training_batch,
     unpadded_mesh,
 )
+from dmd_jax.protocol import benchmark_noise_config
 
 FE_PREFIX = "feature_extractor"
 # How `train` pads batches: each step to its own vertex bucket (a program per bucket it
@@ -703,7 +703,7 @@ def train_and_evaluate(
     The config alone says what the run is: the dataset and the evaluation sets
     (`cfg.data`, read by `data.training_sets.training_sets`), real-mesh patches and the
     `val` set that then picks the best checkpoint (`cfg.data.real_root`, evaluated with
-    `pipeline.BENCHMARK_NOISE`), and the params a fine-tune starts from
+    `protocol.benchmark_noise_config()`), and the params a fine-tune starts from
     (`cfg.train.init_from`, `init_params_from`). The keywords only say how it runs.
 
     Args:
@@ -760,7 +760,7 @@ def train_and_evaluate(
         data_parallel=data_parallel,
         # The real validation split is scored as the benchmark scores (Gaussian noise
         # along normals), and with it every other set, so their numbers compare.
-        eval_noise=BENCHMARK_NOISE if cfg.data.real_root is not None else None,
+        eval_noise=benchmark_noise_config() if cfg.data.real_root is not None else None,
         pad_to=pad,
         verbose=verbose,
         hooks=hooks,

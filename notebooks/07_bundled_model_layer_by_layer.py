@@ -20,8 +20,6 @@
 
 # %%
 import math
-import os
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -35,12 +33,10 @@ from dmd_jax.graph import build_mesh_graph
 from dmd_jax.metrics import face_normal_errors_deg, mesh_metrics
 from dmd_jax.model import DMDNet
 from dmd_jax.pipeline import collate
+from dmd_jax.protocol import benchmark_noise, shared_meshes_dir
 
 # The repository's shared/meshes, beside the checkout (or DMD_JAX_SHARED_MESHES).
-SHARED = Path(
-    os.environ.get("DMD_JAX_SHARED_MESHES")
-    or Path(dmd_jax.__file__).resolve().parents[2] / "shared" / "meshes"
-)
+SHARED = shared_meshes_dir()
 if not (SHARED / "fandisk.off").is_file():
     raise FileNotFoundError(
         f"{SHARED} holds no fandisk.off: this notebook needs the project's shared/meshes "
@@ -68,7 +64,7 @@ NAMES = ["fandisk", "bunny", "cow", "screwdriver", "3holes", "fertility"]
 clean, noisy, faces = [], [], []
 for i, name in enumerate(NAMES):
     v, f = dmd_jax.load_mesh(next(SHARED.glob(f"{name}.*")))
-    x = dmd_jax.add_noise(i, v, f, "gaussian", 0.2, units="edge", direction="normal")
+    x = benchmark_noise(v, f, 0.2, seed=i)
     frame = encoding.mesh_frame(cfg.encoding, x, f)
     noisy.append(frame.apply(x))
     clean.append(frame.apply(v))

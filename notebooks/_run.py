@@ -97,7 +97,9 @@ def weights_available() -> str | None:
 
 def shared_meshes_available() -> str | None:
     """Why notebook 07 cannot run (None when shared/meshes is there)."""
-    folder = Path(os.environ.get("DMD_JAX_SHARED_MESHES") or HERE.parents[1] / "shared" / "meshes")
+    from dmd_jax.protocol import shared_meshes_dir
+
+    folder = shared_meshes_dir()
     if (folder / "fandisk.off").is_file():
         return None
     return f"{folder} holds no fandisk.off (set DMD_JAX_SHARED_MESHES=DIR)"

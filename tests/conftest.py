@@ -2,17 +2,19 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import jax
 import numpy as np
 import pytest
 
+from dmd_jax.protocol import shared_meshes_dir
+
 jax.config.update("jax_enable_x64", True)
 
 REPO = Path(__file__).resolve().parents[1]
-SHARED_MESHES = Path(os.environ.get("DMD_SHARED_MESHES", REPO.parent / "shared" / "meshes"))
+# $DMD_JAX_SHARED_MESHES, else ../shared/meshes (`dmd_jax.protocol.shared_meshes_dir`).
+SHARED_MESHES = shared_meshes_dir()
 
 
 @pytest.fixture

@@ -7,11 +7,16 @@ import pytest
 from conftest import icosphere, tetrahedron
 
 from benchmarks import bench_aggregation as agg
-from benchmarks import bench_aggregation_variants as variants
-from benchmarks import bench_allocation as allocation
 from benchmarks import bench_inference as inference
 from benchmarks import bench_training as training
-from benchmarks.common import Timing, markdown_table, time_interleaved
+from benchmarks.common import (
+    Timing,
+    gcn_edges,
+    grid_faces,
+    markdown_table,
+    noisy_grid,
+    time_interleaved,
+)
 from dmd_jax import pipeline
 from dmd_jax.graph import build_mesh_graph
 
@@ -19,21 +24,21 @@ from dmd_jax.graph import build_mesh_graph
 @pytest.mark.parametrize("mesh", ["grid", "icosphere"])
 def test_gcn_edges_equal_build_mesh_graph(mesh):
     if mesh == "grid":
-        faces, n = agg.grid_faces(50)
+        faces, n = grid_faces(50)
     else:
         v, faces = icosphere(2)
         n = len(v)
     g = build_mesh_graph(faces, n)
-    s, r, w = agg.gcn_edges(faces, n)
+    s, r, w = gcn_edges(faces, n)
     np.testing.assert_array_equal(s, g.vertex_senders)
     np.testing.assert_array_equal(r, g.vertex_receivers)
     np.testing.assert_array_equal(w, g.vertex_edge_weight)
 
 
 def test_grid_is_a_regular_triangulation():
-    faces, n = agg.grid_faces(10_000)
+    faces, n = grid_faces(10_000)
     assert n == 100 * 100 and faces.shape == (2 * 99 * 99, 3)
-    _, r, _ = agg.gcn_edges(faces, n)
+    _, r, _ = gcn_edges(faces, n)
     degree = np.bincount(r, minlength=n)
     # Interior vertices: six neighbours plus the self loop.
     assert np.median(degree) == 7 and degree.max() == 7
@@ -88,27 +93,13 @@ def test_main_writes_report_csv_and_plot(tmp_path):
     assert len(lines) == 1 + 4 * 2
 
 
-def test_variants_agree_with_scipy_and_are_timed():
-    # `run` raises if any formulation disagrees with SciPy.
-    n, results = variants.run(100, 4, repeat=1)
-    assert n == 100
-    assert [name for name, _, _ in results] == [*variants.VARIANTS, "scipy_csr"]
-    assert "| 100 | 4 | ell (gcn_aggregate_ell) |" in variants.table(n, 4, results)
-
-
-def test_allocation_measure_times_every_case():
-    times = allocation.measure([1000], repeat=1)
-    assert list(times) == ["1000"]
-    assert sorted(times["1000"]) == sorted(allocation.CASES)
-
-
 # --------------------------------------------------------------------------------------
 # bench_inference and bench_training
 # --------------------------------------------------------------------------------------
 
 
 def test_noisy_grid_has_the_requested_size():
-    v, f = inference.noisy_grid(20_000)
+    v, f = noisy_grid(20_000)
     assert abs(len(f) / 20_000 - 1) < 0.02 and len(v) == (int(np.sqrt(len(v)))) ** 2
     assert f.dtype == np.int32 and f.max() == len(v) - 1
 
@@ -161,7 +152,7 @@ def test_inference_scale_worker_runs_each_mode(tmp_path, mode):
     path calls `inference` internals, which must keep up with their signatures)."""
     from benchmarks import bench_inference_scale as scale
 
-    faces, n = agg.grid_faces(2_000)
+    faces, n = grid_faces(2_000)
     side = int(round(n**0.5))
     u, w = np.meshgrid(np.arange(side, dtype=np.float64), np.arange(side, dtype=np.float64))
     rng = np.random.default_rng(0)

@@ -15,16 +15,16 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
-from conftest import icosphere, shared_mesh_path
+from conftest import icosphere
 from test_inference import TINY_CONFIG, tiny_params
 
 from dmd_jax import baselines, checkpoints, inference
 from dmd_jax.cli import main
 from dmd_jax.config import preset
 from dmd_jax.io import load_mesh, save_mesh
-from dmd_jax.policy import DenoisePolicy
 from dmd_jax.mesh import mean_edge_length
 from dmd_jax.metrics import mesh_metrics, metrics_legend
+from dmd_jax.policy import DenoisePolicy
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
@@ -430,83 +430,6 @@ def test_demo_uses_the_bundled_weights_by_default(monkeypatch, tmp_path, capsys,
     assert not (tmp_path / "demo").exists()
     monkeypatch.setattr(checkpoints, "pretrained_path", lambda: weights)
     assert demo.load_bundle(None).meta == {"note": "tiny"}
-
-
-def test_sota_lite_on_one_mesh(tmp_path, weights):
-    from benchmarks import sota_lite
-
-    mesh = shared_mesh_path("decimated-knight.off")
-    folder = tmp_path / "meshes"
-    folder.mkdir()
-    (folder / mesh.name).symlink_to(mesh)
-    code = sota_lite.main(
-        [
-            "--meshes",
-            str(folder),
-            "--weights",
-            str(weights),
-            "--levels",
-            "0.2",
-            "--methods",
-            "meshlab_taubin",
-            "bnf",
-            "dmd",
-            "dmd_x2",
-            "--no-val",
-            "--name",
-            "t",
-            "--out-dir",
-            str(tmp_path),
-        ]
-    )
-    assert code == 0
-    import csv
-
-    with open(tmp_path / "t.csv") as fh:
-        rows = list(csv.DictReader(fh))
-    assert [r["method"] for r in rows] == ["noisy", "meshlab_taubin", "bnf", "dmd", "dmd_x2"]
-    assert {r["set"] for r in rows} == {"shared"}
-    clean, f = load_mesh(mesh)
-    seed = sota_lite.noise_seed(mesh.name, 0.2)
-    from dmd_jax.demo import gaussian_edge_noise
-
-    noisy = gaussian_edge_noise(clean, f, 0.2, seed)
-    expected = mesh_metrics(noisy, clean, f)["normal_deg"]
-    assert float(rows[0]["normal_deg"]) == pytest.approx(expected, rel=1e-12)
-    dmd = inference.denoise(noisy, f, weights)
-    assert float(rows[3]["normal_deg"]) == pytest.approx(
-        mesh_metrics(dmd, clean, f)["normal_deg"], rel=1e-9
-    )
-    report = (tmp_path / "t.md").read_text()
-    assert "## Means over meshes" in report and "decimated-knight.off" in report
-    assert "DMD-Net margin" in report and "Median run time" in report
-    # --reuse recomputes DMD-Net only: the classic rows come back identical.
-    assert (
-        sota_lite.main(
-            ["--meshes", str(folder), "--weights", str(weights), "--levels", "0.2"]
-            + ["--methods", "bnf", "dmd", "--no-val", "--reuse"]
-            + ["--name", "t", "--out-dir", str(tmp_path)]
-        )
-        == 0
-    )
-    with open(tmp_path / "t.csv") as fh:
-        again = {r["method"]: r for r in csv.DictReader(fh)}
-    assert again["bnf"] == rows[2]
-    # The three metrics in the vocabulary of `dmd-jax evaluate`, with its legend.
-    assert "| method | vertex (×1e-4) | normal (°) | chamfer (×1e-4) |" in report
-    assert metrics_legend() in report
-    dmd_row = next(line for line in report.splitlines() if line.startswith("| DMD-Net |"))
-    assert float(dmd_row.split("|")[3]) == pytest.approx(float(rows[3]["normal_deg"]), abs=0.01)
-    assert str(weights) in report and "jax" in report
-
-
-def test_sota_lite_errors(tmp_path, capsys):
-    from benchmarks import sota_lite
-
-    assert sota_lite.main(["--meshes", str(tmp_path / "none")]) == 2
-    assert "no mesh folder" in capsys.readouterr().err
-    assert sota_lite.main(["--meshes", str(tmp_path), "--skip", "x.obj"]) == 2
-    assert "x.obj" in capsys.readouterr().err
 
 
 # ---------------------------------------------------------------- rough edges (issue 16)

@@ -313,16 +313,16 @@ def test_bundled_model_denoises_two_resolutions_alike(shared_meshes):
     bounding-box model did not (its offsets are fixed in box units)."""
     import trimesh
 
-    from dmd_jax.demo import gaussian_edge_noise
     from dmd_jax.io import load_mesh
     from dmd_jax.metrics import mesh_metrics
+    from dmd_jax.protocol import benchmark_noise
 
     bundle = _bundled_local()
     v, f = load_mesh(shared_meshes / "fandisk.off")
     v2, f2 = trimesh.remesh.subdivide(v, f)
     errors = []
     for verts, faces in ((v, f), (v2, f2)):
-        noisy = gaussian_edge_noise(verts, faces, 0.2, seed=4)
+        noisy = benchmark_noise(verts, faces, 0.2, seed=4)
         before = mesh_metrics(noisy, verts, faces)["normal_deg"]
         after = mesh_metrics(denoise(noisy, faces, bundle), verts, faces)["normal_deg"]
         assert after < 0.6 * before
@@ -403,15 +403,15 @@ def test_head_consistency_needs_the_normal_head():
 def test_grafted_consistency_head_starts_as_the_trained_model():
     import dmd_jax
     from dmd_jax.checkpoints import ModelBundle, graft_params
-    from dmd_jax.demo import gaussian_edge_noise
     from dmd_jax.model import init_params
+    from dmd_jax.protocol import benchmark_noise
 
     bundle = dmd_jax.load_pretrained()
     cfg = bundle.config.replace(model=bundle.config.model.replace(head_consistency=True))
     params = graft_params(init_params(cfg.model, jax.random.PRNGKey(0)), bundle.params)
     assert "head_consistency" in params["denoiser"]
     v, f = icosphere(2)
-    noisy = gaussian_edge_noise(v, f, 0.2, seed=0)
+    noisy = benchmark_noise(v, f, 0.2, seed=0)
     np.testing.assert_array_equal(
         denoise(noisy, f, ModelBundle(params, cfg, {})), denoise(noisy, f, bundle)
     )

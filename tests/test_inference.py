@@ -325,13 +325,13 @@ def test_load_pretrained_reads_the_package_path(monkeypatch, weights_path, tmp_p
     not checkpoints.pretrained_path().is_file(), reason="the bundled weights are not installed"
 )
 def test_bundled_model_reduces_normal_error():
-    from dmd_jax.demo import gaussian_edge_noise
     from dmd_jax.metrics import mesh_metrics
+    from dmd_jax.protocol import benchmark_noise
 
     pretrained = checkpoints.load_pretrained()
     assert pretrained.config.name == "small"
     v, f = icosphere(3)
-    noisy = gaussian_edge_noise(v, f, 0.2, seed=0)
+    noisy = benchmark_noise(v, f, 0.2, seed=0)
     out = denoise(noisy, f, pretrained)
     assert np.all(np.isfinite(out))
     before = mesh_metrics(noisy, v, f)["normal_deg"]

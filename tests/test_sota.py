@@ -1,13 +1,12 @@
-"""experiments/sota.py end to end on one small mesh with two fast methods."""
+"""benchmarks/quality/table2.py (Table II) end to end on one small mesh, two fast methods."""
 
 from __future__ import annotations
 
 import csv
-import importlib.util
 
 import numpy as np
 import pytest
-from conftest import REPO, SHARED_MESHES, shared_mesh_path
+from conftest import SHARED_MESHES, shared_mesh_path
 
 from dmd_jax.baselines import taubin
 from dmd_jax.io import load_mesh
@@ -16,10 +15,9 @@ from dmd_jax.metrics import mesh_metrics
 
 @pytest.fixture(scope="module")
 def sota():
-    spec = importlib.util.spec_from_file_location("sota", REPO / "experiments" / "sota.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    from benchmarks.quality import table2
+
+    return table2
 
 
 def test_sota_script_on_one_mesh(sota, tmp_path):
@@ -57,7 +55,9 @@ def test_sota_script_on_one_mesh(sota, tmp_path):
     assert float(by["noisy"]["normal_deg"]) > float(by["taubin"]["normal_deg"])
     assert float(by["laplacian"]["seconds"]) > 0
     md = (tmp_path / "sota.md").read_text()
-    assert "python experiments/sota.py" in md and "Hardware:" in md
+    assert "python benchmarks/quality/table2.py" in md and "Hardware:" in md
+    # The provenance line: the commit and the weights (here missing) it was made with.
+    assert "Made at commit" in md and "`no_such_weights.msgpack` (missing)" in md
     assert "| Knight | N(0, 0.01) | Normal (°) |" in md
     assert sota.PENDING in md
     png = tmp_path / "sota.png"

@@ -138,7 +138,8 @@ def test_train_and_evaluate_is_the_old_cli_assembly(tmp_path, run_data):
     evaluation and params, bit for bit."""
     from dmd_jax.data import load_dataset, real
     from dmd_jax.data.training_sets import TEST_SPLITS
-    from dmd_jax.pipeline import BENCHMARK_NOISE, make_examples
+    from dmd_jax.pipeline import make_examples
+    from dmd_jax.protocol import benchmark_noise_config
 
     ds, folder = run_data
     cfg = _run_config(run_data, real_root=str(folder), eval_meshes_per_split=2, **REAL)
@@ -162,7 +163,7 @@ def test_train_and_evaluate_is_the_old_cli_assembly(tmp_path, run_data):
         tmp_path / "old",
         eval_sets=evals,
         progress=False,
-        eval_noise=BENCHMARK_NOISE,
+        eval_noise=benchmark_noise_config(),
         pad_to="largest",
     )
     assert new["step"] == old["step"] == 3

@@ -3,73 +3,55 @@
 Every mesh of two sets, `shared` (every triangle or polygon mesh of `../shared/meshes`,
 polygons fan-triangulated on load) and `val` (the fixed validation split of the real
 training meshes `../shared/meshes/train`, `dmd_jax.data.real`, never trained on), gets
-Gaussian noise of σ = 0.1, 0.2 and 0.3 × its mean edge length along the vertex normals
-(the CNR / GCN-Denoiser benchmark protocol), then is denoised by every denoiser of the
+the benchmark noise of `dmd_jax.protocol` (Gaussian, σ = 0.1, 0.2 and 0.3 × its mean
+edge length along the vertex normals: the CNR / GCN-Denoiser protocol; meshes above
+`protocol.MAX_FACES` faces cropped), then is denoised by every denoiser of the
 library: the classic filters of `dmd_jax.baselines.REGISTRY`, CNR and DMD-Net (bundled
 weights, or `--weights`), with pymeshlab's Taubin and two-step filters as a reference.
 Each result is scored by the mean angle between corresponding face normals and the
 clean mesh's, in degrees (`dmd_jax.metrics.mesh_metrics`, which also gives the vertex
 and chamfer errors kept in the CSV), and timed. The noise seed of a mesh and level is a
-CRC32 of `"<file name>|<level>"`, so a row does not change when files are added.
+CRC32 of `"<file name>|<level>"` (`protocol.noise_seed`), so a row does not change when
+files are added.
 
 ```bash
-python benchmarks/sota_lite.py                      # bundled weights (make sota-lite)
-python benchmarks/sota_lite.py --weights run.msgpack --name sota_lite_run
-python benchmarks/sota_lite.py --reuse              # rerun DMD-Net only, reuse the rest
+python benchmarks/quality/sota_lite.py              # bundled weights (make sota-lite)
+python benchmarks/quality/sota_lite.py --weights run.msgpack --name sota_lite_run
+python benchmarks/quality/sota_lite.py --reuse      # rerun DMD-Net only, reuse the rest
 ```
 """
 
 from __future__ import annotations
 
 import argparse
-import hashlib
-import os
 import sys
 import time
 import warnings
-import zlib
 from pathlib import Path
 
 import numpy as np
 
 if __package__ in (None, ""):  # run as a script: make `benchmarks` importable
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from benchmarks.common import (  # noqa: E402
-    REPO,
+    BUNDLED,
     RESULTS_DIR,
     command_line,
     environment,
+    file_sha256,
     markdown_table,
     write_csv,
     write_report,
 )
+from dmd_jax import protocol  # noqa: E402
+from dmd_jax.protocol import MAX_FACES, MESH_SUFFIXES, NOISE_LEVELS  # noqa: E402
 
-LEVELS = (0.1, 0.2, 0.3)
-# Larger meshes are cropped to a connected patch of this many faces (`crop`).
-MAX_FACES = 15_000
-# pymeshlab's filters: reference columns, not denoisers of this library (never "best").
-REFERENCE = ("meshlab_taubin", "meshlab_two_step")
-LABELS = {
-    "noisy": "noisy",
-    "meshlab_taubin": "MeshLab Taubin",
-    "meshlab_two_step": "MeshLab two-step",
-    "laplacian": "Laplacian",
-    "taubin": "Taubin",
-    "bmd": "BMD",
-    "nifp": "NIFP",
-    "fefp": "FEFP",
-    "bnf": "BNF",
-    "gnf": "GNF",
-    "l0": "L0",
-    "cnr": "CNR",
-    "dmd": "DMD-Net",
-    "dmd_x2": "DMD-Net ×2",
-}
-MESH_SUFFIXES = (".obj", ".off", ".ply", ".stl")
-DEFAULT_MESH_DIR = Path(os.environ.get("DMD_SHARED_MESHES", REPO.parent / "shared" / "meshes"))
+LEVELS = NOISE_LEVELS
+REFERENCE = protocol.REFERENCE_METHODS
+DEFAULT_MESH_DIR = protocol.shared_meshes_dir()
 # The fixed validation split of the real training meshes (dmd_jax.data.real).
-DEFAULT_VAL_DIR = DEFAULT_MESH_DIR / "train"
+DEFAULT_VAL_DIR = protocol.validation_dir()
 CSV_HEADER = (
     "set",
     "mesh",
@@ -85,35 +67,6 @@ CSV_HEADER = (
 )
 
 
-def default_methods() -> tuple[str, ...]:
-    """Every denoiser of the library (registry, CNR, DMD-Net) and MeshLab's two."""
-    from dmd_jax.baselines import REGISTRY
-
-    return (*REFERENCE, *REGISTRY, "cnr", "dmd")
-
-
-def noise_seed(mesh_name: str, level: float) -> int:
-    """The noise seed of one mesh and level: stable across folders and machines."""
-    return zlib.crc32(f"{mesh_name}|{level:g}".encode())
-
-
-def mesh_files(mesh_dir, skip=()) -> list[Path]:
-    """Mesh files of `mesh_dir`, sorted by name, without the names in `skip`."""
-    mesh_dir = Path(mesh_dir)
-    if not mesh_dir.is_dir():
-        raise FileNotFoundError(
-            f"{mesh_dir}: no mesh folder (pass --meshes DIR or set DMD_SHARED_MESHES)"
-        )
-    unknown = set(skip) - {p.name for p in mesh_dir.iterdir()}
-    if unknown:
-        raise ValueError(f"--skip names files not in {mesh_dir}: {', '.join(sorted(unknown))}")
-    return sorted(
-        p
-        for p in mesh_dir.iterdir()
-        if p.suffix.lower() in MESH_SUFFIXES and p.is_file() and p.name not in set(skip)
-    )
-
-
 def _runner(method: str, faces, bundle):
     from dmd_jax import baselines as classic
     from dmd_jax.baselines.meshlab import pymeshlab_filter
@@ -125,18 +78,7 @@ def _runner(method: str, faces, bundle):
         return lambda v: denoise(v, faces, bundle)
     if method == "dmd_x2":
         return lambda v: denoise(v, faces, bundle, iterations=2)
-    return lambda v: classic.denoise_with(method, v, faces)
-
-
-def crop(vertices, faces, max_faces: int):
-    """The connected `max_faces`-face patch grown breadth-first from face 0, re-indexed
-    (deterministic, so every method and run sees the same patch); a mesh of at most
-    `max_faces` faces, or any mesh when `max_faces` is 0, comes back as it is."""
-    from dmd_jax.data.real import patch_mesh
-
-    if not max_faces or faces.shape[0] <= max_faces:
-        return vertices, faces
-    return patch_mesh(vertices, faces, 0, max_faces)
+    return lambda v: classic.run_baseline(method, v, faces)
 
 
 def evaluate_mesh(
@@ -156,29 +98,28 @@ def evaluate_mesh(
       path: mesh file.
       bundle: the DMD-Net `ModelBundle`.
       levels: noise σ in mean edge lengths (Gaussian, along the vertex normals).
-      methods: method ids (default `default_methods()`).
+      methods: method ids (default `protocol.benchmark_methods()`).
       mesh_set: the set's name, the first CSV column.
       cached: `{(set, mesh, level, seed, method): row}` of earlier rows to reuse instead
         of rerunning (classic methods are deterministic; DMD-Net rows are never cached).
-      max_faces: crop a larger mesh to a connected patch of this many faces (`crop`);
-        0 keeps every mesh whole.
+      max_faces: crop a larger mesh to a connected patch of this many faces
+        (`protocol.crop`); 0 keeps every mesh whole.
       echo: progress output.
 
     Returns:
       `(rows, notes)`: CSV rows in `CSV_HEADER` order (one per level and method, the
       noisy input first) and notes on the input (polygons triangulated on load).
     """
-    from dmd_jax.demo import gaussian_edge_noise
     from dmd_jax.io import load_mesh
     from dmd_jax.metrics import mesh_metrics
 
-    methods = default_methods() if methods is None else tuple(methods)
+    methods = protocol.benchmark_methods() if methods is None else tuple(methods)
     cached = cached or {}
     path = Path(path)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         clean, faces = load_mesh(path)
-    clean, faces = crop(clean, faces, max_faces)
+    clean, faces = protocol.crop(clean, faces, max_faces)
     notes = [
         str(w.message).replace(str(path), path.name)
         for w in caught
@@ -186,8 +127,8 @@ def evaluate_mesh(
     ]
     rows = []
     for level in levels:
-        seed = noise_seed(path.name, level)
-        noisy = gaussian_edge_noise(clean, faces, level, seed)
+        seed = protocol.noise_seed(path.name, level)
+        noisy = protocol.benchmark_noise(clean, faces, level, seed)
         block = []
         for name in ("noisy", *methods):
             key = (mesh_set, path.name, float(level), int(seed), name)
@@ -219,8 +160,7 @@ def evaluate_mesh(
     return rows, notes
 
 
-def _label(method: str) -> str:
-    return LABELS.get(method, method)
+_label = protocol.label
 
 
 def _best(errs: dict[str, float], methods: list[str]) -> str:
@@ -325,9 +265,10 @@ def _weights_description(bundle, weights) -> dict[str, str]:
     info = {
         "weights": ("bundled " if weights is None else "") + str(path),
         "model": f"preset {bundle.config.name}, {param_count(bundle.config.model):,} parameters",
+        "policy": ", ".join(f"{k}={v}" for k, v in bundle.policy.to_dict().items()),
     }
     if path.is_file():
-        info["weights sha256"] = hashlib.sha256(path.read_bytes()).hexdigest()[:16]
+        info["weights sha256"] = file_sha256(path, 16)
     for key, value in bundle.meta.items():
         info[f"weights meta: {key}"] = str(value)
     return info
@@ -387,20 +328,19 @@ def run(
       weights: DMD-Net weights (default: bundled).
       levels: noise σ in mean edge lengths.
       skip: file names of `mesh_dir` to leave out.
-      methods: method ids (default `default_methods()`).
+      methods: method ids (default `protocol.benchmark_methods()`).
       name, out_dir: report file stem and folder.
       reuse: take rows of classic methods from an existing `<name>.csv` (same mesh,
         level, seed and method) instead of recomputing them.
       reuse_from: more CSV files to take such rows from (e.g. the sets run separately).
       sets: which sets to run (`shared`, `val`).
       max_faces: meshes above this many faces are cropped to a connected patch of it
-        (`crop`); 0 runs whole meshes.
+        (`protocol.crop`); 0 runs whole meshes.
     """
     from dmd_jax.baselines import REGISTRY
     from dmd_jax.checkpoints import load_model
-    from dmd_jax.data.real import mesh_files as real_mesh_files
 
-    methods = default_methods() if methods is None else tuple(methods)
+    methods = protocol.benchmark_methods() if methods is None else tuple(methods)
     known = {*REFERENCE, *REGISTRY, "cnr", "dmd", "dmd_x2"}
     unknown = sorted(set(methods) - known)
     if unknown:
@@ -410,11 +350,11 @@ def run(
         raise ValueError(f"unknown mesh sets {unknown_sets}; choose from shared, val")
     wanted, sets = sets, {}
     if "shared" in wanted:
-        sets["shared"] = mesh_files(mesh_dir, skip)
+        sets["shared"] = protocol.mesh_files(mesh_dir, skip)
         if not sets["shared"]:
             raise ValueError(f"{mesh_dir}: no {', '.join(MESH_SUFFIXES)} files")
     if val_dir is not None and "val" in wanted:
-        sets["val"] = real_mesh_files(val_dir, "val")
+        sets["val"] = protocol.validation_files(val_dir)
     if not sets:
         raise ValueError("no mesh set to run (--no-val with --sets val)")
     bundle = load_model(weights)
@@ -465,7 +405,7 @@ def run(
         )
         + (
             f". Meshes above {max_faces:,} faces are cropped to the connected "
-            f"{max_faces:,}-face patch grown from face 0 (`crop`), to keep the slowest "
+            f"{max_faces:,}-face patch grown from face 0 (`protocol.crop`), to keep the slowest "
             "filters (GNF, L0: ~1 ms per face) within a CPU session; `--max-faces 0` runs "
             "whole meshes"
             if max_faces
@@ -495,6 +435,7 @@ def run(
         sections=sections,
         intro=intro,
         command=command_line(),
+        weights=BUNDLED if weights is None else weights,
     )
     echo(means)
     echo(f"wrote {md_path} and {csv_path}")

@@ -4,7 +4,7 @@ Two tables (``--table sota``, ``--table cnr`` or ``--table all``):
 
 * **sota**: the paper's Table II protocol. Six public meshes from ``../shared/meshes``
   with the paper's noise, in the canonical frame (bounding box longest side 1), fixed
-  seeds (`dmd_jax.noise.add_noise`): Block N(0, 0.05), Bunny 0.015·Γ(2, 2), Fertility
+  seeds (`dmd_jax.noise.add_noise_jax`): Block N(0, 0.05), Bunny 0.015·Γ(2, 2), Fertility
   0.035·U(−1, 1), Lion N(0, 0.005) (``lion.off`` stands in for the Chinese Lion), Camel
   (``camel_b.obj``) N(0, 0.025), Fandisk N(0, 0.05). Every classic baseline of
   `dmd_jax.baselines`, pymeshlab's Taubin and two-step filters, CNR and DMD-Net (the
@@ -21,7 +21,10 @@ Two tables (``--table sota``, ``--table cnr`` or ``--table all``):
 DMD-Net rows read ``--dmd-weights PATH`` or the bundled ``dmd_jax/weights/dmd_small.msgpack``;
 when neither exists they are reported as "pending bundled weights" and the rest runs.
 
-Run: ``make sota`` (both tables), or ``python experiments/sota.py --help``.
+The mesh folder, method names and labels come from `dmd_jax.protocol` (this table keeps
+the paper's own noise, not the benchmark noise of ``sota_lite.py``).
+
+Run: ``make sota`` (both tables), or ``python benchmarks/quality/table2.py --help``.
 """
 
 from __future__ import annotations
@@ -41,8 +44,14 @@ from typing import NamedTuple
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-DEFAULT_MESHES = REPO.parent / "shared" / "meshes"
+if __package__ in (None, ""):  # run as a script: make `benchmarks` importable
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+from benchmarks.common import BUNDLED, provenance  # noqa: E402
+from dmd_jax import protocol  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[2]
+DEFAULT_MESHES = protocol.shared_meshes_dir()
 DEFAULT_DATA = REPO / "data" / "gen_v1"
 DEFAULT_OUT = REPO / "experiments" / "results" / "sota"
 
@@ -66,23 +75,10 @@ SOTA_CASES = (
     Case("Fandisk", "fandisk.off", "gaussian", 0.05, 6),
 )
 
-CLASSIC = ("laplacian", "taubin", "bmd", "nifp", "fefp", "bnf", "gnf", "l0")
-METHODS = CLASSIC + ("meshlab_taubin", "meshlab_two_step", "cnr", "dmd")
-LABELS = {
-    "noisy": "Noisy",
-    "laplacian": "Laplacian",
-    "taubin": "Taubin",
-    "bmd": "BMD",
-    "nifp": "NIFP",
-    "fefp": "FEFP",
-    "bnf": "BNF",
-    "gnf": "GNF",
-    "l0": "L0M",
-    "meshlab_taubin": "ML Taubin",
-    "meshlab_two_step": "ML two-step",
-    "cnr": "CNR",
-    "dmd": "DMD-Net",
-}
+# The classic filters of `dmd_jax.denoise_with`, then MeshLab's, CNR and DMD-Net.
+CLASSIC = tuple(m for m in protocol.METHODS if m not in ("dmd", "cnr"))
+METHODS = CLASSIC + protocol.REFERENCE_METHODS + ("cnr", "dmd")
+LABELS = protocol.PAPER_LABELS
 PENDING = "pending bundled weights"
 
 # The paper's Table II (dmd-net.tex, table:SOTA), columns BMD, L0M, BNF, FEFP, NIFP,
@@ -205,7 +201,7 @@ def build_methods(
                 Method(
                     name,
                     label,
-                    lambda v, f, n=name: baselines.denoise_with(n, v, f),
+                    lambda v, f, n=name: baselines.run_baseline(n, v, f),
                     f"dmd_jax.baselines.{name}({settings})",
                 )
             )
@@ -310,18 +306,18 @@ def run_sota(
 
     from dmd_jax.io import load_mesh
     from dmd_jax.metrics import mesh_metrics
-    from dmd_jax.noise import add_noise
+    from dmd_jax.noise import add_noise_jax
 
     rows, renders = [], {}
     for case in cases:
         v, f = load_mesh(meshes_dir / case.file)
         noisy = np.asarray(
-            add_noise(jax.random.PRNGKey(case.seed), v, f, case.kind, case.level),
+            add_noise_jax(jax.random.PRNGKey(case.seed), v, f, case.kind, case.level),
             np.float64,
         )
         log(f"{case.name}: {v.shape[0]} vertices, noise {noise_label(case)}")
         panels = [(v, f, f"{case.name}: clean")]
-        results = [("noisy", "Noisy", noisy, float("nan"), float("nan"), "")]
+        results = [("noisy", LABELS["noisy"], noisy, float("nan"), float("nan"), "")]
         for m in methods:
             if m.fn is None:
                 results.append((m.key, m.label, None, float("nan"), float("nan"), m.status))
@@ -555,7 +551,7 @@ def run_learned(
             v, f = records[k].load()
             key = jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(seed), s), int(k))
             noisy, clean, spec = corrupt(key, v, f, rotate=True, noise=NoiseConfig())
-            outs = [("noisy", "Noisy", noisy, float("nan"), "")]
+            outs = [("noisy", LABELS["noisy"], noisy, float("nan"), "")]
             for m in methods:
                 if m.fn is None:
                     outs.append((m.key, m.label, None, float("nan"), m.status))
@@ -665,12 +661,14 @@ def hardware_line() -> str:
     )
 
 
-def header(title: str, argv: Sequence[str]) -> str:
-    cmd = "python experiments/sota.py " + " ".join(shlex.quote(a) for a in argv)
+def header(title: str, argv: Sequence[str], weights=BUNDLED) -> str:
+    """The report's head: title, command, provenance (commit, weights hash), machine."""
+    cmd = "python benchmarks/quality/table2.py " + " ".join(shlex.quote(a) for a in argv)
     when = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     return (
-        f"# {title}\n\n- Command: `{cmd.strip()}`\n- Hardware: {hardware_line()}\n"
+        f"# {title}\n\n- Command: `{cmd.strip()}`\n- {provenance(weights)}\n"
+        f"- Hardware: {hardware_line()}\n"
         f"- Load average when the table was written: {load:.1f} (a shared machine: run "
         "times are indicative)\n"
         f"- Date: {when}\n"
@@ -687,7 +685,7 @@ def write_csv(rows: list[dict], path: Path) -> None:
 
 def _parse(argv):
     p = argparse.ArgumentParser(
-        prog="python experiments/sota.py", description=__doc__.split("\n\n")[0]
+        prog="python benchmarks/quality/table2.py", description=__doc__.split("\n\n")[0]
     )
     p.add_argument("--table", choices=("sota", "cnr", "all"), default="all")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT, help="output directory")
@@ -739,6 +737,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = _parse(argv)
     args.out.mkdir(parents=True, exist_ok=True)
+    weights = args.dmd_weights or BUNDLED
     if args.table in ("sota", "all"):
         cases = args.case or list(SOTA_CASES)
         for c in cases:
@@ -753,7 +752,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         )
         rows, renders = run_sota(cases, methods, meshes_dir=args.meshes_dir, repeat=args.repeat)
         md = sota_markdown(
-            rows, header("Table II protocol: classic, CNR and DMD-Net", argv), args.repeat
+            rows, header("Table II protocol: classic, CNR and DMD-Net", argv, weights), args.repeat
         )
         if not args.no_figure:
             png = render_grid(renders, args.out / "sota.png")
@@ -772,7 +771,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             extra_weights=args.extra_weights,
         )
         rows = run_learned(args.data, methods, per_split=args.per_split, seed=args.seed)
-        md = learned_markdown(rows, header("DMD-Net vs CNR on the generated dataset", argv))
+        md = learned_markdown(
+            rows, header("DMD-Net vs CNR on the generated dataset", argv, weights)
+        )
         (args.out / "cnr_vs_dmd.md").write_text(md)
         write_csv(rows, args.out / "cnr_vs_dmd.csv")
         print(f"wrote {args.out / 'cnr_vs_dmd.md'}")

@@ -22,11 +22,11 @@ from pathlib import Path
 import numpy as np
 from scipy.sparse.csgraph import breadth_first_order
 
+from dmd_jax.io import SUPPORTED_EXTENSIONS as MESH_SUFFIXES
 from dmd_jax.io import load_mesh
 from dmd_jax.topology import face_adjacency_matrix
 
 VALIDATION_FRACTION = 0.15
-MESH_SUFFIXES = (".ply", ".obj", ".off", ".stl")
 
 
 def is_validation(name: str, fraction: float = VALIDATION_FRACTION) -> bool:

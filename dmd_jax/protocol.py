@@ -1,0 +1,262 @@
+"""The evaluation protocol: how every quality figure of the project is made.
+
+One definition each, used by the quality scripts (`benchmarks/quality/`), the
+calibration (`dmd_jax.calibrate`), the demo, the notebooks and the tests:
+
+* the benchmark noise (`benchmark_noise`, `NOISE_LEVELS`): Gaussian noise of σ = 0.1,
+  0.2 and 0.3 × the mesh's mean edge length along the vertex normals, the protocol of
+  CNR and GCN-Denoiser; `benchmark_noise_config` is the same noise as a `NoiseConfig`
+  for the input pipeline (training's evaluation sets);
+* its seeds (`noise_seed`): a CRC32 of `"<file name>|<level>"`, so a mesh's noise does
+  not change when files are added or moved;
+* the crop (`crop`, `MAX_FACES`): larger meshes shrink to the connected patch grown
+  breadth-first from face 0, to keep the slowest classic filters within a CPU session;
+* the mesh sets: the shared test meshes (`shared_meshes_dir`, `mesh_files`) and the
+  fixed validation split of the real training meshes (`validation_dir`,
+  `validation_files`; the split itself is `dmd_jax.data.real.is_validation`);
+* the mesh suffixes the folders are read with (`MESH_SUFFIXES`, those `dmd_jax.io`
+  reads);
+* the methods and their display labels (`METHODS`, the names `dmd_jax.denoise_with`
+  takes; `REFERENCE_METHODS`, pymeshlab's filters; `benchmark_methods`, `label`).
+
+Host side: importing this module loads NumPy and no JAX (the noise imports JAX when it
+is drawn).
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+import zlib
+from pathlib import Path
+
+import numpy as np
+
+# `api` and `io` import only NumPy at module level, so this import stays light.
+from dmd_jax.api import METHODS
+from dmd_jax.io import SUPPORTED_EXTENSIONS as MESH_SUFFIXES
+
+__all__ = [
+    "LABELS",
+    "MAX_FACES",
+    "MESH_SUFFIXES",
+    "METHODS",
+    "NOISE_DIRECTION",
+    "NOISE_KIND",
+    "NOISE_LEVELS",
+    "PAPER_LABELS",
+    "REFERENCE_METHODS",
+    "SHARED_MESHES_ENV",
+    "benchmark_methods",
+    "benchmark_noise",
+    "benchmark_noise_config",
+    "crop",
+    "label",
+    "mesh_files",
+    "noise_seed",
+    "shared_meshes_dir",
+    "validation_dir",
+    "validation_files",
+]
+
+# The benchmark noise: Gaussian, σ in mean edge lengths, one draw per vertex along its
+# vertex normal (CNR, GCN-Denoiser).
+NOISE_KIND = "gaussian"
+NOISE_DIRECTION = "normal"
+NOISE_LEVELS = (0.1, 0.2, 0.3)
+
+# Meshes above this many faces are cropped (`crop`): GNF and L0 take ~1 ms a face.
+MAX_FACES = 15_000
+
+# The folder of the project's shared test meshes (its `train/` holds the real training
+# meshes). The old name still works, with a DeprecationWarning.
+SHARED_MESHES_ENV = "DMD_JAX_SHARED_MESHES"
+_DEPRECATED_SHARED_MESHES_ENV = "DMD_SHARED_MESHES"
+
+# pymeshlab's filters (`dmd_jax.baselines.meshlab`): reference columns of the quality
+# tables, not denoisers of this library (never counted as the best).
+REFERENCE_METHODS = ("meshlab_taubin", "meshlab_two_step")
+
+# Display labels of every method id (and of the noisy input) in reports and tables.
+LABELS = {
+    "noisy": "noisy",
+    "meshlab_taubin": "MeshLab Taubin",
+    "meshlab_two_step": "MeshLab two-step",
+    "laplacian": "Laplacian",
+    "taubin": "Taubin",
+    "bmd": "BMD",
+    "nifp": "NIFP",
+    "fefp": "FEFP",
+    "bnf": "BNF",
+    "gnf": "GNF",
+    "l0": "L0",
+    "cnr": "CNR",
+    "dmd": "DMD-Net",
+    "dmd_x2": "DMD-Net ×2",
+}
+# The Table II runner's labels: the paper's column names (L0 minimisation is "L0M"
+# there) and short MeshLab names for its wide table and figure.
+PAPER_LABELS = {
+    **LABELS,
+    "noisy": "Noisy",
+    "l0": "L0M",
+    "meshlab_taubin": "ML Taubin",
+    "meshlab_two_step": "ML two-step",
+}
+
+
+def label(method: str) -> str:
+    """The display label of a method id (the id itself when it has none)."""
+    return LABELS.get(method, method)
+
+
+def benchmark_methods() -> tuple[str, ...]:
+    """The methods of the quality table: MeshLab's two, every classic filter of
+    `dmd_jax.baselines.REGISTRY`, CNR and DMD-Net, in table order."""
+    from dmd_jax.baselines import REGISTRY
+
+    return (*REFERENCE_METHODS, *REGISTRY, "cnr", "dmd")
+
+
+def shared_meshes_dir() -> Path:
+    """The shared test-mesh folder: `$DMD_JAX_SHARED_MESHES`, else `shared/meshes`
+    beside the repository checkout (not part of the package).
+
+    `$DMD_SHARED_MESHES`, the older name, is read when the new one is unset, with a
+    `DeprecationWarning`.
+    """
+    folder = os.environ.get(SHARED_MESHES_ENV)
+    if not folder and os.environ.get(_DEPRECATED_SHARED_MESHES_ENV):
+        warnings.warn(
+            f"{_DEPRECATED_SHARED_MESHES_ENV} is deprecated; set {SHARED_MESHES_ENV}",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        folder = os.environ[_DEPRECATED_SHARED_MESHES_ENV]
+    if folder:
+        return Path(folder)
+    # dmd_jax/protocol.py -> the checkout -> its parent, which holds shared/.
+    return Path(__file__).resolve().parents[2] / "shared" / "meshes"
+
+
+def validation_dir() -> Path:
+    """The folder of real training meshes whose validation split is the second set:
+    `train/` of `shared_meshes_dir()`."""
+    return shared_meshes_dir() / "train"
+
+
+def noise_seed(mesh_name: str, level: float) -> int:
+    """The noise seed of one mesh file and level: stable across folders and machines.
+
+    Args:
+      mesh_name: the file's base name, e.g. `"fandisk.off"`.
+      level: σ in mean edge lengths.
+    """
+    return zlib.crc32(f"{mesh_name}|{level:g}".encode())
+
+
+def benchmark_noise(
+    vertices, faces, level: float, seed: int, direction: str = NOISE_DIRECTION
+) -> np.ndarray:
+    """`vertices` plus Gaussian noise of σ = `level` × mean edge length, in float64.
+
+    By default one draw per vertex along its vertex normal (the benchmark protocol).
+    The same draws as `dmd_jax.add_noise(seed, vertices, faces, "gaussian", level,
+    units="edge", direction=direction)` and `dmd-jax add-noise --units edge --direction
+    normal --seed SEED`: float32 unit draws from `jax.random`, so a seed gives the same
+    noise whether or not JAX's float64 mode is on.
+
+    Args:
+      vertices: `[n_vertex, 3]` clean positions.
+      faces: `[n_face, 3]` vertex indices.
+      level: σ in mean edge lengths.
+      seed: PRNG seed (`noise_seed` for a benchmark case).
+      direction: `"normal"` (default) or `"isotropic"` (per coordinate).
+
+    Returns:
+      `[n_vertex, 3]` float64 noisy positions.
+    """
+    from dmd_jax.api import add_noise
+
+    return add_noise(
+        seed,
+        np.asarray(vertices, np.float64),
+        faces,
+        NOISE_KIND,
+        level,
+        units="edge",
+        direction=direction,
+    )
+
+
+def benchmark_noise_config():
+    """The benchmark noise as a `NoiseConfig` for the input pipeline: every evaluation
+    mesh of a training run gets one of `NOISE_LEVELS` along its normals (used to
+    evaluate and to pick checkpoints, `train.train`)."""
+    from dmd_jax.config import NoiseConfig
+
+    return NoiseConfig(
+        kinds=(NOISE_KIND,),
+        edge_levels=NOISE_LEVELS,
+        p_edge=1.0,
+        p_normal=1.0 if NOISE_DIRECTION == "normal" else 0.0,
+    )
+
+
+def crop(vertices, faces, max_faces: int = MAX_FACES) -> tuple[np.ndarray, np.ndarray]:
+    """The connected `max_faces`-face patch grown breadth-first from face 0, re-indexed.
+
+    Deterministic, so every method and run sees the same patch; a mesh of at most
+    `max_faces` faces, or any mesh when `max_faces` is 0, comes back as it is.
+
+    Args:
+      vertices: `[n_vertex, 3]` positions.
+      faces: `[n_face, 3]` vertex indices.
+      max_faces: the patch size; 0 keeps every mesh whole.
+
+    Returns:
+      `(vertices [m, 3], faces [k, 3])` with `k <= max_faces`.
+    """
+    from dmd_jax.data.real import patch_mesh
+
+    if not max_faces or faces.shape[0] <= max_faces:
+        return vertices, faces
+    return patch_mesh(vertices, faces, 0, max_faces)
+
+
+def mesh_files(folder=None, skip=()) -> list[Path]:
+    """The mesh files (`MESH_SUFFIXES`) of a folder, sorted by name.
+
+    Args:
+      folder: the folder (default `shared_meshes_dir()`).
+      skip: file names to leave out.
+
+    Raises:
+      FileNotFoundError: no such folder.
+      ValueError: `skip` names a file that is not in the folder.
+    """
+    folder = shared_meshes_dir() if folder is None else Path(folder)
+    if not folder.is_dir():
+        raise FileNotFoundError(
+            f"{folder}: no mesh folder (pass --meshes DIR or set {SHARED_MESHES_ENV})"
+        )
+    unknown = set(skip) - {p.name for p in folder.iterdir()}
+    if unknown:
+        raise ValueError(f"--skip names files not in {folder}: {', '.join(sorted(unknown))}")
+    return sorted(
+        p
+        for p in folder.iterdir()
+        if p.suffix.lower() in MESH_SUFFIXES and p.is_file() and p.name not in set(skip)
+    )
+
+
+def validation_files(folder=None) -> list[Path]:
+    """The validation split of a folder of real training meshes, sorted by name.
+
+    Args:
+      folder: the folder (default `validation_dir()`); the split is fixed by file name
+        (`dmd_jax.data.real.is_validation`), never trained on.
+    """
+    from dmd_jax.data.real import mesh_files as real_mesh_files
+
+    return real_mesh_files(validation_dir() if folder is None else folder, "val")

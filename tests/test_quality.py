@@ -1,0 +1,167 @@
+"""The quality scripts (`benchmarks/quality/`) on one small mesh, and the rules of
+`benchmarks/`: no script imports another script, every report states its provenance."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+from conftest import REPO, shared_mesh_path
+from test_inference import TINY_CONFIG, tiny_params
+
+from benchmarks.common import BUNDLED, file_sha256, provenance
+from dmd_jax import checkpoints, inference, protocol
+from dmd_jax.io import load_mesh
+from dmd_jax.metrics import mesh_metrics, metrics_legend
+
+BENCHMARKS = REPO / "benchmarks"
+
+
+@pytest.fixture(scope="module")
+def weights(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("weights") / "tiny.msgpack"
+    return checkpoints.save_weights(path, tiny_params(), TINY_CONFIG, {"note": "tiny"})
+
+
+def test_sota_lite_on_one_mesh(tmp_path, weights):
+    from benchmarks.quality import sota_lite
+
+    mesh = shared_mesh_path("decimated-knight.off")
+    folder = tmp_path / "meshes"
+    folder.mkdir()
+    (folder / mesh.name).symlink_to(mesh)
+    code = sota_lite.main(
+        [
+            "--meshes",
+            str(folder),
+            "--weights",
+            str(weights),
+            "--levels",
+            "0.2",
+            "--methods",
+            "meshlab_taubin",
+            "bnf",
+            "dmd",
+            "dmd_x2",
+            "--no-val",
+            "--name",
+            "t",
+            "--out-dir",
+            str(tmp_path),
+        ]
+    )
+    assert code == 0
+    import csv
+
+    with open(tmp_path / "t.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["method"] for r in rows] == ["noisy", "meshlab_taubin", "bnf", "dmd", "dmd_x2"]
+    assert {r["set"] for r in rows} == {"shared"}
+    clean, f = load_mesh(mesh)
+    noisy = protocol.benchmark_noise(clean, f, 0.2, protocol.noise_seed(mesh.name, 0.2))
+    expected = mesh_metrics(noisy, clean, f)["normal_deg"]
+    assert float(rows[0]["normal_deg"]) == pytest.approx(expected, rel=1e-12)
+    dmd = inference.denoise(noisy, f, weights)
+    assert float(rows[3]["normal_deg"]) == pytest.approx(
+        mesh_metrics(dmd, clean, f)["normal_deg"], rel=1e-9
+    )
+    report = (tmp_path / "t.md").read_text()
+    assert "## Means over meshes" in report and "decimated-knight.off" in report
+    assert "DMD-Net margin" in report and "Median run time" in report
+    # --reuse recomputes DMD-Net only: the classic rows come back identical.
+    assert (
+        sota_lite.main(
+            ["--meshes", str(folder), "--weights", str(weights), "--levels", "0.2"]
+            + ["--methods", "bnf", "dmd", "--no-val", "--reuse"]
+            + ["--name", "t", "--out-dir", str(tmp_path)]
+        )
+        == 0
+    )
+    with open(tmp_path / "t.csv") as fh:
+        again = {r["method"]: r for r in csv.DictReader(fh)}
+    assert again["bnf"] == rows[2]
+    # The three metrics in the vocabulary of `dmd-jax evaluate`, with its legend.
+    assert "| method | vertex (×1e-4) | normal (°) | chamfer (×1e-4) |" in report
+    assert metrics_legend() in report
+    dmd_row = next(line for line in report.splitlines() if line.startswith("| DMD-Net |"))
+    assert float(dmd_row.split("|")[3]) == pytest.approx(float(rows[3]["normal_deg"]), abs=0.01)
+    assert str(weights) in report and "jax" in report
+    # The provenance line under the title: commit and the weights file's SHA-256.
+    assert f"with weights `{weights.name}` (SHA-256 `{file_sha256(weights)}`)" in report
+
+
+def test_sota_lite_errors(tmp_path, capsys):
+    from benchmarks.quality import sota_lite
+
+    assert sota_lite.main(["--meshes", str(tmp_path / "none")]) == 2
+    assert "no mesh folder" in capsys.readouterr().err
+    assert sota_lite.main(["--meshes", str(tmp_path), "--skip", "x.obj"]) == 2
+    assert "x.obj" in capsys.readouterr().err
+
+
+def test_no_harm_on_one_mesh(tmp_path, weights):
+    from benchmarks.quality import no_harm
+
+    mesh = shared_mesh_path("decimated-knight.off")
+    folder = tmp_path / "meshes"
+    folder.mkdir()
+    (folder / mesh.name).symlink_to(mesh)
+    out = tmp_path / "no_harm.md"
+    argv = ["--meshes", str(folder), "--weights", str(weights), "--out", str(out)]
+    assert no_harm.main(argv) == 0
+    report = out.read_text()
+    assert "decimated-knight.off" in report and "dmd normal change" in report
+    assert f"(SHA-256 `{file_sha256(weights)}`)" in report
+
+
+def test_provenance_names_commit_and_weights(tmp_path, weights):
+    line = provenance(weights)
+    assert line.startswith("Made at commit `") and file_sha256(weights) in line
+    assert len(file_sha256(weights)) == 12
+    assert "no trained weights" in provenance(None)
+    assert "(missing)" in provenance(tmp_path / "none.msgpack")
+    assert "a checkpoint directory" in provenance(tmp_path)
+    if checkpoints.pretrained_path().is_file():
+        assert "bundled `dmd_small.msgpack`" in provenance(BUNDLED)
+
+
+def _script_imports(path: Path) -> list[str]:
+    """The modules a file imports (absolute names; `common` for a bare sibling import)."""
+    out = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            out += [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.module:
+            out.append(node.module)
+    return out
+
+
+def test_no_benchmark_script_imports_another_script():
+    """Scripts share code through `benchmarks.common` (a library module) and the
+    package, never through each other, and import it in one style."""
+    scripts = sorted(
+        p
+        for p in BENCHMARKS.rglob("*.py")
+        if p.name not in ("__init__.py", "common.py") and "results" not in p.parts
+    )
+    assert len(scripts) >= 8
+    stems = {p.stem for p in scripts}
+    for path in scripts:
+        for module in _script_imports(path):
+            parts = module.split(".")
+            if parts[0] == "benchmarks":
+                assert module == "benchmarks.common", (path.name, module)
+            else:
+                assert parts[0] not in stems | {"common"}, (path.name, module)
+        assert "__main__" in path.read_text(), f"{path.name} is not a script"
+
+
+def test_every_report_writer_states_its_provenance():
+    """Every script that writes a report goes through `write_report` (whose header is
+    `provenance`) or, for Table II, calls `provenance` itself."""
+    for path in sorted(BENCHMARKS.rglob("*.py")):
+        text = path.read_text()
+        if path.name == "common.py" or ".md" not in text:
+            continue
+        assert "write_report(" in text or "provenance(" in text, path.name
