@@ -11,6 +11,8 @@ from conftest import crop_mesh, icosphere, shared_mesh_path, tetrahedron
 from dmd_jax import baselines
 from dmd_jax.baselines import cascaded_regression as C
 from dmd_jax.baselines._common import TRACE_COUNTS
+from dmd_jax.baselines.cascaded_regression import features as CF
+from dmd_jax.baselines.cascaded_regression import model as CM
 from dmd_jax.io import load_mesh
 from dmd_jax.metrics import mesh_metrics
 from dmd_jax.noise import add_noise_jax
@@ -143,8 +145,8 @@ def test_untrained_stage_moves_vertices_onto_the_feature_normals(knight):
     from dmd_jax.mesh import canonical_frame
 
     x = canonical_frame(noisy).apply(noisy)
-    _, normals = C._stage_jit(
-        w.params[0], jnp.asarray(C._pad_rows(x, vp)), C._to_jax(arr, jnp.float64), TINY
+    _, normals = CM.stage_jit(
+        w.params[0], jnp.asarray(CF.pad_rows(x, vp)), CF.to_jax(arr, jnp.float64), TINY
     )
     np.testing.assert_allclose(np.asarray(normals)[: len(f)], feature, atol=1e-12)
     np.testing.assert_allclose(np.asarray(normals)[len(f) :], 0.0)
@@ -155,8 +157,8 @@ def test_training_reduces_the_loss_on_a_tiny_set(knight):
     arr, vp = C.prepare_mesh(f, v.shape[0])
     noisy = _noisy(v, f, 0.4, seed=5)
     samples = C.stage_samples(
-        jnp.asarray(C._pad_rows(noisy, vp)), jnp.asarray(C._pad_rows(v, vp)),
-        C._to_jax(arr, jnp.float64), len(f), TINY, np.arange(len(f)),
+        jnp.asarray(CF.pad_rows(noisy, vp)), jnp.asarray(CF.pad_rows(v, vp)),
+        CF.to_jax(arr, jnp.float64), len(f), TINY, np.arange(len(f)),
     )  # fmt: skip
     assert samples.desc.shape == (len(f), TINY.descriptor_dim)
     params, losses = C.fit_stage(samples, TINY, steps=60, batch_size=256, seed=0)
@@ -172,7 +174,7 @@ def test_train_cnr_fits_every_stage(knight):
     w = C.train_cnr([(v, f)], config=TINY, faces_per_mesh=200, steps=20, seed=1)
     assert len(w.params) == TINY.n_stages and w.config == TINY
     for p in w.params:
-        C._check_stage_params(p, TINY, "trained")
+        CM.check_stage_params(p, TINY, "trained")
     assert all(np.isfinite(s["last_100"]) for s in w.meta["stage_losses"])
     out = C.cnr(_noisy(v, f, 0.3, seed=2), f, weights=w)
     assert out.shape == v.shape and np.all(np.isfinite(out))
@@ -216,6 +218,18 @@ def test_config_rejects_bad_settings(bad):
 # --------------------------------------------------------------------------------------
 # Denoising with the bundled weights
 # --------------------------------------------------------------------------------------
+
+
+def test_the_split_package_keeps_every_public_name_at_the_old_module_path():
+    """`cascaded_regression` became a package (config, features, model, train); users
+    import from it, the CLI's `train-cnr` and `baselines.LEARNED` as before."""
+    for name in C.__all__:
+        assert getattr(C, name) is not None, name
+    assert C.cnr is baselines.LEARNED["cnr"] is CM.cnr
+    assert C.fnd is CF.fnd and C.CNRWeights is CM.CNRWeights
+    from dmd_jax.baselines.cascaded_regression import train_main  # dmd-jax train-cnr
+
+    assert callable(train_main)
 
 
 @pytest.fixture(scope="module")
