@@ -12,7 +12,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from dmd_jax.graph import vertex_edges
+from dmd_jax.topology import vertex_edges
 
 # --------------------------------------------------------------------------------------
 # Validation

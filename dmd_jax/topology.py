@@ -96,8 +96,9 @@ class EdgeGroups(NamedTuple):
 def edge_groups(faces: np.ndarray, n_vertex: int) -> EdgeGroups:
     """Every face's three edges grouped by edge, from one stable sort of `edge_keys`.
 
-    Within a group the faces are in increasing order. `key[start]` are the unique
-    edges' keys (as `vertex_edges`), `size` the number of faces on each.
+    Within a group the entries keep `edge_keys`' order (by slot, then face), so the faces
+    of an edge are not sorted. `key[start]` are the unique edges' keys (as
+    `vertex_edges`), `size` the number of faces on each.
 
     Args:
       faces: `[n_face, 3]` vertex indices.

@@ -214,3 +214,13 @@ def test_roughness_edge_pairs_unchanged(monkeypatch, exact_max, chunk):
         for g, r in zip(got, ref, strict=True):
             assert g.dtype == r.dtype
             np.testing.assert_array_equal(g, r)
+
+
+def test_edge_groups_list_each_edge_with_its_faces():
+    v, f = _nonmanifold()
+    g = topology.edge_groups(f, len(v))
+    ref = _edge_faces(f)
+    assert np.all(np.diff(g.key) >= 0)
+    np.testing.assert_array_equal(np.stack(np.divmod(g.key[g.start], len(v))).T, list(ref))
+    for start, size, faces in zip(g.start, g.size, ref.values(), strict=True):
+        assert sorted(g.face[start : start + size].tolist()) == faces
