@@ -115,3 +115,46 @@ def test_methods_and_labels():
     assert every <= set(protocol.LABELS) and every <= set(protocol.PAPER_LABELS)
     assert protocol.label("dmd") == "DMD-Net" and protocol.label("new") == "new"
     assert protocol.PAPER_LABELS["l0"] == "L0M" and protocol.LABELS["l0"] == "L0"
+
+
+def test_quality_conditions_keep_the_benchmark_levels_and_seeds():
+    from dmd_jax import protocol
+
+    labels = [c.label for c in protocol.QUALITY_CONDITIONS]
+    assert labels == ["0.1", "0.2", "0.3", "0.6", "impulse 0.6"]
+    gauss = protocol.NoiseCondition("gaussian", 0.2)
+    # A Gaussian condition is the benchmark noise, seed and draws alike.
+    assert protocol.condition_seed("a.obj", gauss) == protocol.noise_seed("a.obj", 0.2)
+    impulse = protocol.NoiseCondition("impulse", 0.2)
+    assert protocol.condition_seed("a.obj", impulse) != protocol.noise_seed("a.obj", 0.2)
+    assert protocol.parse_condition("impulse:0.6") == protocol.NoiseCondition("impulse", 0.6)
+    assert protocol.parse_condition("0.3") == protocol.NoiseCondition("gaussian", 0.3)
+    for bad in ("uniform:0.2", "impulse:x", "-1", "nan"):
+        with pytest.raises(ValueError, match="noise condition"):
+            protocol.parse_condition(bad)
+
+
+def test_impulse_condition_moves_thirty_percent_of_vertices_along_their_normals():
+    import trimesh
+
+    from dmd_jax import protocol
+    from dmd_jax.mesh import mean_edge_length
+    from dmd_jax.noise import vertex_normals_np
+
+    mesh = trimesh.creation.icosphere(3)
+    v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    condition = protocol.NoiseCondition("impulse", 0.6)
+    noisy = protocol.condition_noise(v, f, condition, 7)
+    d = noisy - v
+    moved = np.linalg.norm(d, axis=1) > 1e-12
+    assert 0.25 < moved.mean() < 0.35  # δ(0.15, 0.15)
+    np.testing.assert_allclose(
+        np.linalg.norm(d[moved], axis=1), 0.6 * mean_edge_length(v, f), rtol=1e-5
+    )
+    normals = vertex_normals_np(v, f)
+    cos = np.abs(np.sum(d[moved] * normals[moved], axis=1)) / np.linalg.norm(d[moved], axis=1)
+    np.testing.assert_allclose(cos, 1.0, atol=1e-6)
+    gauss = protocol.NoiseCondition("gaussian", 0.2)
+    np.testing.assert_array_equal(
+        protocol.condition_noise(v, f, gauss, 3), protocol.benchmark_noise(v, f, 0.2, 3)
+    )
