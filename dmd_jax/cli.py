@@ -37,16 +37,20 @@ def _note(message: str) -> None:
 
 
 def _ply_element_counts(path) -> dict[str, int]:
-    """`{element: count}` of a PLY header (`{}` when the header cannot be read)."""
+    """`{element: count}` of a PLY header, read as `load_mesh` reads it.
+
+    `{}` when the header is unreadable: `load_mesh` then says what is wrong with it (a
+    header this function parsed more leniently than the reader could hide its faces
+    and pass for a point cloud).
+    """
+    from dmd_jax.io import read_ply_header
+
     with open(path, "rb") as fh:
-        head = fh.read(1 << 16)
-    end = head.find(b"end_header")
-    counts: dict[str, int] = {}
-    for line in head[: max(end, 0)].decode("ascii", errors="replace").splitlines():
-        parts = line.split()
-        if len(parts) == 3 and parts[0] == "element" and parts[2].isdigit():
-            counts[parts[1]] = int(parts[2])
-    return counts
+        head = fh.read(1 << 20)
+    try:
+        return read_ply_header(head, str(path)).counts()
+    except ValueError:
+        return {}
 
 
 def _zero_area_faces(vertices, faces) -> int:
@@ -85,7 +89,10 @@ def _load_input(path):
         raise ValueError(
             f"{path}: is a directory, not a mesh file ({', '.join(MESH_SUFFIXES)}){hint}"
         )
-    if p.suffix.lower() == ".ply" and p.is_file():
+    from dmd_jax.io import check_readable_file
+
+    check_readable_file(p)  # a FIFO would block the header read below
+    if p.suffix.lower() == ".ply":
         counts = _ply_element_counts(p)
         if counts.get("vertex", 0) > 0 and not counts.get("face"):
             raise ValueError(
@@ -152,13 +159,16 @@ def _denoise_inputs(args: argparse.Namespace):
     (their mesh files, not recursive) and `--out DIR` (same names there)."""
     from pathlib import Path
 
+    if args.skip_existing and args.overwrite:
+        raise ValueError("--skip-existing and --overwrite contradict each other; pass one")
     many = len(args.input) > 1 or Path(args.input[0]).is_dir()
     if not many:
         if args.out is not None:
             raise ValueError("one input file takes -o/--output FILE; --out DIR is for several")
         if args.output is None:
             raise ValueError("give -o/--output FILE for the denoised mesh")
-        return [(args.input[0], args.output)]
+        pairs = [(args.input[0], args.output)]
+        return _unfinished(pairs, args)
     if args.output is not None:
         raise ValueError("several inputs (or a folder) take --out DIR, not -o/--output")
     if args.out is None:
@@ -180,12 +190,30 @@ def _denoise_inputs(args: argparse.Namespace):
     twice = sorted({n for n in names if names.count(n) > 1})
     if twice:
         raise ValueError(f"two inputs share the file name {twice[0]}; their outputs would collide")
-    out.mkdir(parents=True, exist_ok=True)
     pairs = [(str(f), str(out / f.name)) for f in files]
-    # Check every output before the first (possibly long) run.
+    # --out DIR is created when missing (like `mkdir -p`): it names a folder of results,
+    # so there is nothing to mistype into an unintended place but the folder itself.
+    args.parents = True
+    return _unfinished(pairs, args)
+
+
+def _unfinished(pairs, args):
+    """The `(input, output)` pairs still to run, every output checked before any work.
+
+    With --skip-existing, pairs whose output exists are left out with a note (the
+    outputs of an interrupted run are complete files: every write is atomic).
+    """
+    from pathlib import Path
+
+    todo = []
     for src, dst in pairs:
-        _check_output(dst, src, args.overwrite)
-    return pairs
+        if args.skip_existing and Path(dst).is_file():
+            continue
+        _check_output(dst, src, args.overwrite, parents=args.parents, suffixes=MESH_SUFFIXES)
+        todo.append((src, dst))
+    if len(todo) < len(pairs):
+        _note(f"--skip-existing: {len(pairs) - len(todo)} of {len(pairs)} outputs exist already")
+    return todo
 
 
 def _cmd_denoise(args: argparse.Namespace) -> int:
@@ -224,71 +252,144 @@ def _cmd_denoise(args: argparse.Namespace) -> int:
         extra["presmooth"] = args.presmooth
     pairs = _denoise_inputs(args)
     weights = args.weights
-    if args.method == "dmd" and len(pairs) > 1:
+    if args.method == "dmd" and args.out is not None:
         from dmd_jax.checkpoints import load_model
 
         weights = load_model(weights)  # once for every mesh
     t_all = time.perf_counter()
+    many = args.out is not None  # folder mode: one bad file does not stop the others
+    failed: list[tuple[str, str]] = []
+    done = 0
     for src, dst in pairs:
-        vertices, faces = _load_input(src)
-        if len(pairs) == 1:
-            _check_output(dst, src, args.overwrite)
-        t0 = time.perf_counter()
-        # One call for the network and every baseline, as in Python (dmd_jax.denoise_with).
-        out = denoise_with(
-            args.method,
-            vertices,
-            faces,
-            weights=weights,
-            iterations=args.iterations,
-            **({"return_info": True} if args.method == "dmd" else {}),
-            **extra,
-        )
-        out, info = out if args.method == "dmd" else (out, None)
-        elapsed = time.perf_counter() - t0
-        save_mesh(dst, out, faces, overwrite=args.overwrite, protect=[src])
-        how = ""
-        if info is not None and info.presmooth_steps:
-            how = f" after {info.presmooth_steps} Laplacian steps"
-        if info is not None and info.passes > 1:
-            how += f" ({info.passes} passes)"
-        if info is not None and info.path == "patches":
-            how += f" in {info.patches} patches of {info.patch_size:,} vertices"
+        try:
+            done += _denoise_one(args, src, dst, weights, extra, denoise_with, save_mesh)
+        except (ValueError, OSError) as exc:
+            if not many:
+                raise
+            # One bad file must not cost the rest of a folder: say so, go on, sum up.
+            message = " ".join(str(exc).split()) or type(exc).__name__
+            print(f"dmd-jax denoise: error: {message} (going on with the others)", file=sys.stderr)
+            failed.append((src, message))
+        except KeyboardInterrupt as exc:
+            if many:
+                exc.hint = (
+                    f" after {done} of {len(pairs)} meshes; the finished outputs are complete "
+                    "files: rerun the same command with --skip-existing to resume"
+                )
+            raise
+    if many:
+        minutes = max(time.perf_counter() - t_all, 1e-9) / 60
         print(
-            f"denoised {src} ({len(vertices)} vertices, {len(faces)} faces) with "
-            f"{args.method}{how} in {elapsed:.2f} s -> {dst}"
-        )
-    if len(pairs) > 1:
-        minutes = (time.perf_counter() - t_all) / 60
-        print(
-            f"{len(pairs)} meshes in {minutes * 60:.1f} s ({len(pairs) / minutes:.1f} meshes "
+            f"{done} meshes in {minutes * 60:.1f} s ({done / minutes:.1f} meshes "
             "per minute, reading and writing included)"
         )
+    if failed:
+        names = ", ".join(src.replace("\\", "/").rsplit("/", 1)[-1] for src, _ in failed[:5])
+        more = f" and {len(failed) - 5} more" if len(failed) > 5 else ""
+        print(
+            f"dmd-jax denoise: {len(failed)} of {len(pairs)} meshes failed ({names}{more}); "
+            + ("the others were written" if done else "no output was written"),
+            file=sys.stderr,
+        )
+        return 1
     return 0
 
 
-def _check_output(output, inputs, overwrite: bool) -> None:
-    """Refuses to clobber an input, or an existing output without --overwrite."""
+def _denoise_one(args, src, dst, weights, extra, denoise_with, save_mesh) -> int:
+    """Denoises one file into `dst` and prints its line; returns 1."""
+    import time
+
+    vertices, faces = _load_input(src)
+    if args.parents:
+        _make_parent(dst)
+    t0 = time.perf_counter()
+    # One call for the network and every baseline, as in Python (dmd_jax.denoise_with).
+    out = denoise_with(
+        args.method,
+        vertices,
+        faces,
+        weights=weights,
+        iterations=args.iterations,
+        **({"return_info": True} if args.method == "dmd" else {}),
+        **extra,
+    )
+    out, info = out if args.method == "dmd" else (out, None)
+    elapsed = time.perf_counter() - t0
+    save_mesh(dst, out, faces, overwrite=args.overwrite, protect=[src])
+    how = ""
+    if info is not None and info.presmooth_steps:
+        how = f" after {info.presmooth_steps} Laplacian steps"
+    if info is not None and info.passes > 1:
+        how += f" ({info.passes} passes)"
+    if info is not None and info.path == "patches":
+        how += f" in {info.patches} patches of {info.patch_size:,} vertices"
+    print(
+        f"denoised {src} ({len(vertices)} vertices, {len(faces)} faces) with "
+        f"{args.method}{how} in {elapsed:.2f} s -> {dst}"
+    )
+    return 1
+
+
+def _check_output(output, inputs, overwrite: bool, *, parents: bool = False, suffixes=None) -> None:
+    """Everything that would make writing `output` fail, checked before any work.
+
+    The format (`suffixes`), `-` (no stdout output), the input itself or a hard link to
+    it, a directory, an existing file without --overwrite, a missing folder (created
+    later with `parents`, see `_make_parent`), and a folder one may not write in.
+    """
+    import os
     from pathlib import Path
 
+    if str(output) == "-":
+        raise ValueError("-o -: meshes are not written to stdout; give a file name")
     out = Path(output)
+    if suffixes is not None and out.suffix.lower() not in suffixes:
+        raise ValueError(
+            f"{output}: unknown mesh format {out.suffix!r}; use one of {', '.join(suffixes)}"
+        )
     for src in [inputs] if isinstance(inputs, (str, Path)) else inputs:
-        if Path(src).resolve() == out.resolve():
+        same = Path(src).resolve() == out.resolve()
+        if not same and out.exists() and Path(src).exists():
+            same = os.path.samefile(src, out)  # a hard link to the input
+        if same:
             raise ValueError(f"{output}: the output path is the input file; choose another")
     if out.is_dir():
         raise ValueError(f"{output}: is a directory; give a file name")
     if out.exists() and not overwrite:
         raise FileExistsError(f"{output}: already exists (pass --overwrite to replace it)")
-    if not out.parent.resolve().is_dir():
-        raise FileNotFoundError(f"{out.parent}: output directory does not exist")
+    folder = out.parent
+    if not folder.is_dir():
+        if folder.exists():
+            raise NotADirectoryError(f"{folder}: is not a directory")
+        if not parents:
+            raise FileNotFoundError(
+                f"{folder}: output directory does not exist (pass --parents to create it)"
+            )
+        while not folder.exists():  # the folder that will hold the new ones
+            folder = folder.parent
+        if not folder.is_dir():
+            raise NotADirectoryError(f"{folder}: is not a directory")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise PermissionError(f"{output}: cannot write in {folder} (permission denied)")
+
+
+def _make_parent(output) -> None:
+    """Creates the folders above `output` (`--parents`), just before writing it."""
+    from pathlib import Path
+
+    Path(output).parent.mkdir(parents=True, exist_ok=True)
 
 
 def _cmd_add_noise(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from dmd_jax.api import add_noise
     from dmd_jax.io import save_mesh
 
+    _check_output(
+        args.output, args.input, args.overwrite, parents=args.parents, suffixes=MESH_SUFFIXES
+    )
     vertices, faces = _load_input(args.input)
-    _check_output(args.output, args.input, args.overwrite)
     # The same noise as dmd_jax.add_noise(seed, ...) in Python, whatever JAX's x64 mode.
     noisy = add_noise(
         args.seed,
@@ -299,6 +400,14 @@ def _cmd_add_noise(args: argparse.Namespace) -> int:
         units=args.units,
         direction=args.direction,
     )
+    if not np.isfinite(noisy).all():
+        # Not the output file's fault: the noise itself left float64's range.
+        raise ValueError(
+            f"--level {args.level:g} ({args.units} units) moves {args.input}'s vertices "
+            "beyond float64's range; give a smaller level"
+        )
+    if args.parents:
+        _make_parent(args.output)
     save_mesh(args.output, noisy, faces, overwrite=args.overwrite, protect=[args.input])
     print(
         f"added {args.kind} noise, level {args.level} ({args.units} units, seed {args.seed}) "
@@ -394,8 +503,15 @@ def _cmd_render(args: argparse.Namespace) -> int:
         raise ValueError(
             f"--panel-size must be in (0, {MAX_PANEL_SIZE:g}] inches, got {args.panel_size:g}"
         )
-    _check_output(args.output, args.inputs + ([args.gt] if args.gt else []), args.overwrite)
+    _check_output(
+        args.output,
+        args.inputs + ([args.gt] if args.gt else []),
+        args.overwrite,
+        parents=args.parents,
+    )
     meshes = [_load_input(p) for p in args.inputs]
+    if args.parents:
+        _make_parent(args.output)
     titles = args.titles.split(",") if args.titles else [Path(p).stem for p in args.inputs]
     values = None
     if args.gt:
@@ -723,7 +839,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(func=_cmd_info)
 
-    p = sub.add_parser("denoise", help="denoise mesh files")
+    p = sub.add_parser(
+        "denoise",
+        help="denoise mesh files",
+        description="Denoise one mesh file (-o FILE) or several and folders (--out DIR). "
+        "Every output is checked before any work starts. A folder run goes on past a file "
+        "it cannot read or denoise, names it, and exits with 1 and a summary at the end; "
+        "after Ctrl-C or SIGTERM, rerun it with --skip-existing to resume.",
+    )
     p.add_argument(
         "input", nargs="+", help="noisy mesh (.obj .off .ply .stl), or several, or folders"
     )
@@ -772,6 +895,17 @@ def build_parser() -> argparse.ArgumentParser:
         "stored with the weights, as many steps as the mesh's roughness asks for; 0: none)",
     )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    p.add_argument(
+        "--skip-existing",
+        action="store_true",
+        help="leave out inputs whose output exists: resumes an interrupted folder run "
+        "(outputs are written atomically, so an existing one is complete)",
+    )
+    p.add_argument(
+        "--parents",
+        action="store_true",
+        help="create -o's missing folders (--out DIR is always created when missing)",
+    )
     p.set_defaults(func=_cmd_denoise)
 
     p = sub.add_parser("add-noise", help="add synthetic noise to a mesh file")
@@ -804,6 +938,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--seed", type=int, default=0, help="random seed; same seed, same noise")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    p.add_argument("--parents", action="store_true", help="create -o's missing folders")
     p.set_defaults(func=_cmd_add_noise)
 
     p = sub.add_parser("evaluate", help="vertex / normal / chamfer metrics against a ground truth")
@@ -857,6 +992,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--no-zoom", action="store_true", help="PNG: no zoom on the sharpest edge")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    p.add_argument("--parents", action="store_true", help="create -o's missing folders")
     p.set_defaults(func=_cmd_render)
 
     p = sub.add_parser(
@@ -1063,9 +1199,32 @@ EXAMPLES = {
 }
 
 
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM (`timeout`, schedulers, `docker stop`), raised like Ctrl-C so that every
+    cleanup runs: an atomic write removes its temporary file."""
+
+
+def _on_sigterm(signum, frame):
+    raise _Terminated()
+
+
 def main(argv: list[str] | None = None) -> int:
+    import signal
+    import threading
+
     parser = build_parser()
     args = parser.parse_args(argv)
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, _on_sigterm)
+    try:
+        return _run(args)
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _run(args: argparse.Namespace) -> int:
     try:
         return int(args.func(args) or 0)
     except (ValueError, OSError) as exc:
@@ -1073,9 +1232,11 @@ def main(argv: list[str] | None = None) -> int:
         message = " ".join(str(exc).split()) or type(exc).__name__
         print(f"dmd-jax {args.command}: error: {message}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"dmd-jax {args.command}: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        terminated = isinstance(exc, _Terminated)
+        what = "terminated" if terminated else "interrupted"
+        print(f"dmd-jax {args.command}: {what}{getattr(exc, 'hint', '')}", file=sys.stderr)
+        return 143 if terminated else 130
 
 
 if __name__ == "__main__":

@@ -82,3 +82,92 @@ def test_evaluate_names_the_vertex_order_when_it_cannot_match(capsys, meshes):
     (line,) = err.strip().splitlines()
     assert "other.obj: the counts match" in line and "but the vertex order does not" in line
     assert f"{len(v)} vs {len(v)} vertices" in line
+
+
+# --------------------------------------------------------------------------------------
+# Folder runs: Ctrl-C then --skip-existing; output folders that do not exist yet
+# --------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def folder(tmp_path):
+    v, f = icosphere(1)
+    src = tmp_path / "scans"
+    src.mkdir()
+    for name in ("a.off", "b.obj", "c.ply"):
+        save_mesh(src / name, v, f)
+    return src
+
+
+def test_interrupted_folder_run_resumes_with_skip_existing(tmp_path, capsys, folder, monkeypatch):
+    import dmd_jax.api
+
+    real = dmd_jax.api.denoise_with
+    calls = []
+
+    def interrupt_on_second(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(dmd_jax.api, "denoise_with", interrupt_on_second)
+    out = tmp_path / "out"
+    code, _, err = run(capsys, "denoise", folder, "--out", out, "--method", "laplacian")
+    assert code == 130
+    assert "interrupted after 1 of 3 meshes" in err and "--skip-existing to resume" in err
+    assert [p.name for p in out.iterdir()] == ["a.off"]  # complete, no temp file
+    first = (out / "a.off").read_bytes()
+
+    # The same command again refuses to clobber; with --skip-existing it resumes.
+    code, _, err = run(capsys, "denoise", folder, "--out", out, "--method", "laplacian")
+    assert code == 2 and "a.off: already exists" in err
+    monkeypatch.setattr(dmd_jax.api, "denoise_with", real)
+    code, stdout, err = run(
+        capsys, "denoise", folder, "--out", out, "--method", "laplacian", "--skip-existing"
+    )
+    assert code == 0, err
+    assert "--skip-existing: 1 of 3 outputs exist already" in err
+    assert sorted(p.name for p in out.iterdir()) == ["a.off", "b.obj", "c.ply"]
+    assert (out / "a.off").read_bytes() == first  # left as it was
+    assert "a.off" not in stdout and "2 meshes in" in stdout
+
+
+def test_skip_existing_and_overwrite_contradict(tmp_path, capsys, folder):
+    code, _, err = run(
+        capsys, "denoise", folder, "--out", tmp_path / "o", "--skip-existing", "--overwrite"
+    )
+    assert code == 2 and "contradict" in err
+
+
+def test_out_dir_is_created_and_o_needs_parents(tmp_path, capsys, folder):
+    # --out DIR: created (nested too), as its help says.
+    out = tmp_path / "new" / "deeper"
+    code, _, err = run(capsys, "denoise", folder, "--out", out, "--method", "laplacian")
+    assert code == 0, err
+    assert len(list(out.iterdir())) == 3
+    # -o FILE into a missing folder: refused before any work, with the flag to pass ...
+    target = tmp_path / "missing" / "sub" / "a.off"
+    code, _, err = run(capsys, "denoise", folder / "a.off", "-o", target, "--method", "laplacian")
+    assert code == 2 and "output directory does not exist (pass --parents" in err
+    assert not (tmp_path / "missing").exists()
+    # ... which creates it.
+    code, _, err = run(
+        capsys, "denoise", folder / "a.off", "-o", target, "--method", "laplacian", "--parents"
+    )
+    assert code == 0, err
+    assert target.is_file()
+    for command, extra in (("add-noise", ["--level", "0.01"]), ("render", [])):
+        dst = tmp_path / f"made_by_{command}" / ("x.off" if command == "add-noise" else "x.png")
+        code, _, err = run(capsys, command, folder / "a.off", "-o", dst, *extra, "--parents")
+        assert code == 0, err
+        assert dst.is_file()
+
+
+def test_help_documents_the_folder_edges(capsys):
+    with pytest.raises(SystemExit):
+        main(["denoise", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "--skip-existing" in text and "resume" in text
+    assert "--parents" in text and "--out DIR is always created when missing" in text
+    assert "exits with 1 and a summary" in text

@@ -491,3 +491,151 @@ def test_case10_the_bounds_hold_every_preset():
 
     for name in ("paper", "small", "test"):
         preset(name)  # builds, so its model sits inside every bound
+
+
+# --------------------------------------------------------------------------------------
+# 11. SIGTERM during a write is handled like Ctrl-C
+# --------------------------------------------------------------------------------------
+
+_SIGTERM_MID_WRITE = """
+import os, signal, sys, time
+import dmd_jax.io as io
+
+def rows_then_sigterm(fh, row, rows):
+    fh.write("v 0 0 0\\n")  # half a file on disk, then `timeout` or `docker stop`
+    fh.flush()
+    os.kill(os.getpid(), signal.SIGTERM)
+    time.sleep(10)  # the handler raises here; without one the process dies at once
+
+io._write_rows = rows_then_sigterm
+from dmd_jax.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_case11_sigterm_mid_write_leaves_no_temp_file(tmp_path):
+    import subprocess
+    import sys
+
+    save_mesh(tmp_path / "in.off", TET_V, TET_F)  # before the writer is patched
+    run_ = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            _SIGTERM_MID_WRITE,
+            "add-noise",
+            str(tmp_path / "in.off"),
+            "-o",
+            str(tmp_path / "out.obj"),
+            "--level",
+            "0.01",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert run_.returncode == 143, (run_.returncode, run_.stderr)
+    assert "dmd-jax add-noise: terminated" in run_.stderr
+    assert "Traceback" not in run_.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in.off"]  # no .out.obj.* left
+
+
+# --------------------------------------------------------------------------------------
+# 12. The output path is checked before any work
+# --------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def no_work(monkeypatch):
+    """Fails the test if a denoise, a noise draw or a mesh load starts."""
+    import dmd_jax.api
+    import dmd_jax.cli
+
+    def boom(*args, **kwargs):
+        raise AssertionError("the work started before the output was checked")
+
+    monkeypatch.setattr(dmd_jax.api, "denoise_with", boom)
+    monkeypatch.setattr(dmd_jax.api, "add_noise", boom)
+    monkeypatch.setattr(dmd_jax.cli, "_load_input", boom)
+
+
+@pytest.mark.parametrize(
+    "output, words",
+    [
+        ("out.xyz", ["out.xyz: unknown mesh format '.xyz'"]),
+        ("-", ["-o -: meshes are not written to stdout"]),
+        ("missing/out.off", ["missing: output directory does not exist", "--parents"]),
+        ("hard.off", ["hard.off: the output path is the input file"]),
+        ("in.off/x.off", ["in.off: is not a directory"]),
+    ],
+    ids=["extension", "stdout", "missing-folder", "hard-link", "file-as-folder"],
+)
+@pytest.mark.parametrize("command", ["denoise", "add-noise"])
+def test_case12_output_checked_before_the_work(tmp_path, capsys, no_work, output, words, command):
+    save_mesh(tmp_path / "in.off", TET_V, TET_F)
+    os.link(tmp_path / "in.off", tmp_path / "hard.off")
+    dst = output if output == "-" else tmp_path / output
+    extra = ["--level", "0.01"] if command == "add-noise" else ["--method", "laplacian"]
+    code, _, err = run(capsys, command, tmp_path / "in.off", "-o", dst, "--overwrite", *extra)
+    assert code == 2
+    _one_line_error(err, *words)
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root may write anywhere")
+def test_case12_unwritable_folder_checked_before_the_work(tmp_path, capsys, no_work):
+    save_mesh(tmp_path / "in.off", TET_V, TET_F)
+    locked = tmp_path / "locked"
+    locked.mkdir(mode=0o555)
+    code, _, err = run(capsys, "denoise", tmp_path / "in.off", "-o", locked / "o.off")
+    assert code == 2
+    _one_line_error(err, "cannot write in", "permission denied")
+
+
+# --------------------------------------------------------------------------------------
+# 13. A folder run goes on past a bad file and exits non-zero with a summary
+# --------------------------------------------------------------------------------------
+
+
+def test_case13_folder_mode_reports_a_bad_file_and_goes_on(tmp_path, capsys):
+    folder = tmp_path / "in"
+    folder.mkdir()
+    for name in ("a.off", "c.obj"):
+        save_mesh(folder / name, TET_V, TET_F)
+    (folder / "b.off").write_text("OFF\n3 1 0\n0 0 0\n1 0 0\n")  # truncated
+    code, out, err = run(
+        capsys, "denoise", folder, "--out", tmp_path / "out", "--method", "laplacian"
+    )
+    assert code == 1
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["a.off", "c.obj"]
+    assert "b.off: truncated" in err and "going on with the others" in err
+    assert err.strip().splitlines()[-1] == (
+        "dmd-jax denoise: 1 of 3 meshes failed (b.off); the others were written"
+    )
+    assert "2 meshes in" in out and "Traceback" not in err
+
+
+# --------------------------------------------------------------------------------------
+# 14. The rest: --level 1e308, coordinate overflow without raw NumPy warnings
+# --------------------------------------------------------------------------------------
+
+
+def test_case14_huge_noise_level_does_not_blame_the_output(tmp_path, capsys):
+    save_mesh(tmp_path / "in.off", TET_V, TET_F)
+    code, _, err = run(
+        capsys, "add-noise", tmp_path / "in.off", "-o", tmp_path / "noisy.off", "--level", "1e308"
+    )
+    assert code == 2
+    _one_line_error(err, "--level 1e+308", "beyond float64's range")
+    assert "noisy.off" not in err and not (tmp_path / "noisy.off").exists()
+
+
+@pytest.mark.parametrize("scale", [1e300, 1e-300])
+def test_case14_extreme_coordinates_give_no_raw_numpy_warnings(tmp_path, capsys, scale):
+    save_mesh(tmp_path / "in.off", TET_V * scale, TET_F)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # any RuntimeWarning of NumPy fails the test
+        code, _, err = run(
+            capsys, "add-noise", tmp_path / "in.off", "-o", tmp_path / "n.off", "--level", "0.01"
+        )
+    assert code == 0, err
+    assert "Warning" not in err and "note:" not in err  # no face is degenerate
