@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
 PYTEST_WORKERS ?= 2
 
-.PHONY: install test test-slow lint format bench bench-inference bench-inference-scale bench-training ablate ablate-quick ablate-smoke sota demo sota-lite
+.PHONY: install test test-slow lint format bench bench-inference bench-inference-scale bench-training ablate ablate-quick ablate-smoke sota demo sota-lite calibrate
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -77,12 +77,27 @@ demo: $(STAMP)
 sota-lite: $(STAMP)
 	$(BIN)/python benchmarks/quality/sota_lite.py $(if $(WEIGHTS),--weights $(WEIGHTS))
 
+# Fits the weights' DenoisePolicy (pass tolerance, pre-smoothing rule) on the validation
+# split (dmd_jax.calibrate; ~20 min on 2 cores): benchmarks/results/pass_tolerance.md and
+# presmooth_fit.md, the fitted policy printed; OUT=path also writes the weights with it.
+calibrate: $(STAMP)
+	$(BIN)/python benchmarks/quality/calibrate.py $(if $(WEIGHTS),--weights $(WEIGHTS)) $(if $(OUT),--out $(OUT))
+
 # Executes the notebook scripts notebooks/NN_*.py (percent format, the only source); the
 # executed notebooks go to notebooks/executed/ (git-ignored).
 # 05 and 06 need the bundled weights, or WEIGHTS=path/to/file.msgpack.
 .PHONY: notebooks
 notebooks: $(STAMP)
 	$(if $(WEIGHTS),DMD_JAX_WEIGHTS=$(WEIGHTS)) $(BIN)/python notebooks/_run.py
+
+# One notebook: `make notebook NB=05` (its number, or any prefix of its name that
+# matches one notebook), executed into notebooks/executed/ like `make notebooks`.
+NB_FILE = $(wildcard notebooks/$(NB)*.py)
+.PHONY: notebook
+notebook: $(STAMP)
+	@test -n "$(NB)" || { echo "usage: make notebook NB=05 (one of: $(notdir $(basename $(wildcard notebooks/[0-9]*.py))))"; exit 2; }
+	@test $(words $(NB_FILE)) -eq 1 || { echo "NB=$(NB) matches $(words $(NB_FILE)) notebooks: $(notdir $(NB_FILE))"; exit 2; }
+	$(if $(WEIGHTS),DMD_JAX_WEIGHTS=$(WEIGHTS)) $(BIN)/python notebooks/_run.py --only $(notdir $(NB_FILE))
 
 # The paper's Table II protocol and its DMD-Net vs CNR table, written to
 # experiments/results/sota/ (benchmarks/quality/table2.py). WEIGHTS=path (weights file or
