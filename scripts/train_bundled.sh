@@ -1,15 +1,14 @@
 #!/usr/bin/env bash
 # The recipe of the bundled weights, dmd_jax/weights/dmd_small.msgpack, end to end
 # (docs/bundled-model.md): the dataset, five resumable training runs, the two fitted
-# rules, the export. About 2 h 10 min of wall time on a 2-core CPU (no GPU).
+# rules, the export. About 2 h 15 min of wall time on a 2-core CPU (no GPU).
 #
 #   scripts/train_bundled.sh [OUT]    # OUT (default runs/bundled) gets the runs and
 #                                     # OUT/dmd_small.msgpack; nothing in the repo is replaced
 #
 # Needs the real meshes beside the repository (../shared/meshes/train). Rerunning the
 # script resumes an interrupted run (train resumes its workdir). Caveats: the first run
-# uses the `small` preset's defaults as they are now (dmd_jax/config.py); the fitting
-# scripts also rewrite benchmarks/results/pass_tolerance.md and presmooth_fit.md.
+# uses the `small` preset's defaults as they are now (dmd_jax/config.py).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${1:-runs/bundled}
@@ -46,17 +45,10 @@ BENCH='noise.edge_levels=[0.05,0.1,0.1,0.15,0.2,0.2,0.25,0.3,0.3,0.4,0.5,0.6,0.8
   --set train.steps=1500 train.lr=1e-4 train.warmup_steps=50 train.seed=3 loss.normal=3.0 \
   loss.face_normal=3.0 noise.p_normal=0.8 "$BENCH" model.filter_iterations=120
 
-# The two rules, fitted on the validation split (4 + 12 min), then the export.
+# The policy, fitted on the validation split (dmd_jax.calibrate, ~20 min): the pass
+# tolerance, then the pre-smoothing rule under it; the bundled weights got 0.17 and
+# 27° / 4.5°. Writes the weights carrying it, and its reports under $OUT/calibration.
 "$BIN/dmd-jax" export-weights "$OUT/fi120/checkpoints/best" -o "$OUT/net.msgpack" --overwrite
-"$BIN/python" benchmarks/pass_tolerance.py --weights "$OUT/net.msgpack"  # bundled: 0.17
-# The fits print their choice; the defaults are the bundled weights' (override with
-# TOL=... PRESMOOTH="START PER_STEP" when a rerun's fit prints others).
-TOL=${TOL:-0.17}
-"$BIN/dmd-jax" export-weights "$OUT/fi120/checkpoints/best" -o "$OUT/net_tol.msgpack" \
-  --pass-tolerance "$TOL" --overwrite
-"$BIN/python" benchmarks/presmooth_fit.py --weights "$OUT/net_tol.msgpack"  # bundled: 27 4.5
-PRESMOOTH=${PRESMOOTH:-27 4.5}
-# shellcheck disable=SC2086
-"$BIN/dmd-jax" export-weights "$OUT/net_tol.msgpack" -o "$OUT/dmd_small.msgpack" \
-  --presmooth $PRESMOOTH --overwrite
-echo "wrote $OUT/dmd_small.msgpack (compare: benchmarks/sota_lite.py --weights $OUT/dmd_small.msgpack)"
+"$BIN/python" benchmarks/quality/calibrate.py --weights "$OUT/net.msgpack" \
+  --out "$OUT/dmd_small.msgpack" --results "$OUT/calibration"
+echo "wrote $OUT/dmd_small.msgpack (compare: python benchmarks/quality/sota_lite.py --weights $OUT/dmd_small.msgpack)"
