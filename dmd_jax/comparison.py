@@ -25,8 +25,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from dmd_jax.mesh import face_normals_np
-from dmd_jax.topology import face_adjacency
+from dmd_jax.mesh import edge_dihedral_angles
 
 # A crease: an edge whose faces' normals differ by at least this (degrees). The paper's
 # CAD parts have creases of 60-90°; 30° keeps the gentle chamfers of fandisk as well.
@@ -43,30 +42,9 @@ CAD_MIN_CREASE_SHARE = 0.005
 WITHIN = 1.05
 
 
-def dihedral_angles(vertices, faces) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Angles between the normals of faces sharing an edge, in degrees.
-
-    Args:
-      vertices: `[n_vertex, 3]` positions.
-      faces: `[n_face, 3]` vertex indices.
-
-    Returns:
-      `(a, b, angle)`: the face pairs (`topology.face_adjacency`) and `[n_pair]` angles
-      in `[0, 180]`; a pair with a zero-area face gets 0 (no crease can be told there).
-    """
-    v = np.asarray(vertices, np.float64)
-    f = np.asarray(faces)
-    a, b = face_adjacency(f, v.shape[0])
-    n = face_normals_np(v, f)
-    cos = np.clip(np.sum(n[a] * n[b], axis=1), -1.0, 1.0)
-    angle = np.degrees(np.arccos(cos))
-    ok = np.any(n[a] != 0, axis=1) & np.any(n[b] != 0, axis=1)  # zero rows: degenerate
-    return a, b, np.where(ok, angle, 0.0)
-
-
 def crease_faces(vertices, faces, angle: float = CREASE_ANGLE) -> np.ndarray:
     """`[n_face]` bool: faces with an edge of dihedral angle at least `angle` degrees."""
-    a, b, dihedral = dihedral_angles(vertices, faces)
+    a, b, dihedral = edge_dihedral_angles(vertices, faces)
     out = np.zeros(np.asarray(faces).shape[0], bool)
     sharp = dihedral >= angle
     out[a[sharp]] = True
@@ -77,7 +55,7 @@ def crease_faces(vertices, faces, angle: float = CREASE_ANGLE) -> np.ndarray:
 def surface_shares(vertices, faces) -> tuple[float, float]:
     """`(flat, crease)`: shares of the interior edges that are flat (`FLAT_ANGLE`) and on
     creases (`CREASE_ANGLE`)."""
-    _, _, dihedral = dihedral_angles(vertices, faces)
+    _, _, dihedral = edge_dihedral_angles(vertices, faces)
     if dihedral.size == 0:
         return 0.0, 0.0
     return float(np.mean(dihedral <= FLAT_ANGLE)), float(np.mean(dihedral >= CREASE_ANGLE))

@@ -12,7 +12,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from dmd_jax.topology import vertex_edges
+from dmd_jax.topology import face_adjacency, vertex_edges
 
 # --------------------------------------------------------------------------------------
 # Validation
@@ -148,3 +148,24 @@ def face_normals_np(vertices, faces) -> np.ndarray:
     n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
     norm = np.linalg.norm(n, axis=1, keepdims=True)
     return np.divide(n, norm, out=np.zeros_like(n), where=norm > 0)
+
+
+def edge_dihedral_angles(vertices, faces) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Angles between the normals of faces sharing an edge, in degrees.
+
+    Args:
+      vertices: `[n_vertex, 3]` positions.
+      faces: `[n_face, 3]` vertex indices.
+
+    Returns:
+      `(a, b, angle)`: the face pairs (`topology.face_adjacency`) and `[n_pair]` angles
+      in `[0, 180]`; a pair with a zero-area face gets 0 (no crease can be told there).
+    """
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces)
+    a, b = face_adjacency(f, v.shape[0])
+    n = face_normals_np(v, f)
+    cos = np.clip(np.sum(n[a] * n[b], axis=1), -1.0, 1.0)
+    angle = np.degrees(np.arccos(cos))
+    ok = np.any(n[a] != 0, axis=1) & np.any(n[b] != 0, axis=1)  # zero rows: degenerate
+    return a, b, np.where(ok, angle, 0.0)

@@ -10,6 +10,7 @@ import trimesh
 from conftest import icosphere
 
 from dmd_jax import comparison
+from dmd_jax.mesh import edge_dihedral_angles
 
 
 def _box(subdivisions: int = 2):
@@ -27,9 +28,9 @@ def _grid(k: int = 6):
     return np.stack([x.ravel(), y.ravel(), np.zeros(k * k)], 1), f
 
 
-def test_dihedral_angles_of_a_box_are_0_or_90():
+def test_edge_dihedral_angles_of_a_box_are_0_or_90():
     v, f = _box()
-    a, b, angle = comparison.dihedral_angles(v, f)
+    a, b, angle = edge_dihedral_angles(v, f)
     assert len(a) == 3 * len(f) // 2  # closed: every edge has two faces
     np.testing.assert_allclose(np.sort(np.unique(np.round(angle, 6))), [0.0, 90.0], atol=1e-6)
 
