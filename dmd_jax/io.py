@@ -449,6 +449,12 @@ def _is_float(token: bytes) -> bool:
     return True
 
 
+def _list_length(x: float) -> int:
+    """A list length read from ASCII as an int; -1 for anything that is not a count
+    (negative, fractional, infinite or NaN)."""
+    return int(x) if np.isfinite(x) and x >= 0 and x == int(x) else -1
+
+
 def _ply_ascii_element(tokens: list[bytes], t: int, el: _PlyElement, name: str):
     """`({property: values or (counts, items)}, next token)` of one ASCII element."""
     props = el.properties
@@ -467,11 +473,11 @@ def _ply_ascii_element(tokens: list[bytes], t: int, el: _PlyElement, name: str):
         if prop.count_dtype is None:
             q += 1
             continue
-        k = _numbers([tokens[q]], name, what)[0]
+        k = _list_length(_numbers([tokens[q]], name, what)[0])
         lengths.append(k)
-        q += 1 + int(max(k, 0))
+        q += 1 + max(k, 0)
     width = q - t
-    if all(k >= 0 and k == int(k) for k in lengths) and t + width * el.count <= len(tokens):
+    if all(k >= 0 for k in lengths) and t + width * el.count <= len(tokens):
         block = _numbers(tokens[t : t + width * el.count], name, what).reshape(el.count, width)
         out, col, ok = {}, 0, True
         for prop in props:
@@ -499,10 +505,11 @@ def _ply_ascii_element(tokens: list[bytes], t: int, el: _PlyElement, name: str):
                 picks[i].append(t)
                 t += 1
                 continue
-            k = _numbers([tokens[t]], name, what)[0]
-            if k < 0 or k != int(k):
-                raise ValueError(f"{name}: {what} {r}: list length {k:g} is not a count")
-            k = int(k)
+            k = _list_length(_numbers([tokens[t]], name, what)[0])
+            if k < 0:
+                raise ValueError(
+                    f"{name}: {what} {r}: list length {tokens[t][:30]!r} is not a count"
+                )
             if t + 1 + k > len(tokens):
                 raise truncated
             picks[i].extend(range(t + 1, t + 1 + k))

@@ -6,7 +6,9 @@ inserted and duplicated bytes, cuts, and numbers replaced by awkward ones (NaN, 
 counts, negative indices...). Anything
 other than a valid mesh or a `ValueError` fails: another exception type, a hang (a
 20 s alarm per file) or a crash of the worker. The default suite runs a few dozen
-inputs; `make test-slow` runs thousands and every prefix of every seed file.
+inputs of each hypothesis strategy and the 1,500 seeded corruptions of issue 31 (mesh
+and weights files, below); `make test-slow` runs thousands more and every prefix of
+every seed file.
 """
 
 from __future__ import annotations
@@ -239,3 +241,236 @@ def test_every_prefix(folder):
         for data in files:
             for n in range(len(data) + 1):
                 check_loader(folder, suffix, data[:n])
+
+
+# --------------------------------------------------------------------------------------
+# A thousand and more corruptions of mesh and weights files (issue 31), one seeded RNG
+# --------------------------------------------------------------------------------------
+#
+# Each case is one small file corrupted the way files are in practice: flipped bytes or
+# bits, a cut, a span deleted, inserted or repeated, a UTF-8 byte-order mark in front, a
+# header count off by one, an awkward number; for weights also JSON sections nested
+# thousands deep and config fields set to awkward values. The contract: a `ValueError`
+# or `OSError` with a message, or a correct result (a valid mesh; the very same mesh
+# after a BOM; for weights a bundle whose params fit its config), never another
+# exception, never a hang (`CASE_SECONDS` each). Plain NumPy draws rather than
+# hypothesis keep 1,500 cases well under a minute on one core.
+
+CASE_SECONDS = 5
+MESH_CASES = 1200
+WEIGHTS_CASES = 300
+
+
+def _issue31_seeds() -> list[tuple[str, bytes]]:
+    """Every seed file of `SEEDS`, plus what `save_mesh` writes and a mixed-polygon
+    binary PLY, as `(suffix, bytes)`."""
+    import struct
+    import tempfile
+    from pathlib import Path
+
+    from dmd_jax.io import save_mesh
+
+    seeds = [(s, d) for s, files in SEEDS.items() for d in files]
+    v, f = tetrahedron()
+    with tempfile.TemporaryDirectory() as tmp:
+        for suffix in (".obj", ".off", ".ply"):
+            path = save_mesh(Path(tmp) / f"t{suffix}", v * 1e-3 + 7.0, f)
+            seeds.append((suffix, path.read_bytes()))
+    head = (
+        b"ply\nformat binary_little_endian 1.0\nelement vertex 5\nproperty float x\n"
+        b"property float y\nproperty float z\nelement face 5\n"
+        b"property list uchar int vertex_indices\nend_header\n"
+    )
+    body = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0.5, 0.5, 1]], "<f4").tobytes()
+    for face in ([3, 2, 1, 0], [0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]):
+        body += struct.pack(f"<B{len(face)}i", len(face), *face)
+    seeds.append((".ply", head + body))
+    return seeds
+
+
+def _count_off_by_one(suffix: str, data: bytes, rng) -> bytes | None:
+    """The file with one header count changed by ±1, or None if it has no header count."""
+    delta = int(rng.choice([-1, 1]))
+    if suffix == ".ply":
+        found = list(re.finditer(rb"element (\w+) (\d+)", data[: data.find(b"end_header")]))
+        if not found:
+            return None
+        m = found[int(rng.integers(len(found)))]
+        n = max(int(m.group(2)) + delta, 0)
+        return data[: m.start(2)] + str(n).encode() + data[m.end(2) :]
+    if suffix == ".off":
+        m = re.search(rb"OFF\s+(\d+)\s+(\d+)", data)
+        if m is None:
+            return None
+        g = int(rng.integers(1, 3))
+        n = max(int(m.group(g)) + delta, 0)
+        return data[: m.start(g)] + str(n).encode() + data[m.end(g) :]
+    if suffix == ".stl" and not data.lstrip().lower().startswith(b"solid"):
+        n = int(np.frombuffer(data[80:84], "<u4")[0]) + delta
+        return data[:80] + np.uint32(max(n, 0)).tobytes() + data[84:]
+    return None
+
+
+def _corrupt(suffix: str, data: bytes, rng) -> tuple[str, bytes, str]:
+    """`(suffix, bytes, kind)` of one corruption; `kind` says what must come back."""
+    op = str(
+        rng.choice(
+            ["flip", "bit", "cut", "delete", "insert", "duplicate", "bom", "count", "number"]
+        )
+    )
+    b = bytearray(data)
+    pos = int(rng.integers(len(b))) if b else 0
+    if op == "bom":
+        # Text files (and PLY, whose header is text) read the same after a BOM; three
+        # bytes in front of a binary STL shift its fixed layout, so any clear answer goes.
+        binary_stl = suffix == ".stl" and not data.lstrip().lower().startswith(b"solid")
+        return suffix, b"\xef\xbb\xbf" + data, "any" if binary_stl else "same"
+    if op == "count":
+        changed = _count_off_by_one(suffix, data, rng)
+        if changed is not None and changed != data:
+            return suffix, changed, "error"
+        op = "cut"
+    if op == "flip":
+        b[pos] = int(rng.integers(256))
+    elif op == "bit":
+        b[pos] ^= 1 << int(rng.integers(8))
+    elif op == "cut":
+        del b[pos:]
+    elif op == "delete":
+        del b[pos : pos + int(rng.integers(1, 17))]
+    elif op == "insert":
+        b[pos:pos] = rng.integers(0, 256, int(rng.integers(1, 17))).astype(np.uint8).tobytes()
+    elif op == "duplicate":
+        b[pos:pos] = b[pos : pos + int(rng.integers(1, 65))]
+    else:
+        numbers = list(re.finditer(rb"-?\d+(\.\d+)?([eE][-+]?\d+)?", bytes(b)))
+        if numbers:
+            m = numbers[int(rng.integers(len(numbers)))]
+            b[m.start() : m.end()] = AWKWARD[int(rng.integers(len(AWKWARD)))]
+    return suffix, bytes(b), "any"
+
+
+def _load_or_error(load, path):
+    """`load(path)`, or None for a clear `ValueError`/`OSError`; anything else fails."""
+    with _time_limit(CASE_SECONDS), warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # triangulation notes are legal
+        try:
+            return load(path)
+        except (ValueError, OSError) as exc:
+            message = str(exc)
+            assert message and "\n" not in message, f"an unclear error: {message!r}"
+            assert str(path) in message, f"the error does not name the file: {message}"
+            return None
+
+
+def test_issue31_thousand_mesh_corruptions(tmp_path):
+    rng = np.random.default_rng(31)
+    seeds = _issue31_seeds()
+    originals = {}
+    for i, (suffix, data) in enumerate(seeds):
+        path = tmp_path / f"seed{i}{suffix}"
+        path.write_bytes(data)
+        originals[i] = _load_or_error(load_mesh, path)
+        assert originals[i] is not None, f"seed {i} ({suffix}) does not load"
+    counts = {"error": 0, "mesh": 0}
+    for case in range(MESH_CASES):
+        i = int(rng.integers(len(seeds)))
+        suffix, data, kind = _corrupt(*seeds[i], rng)
+        path = tmp_path / f"case{case % 50}{suffix}"
+        path.write_bytes(data)
+        try:
+            got = _load_or_error(load_mesh, path)
+        except AssertionError as exc:
+            raise AssertionError(f"case {case} ({kind}, seed {i}, {data[:80]!r}): {exc}") from exc
+        counts["error" if got is None else "mesh"] += 1
+        if kind == "same":
+            assert got is not None, f"case {case}: a BOM made seed {i} unreadable"
+            np.testing.assert_array_equal(got[0], originals[i][0])
+            np.testing.assert_array_equal(got[1], originals[i][1])
+        elif kind == "error":
+            assert got is None, f"case {case}: a header count off by one loaded (seed {i})"
+        if got is not None:
+            v, f = got
+            assert v.dtype == np.float64 and f.dtype == np.int32
+            validate_mesh(v, f)
+    # Both outcomes occur: the corruptions are neither all fatal nor all harmless.
+    assert counts["error"] > 200 and counts["mesh"] > 200, counts
+
+
+def _small_weights(tmp_path):
+    import jax
+
+    from dmd_jax import checkpoints
+    from dmd_jax.config import preset
+    from dmd_jax.model import init_params
+
+    config = preset("test")
+    config = config.with_edits({"model": {"width": 4, "stn_width": 4}})
+    params = init_params(config.model, jax.random.PRNGKey(0))
+    return checkpoints.save_weights(tmp_path / "seed.msgpack", params, config, {"n": 1})
+
+
+def _corrupt_weights(data: bytes, rng) -> bytes:
+    """One corruption of a weights file: its bytes, or one of its JSON sections."""
+    import json
+
+    from flax import serialization
+
+    # A config field edit that stays valid builds a new config, whose param shapes are
+    # traced once (about a second): a smaller share of those keeps the test quick.
+    ops = ["flip", "cut", "insert", "nested", "field", "json-byte"]
+    op = str(rng.choice(ops, p=[0.2, 0.15, 0.15, 0.2, 0.1, 0.2]))
+    b = bytearray(data)
+    pos = int(rng.integers(len(b)))
+    if op == "flip":
+        for _ in range(int(rng.integers(1, 4))):
+            b[int(rng.integers(len(b)))] = int(rng.integers(256))
+        return bytes(b)
+    if op == "cut":
+        return bytes(b[:pos])
+    if op == "insert":
+        b[pos:pos] = rng.integers(0, 256, int(rng.integers(1, 9))).astype(np.uint8).tobytes()
+        return bytes(b)
+    payload = serialization.msgpack_restore(data)
+    sections = [k for k in ("config", "meta", "policy") if k in payload]
+    section = sections[int(rng.integers(len(sections)))]
+    if op == "nested":
+        depth = int(rng.choice([10, 1000, 5000, 100_000]))
+        opener, closer = ('{"a":', "}") if rng.integers(2) else ("[", "]")
+        payload[section] = opener * depth + ("1" if opener != "[" else "") + closer * depth
+    elif op == "field":
+        config = json.loads(payload["config"])
+        part = config[str(rng.choice(["model", "loss", "train"]))]
+        name = sorted(part)[int(rng.integers(len(part)))]
+        awkward = [10**7, 10**30, -1, 0, 1e-300, 1e300, "Infinity", "x", None, [], {}, True]
+        value = awkward[int(rng.integers(len(awkward)))]
+        part[name] = float("inf") if value == "Infinity" else value
+        payload["config"] = json.dumps(config)
+    else:
+        text = bytearray(payload[section].encode())
+        text[int(rng.integers(len(text)))] = int(rng.integers(32, 127))
+        payload[section] = text.decode("ascii", errors="replace")
+    return serialization.msgpack_serialize(payload)
+
+
+def test_issue31_weights_corruptions(tmp_path):
+    from dmd_jax import checkpoints
+
+    seed = _small_weights(tmp_path)
+    data = seed.read_bytes()
+    assert _load_or_error(checkpoints.load_weights, seed) is not None
+    rng = np.random.default_rng(31)
+    loaded = 0
+    for case in range(WEIGHTS_CASES):
+        path = tmp_path / "case.msgpack"
+        corrupted = _corrupt_weights(data, rng)
+        path.write_bytes(corrupted)
+        try:
+            bundle = _load_or_error(checkpoints.load_weights, path)
+        except AssertionError as exc:
+            raise AssertionError(f"weights case {case}: {exc}") from exc
+        if bundle is not None:
+            loaded += 1
+            # A file that loads is a model that can run: its params fit its config.
+            checkpoints.check_params(bundle.params, bundle.config, "loaded")
+    assert 0 < loaded < WEIGHTS_CASES
