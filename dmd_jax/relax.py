@@ -24,7 +24,7 @@ from dmd_jax.topology import boundary_vertex_mask, one_ring_mean
 # fraction of the largest. Two planes meeting at a dihedral angle θ give a ratio of
 # (1 − cos θ)/(1 + cos θ): 0.2 keeps creases sharper than about 48° and lets the
 # residual noise of denoised normals (3–5°, ratio ≈ 0.003) count as flat. Chosen on the
-# validation split of shared/meshes/train (benchmarks/results/relax_validation.md): 0.2
+# validation split of shared/meshes/train (docs/studies.md, relax_validation): 0.2
 # beat 0.05 at every noise level tried (0.05 left clean meshes 0.1° closer) and kept
 # clean meshes closer than 1.0 (no creases kept).
 FEATURE_RATIO = 0.2

@@ -162,6 +162,40 @@ def test_every_report_writer_states_its_provenance():
     `provenance`) or, for Table II, calls `provenance` itself."""
     for path in sorted(BENCHMARKS.rglob("*.py")):
         text = path.read_text()
-        if path.name == "common.py" or ".md" not in text:
+        if path.name in ("common.py", "__init__.py") or ".md" not in text:
             continue
         assert "write_report(" in text or "provenance(" in text, path.name
+
+
+def test_calibrate_script_refits_from_its_csvs(tmp_path, weights):
+    """`make calibrate --reuse` path: the two CSVs in, reports and fitted weights out."""
+    from benchmarks.common import write_csv
+    from benchmarks.quality import calibrate as script
+    from dmd_jax import calibrate as cal
+
+    p_rows = [
+        ["m.obj", 100, lv, 0, 5.0 + lv, 5.0 + 2 * lv - 0.5 * (lv > 0.15), 0.6 * lv, 0.1]
+        for lv in cal.PASS_LEVELS
+    ]
+    write_csv(tmp_path / "pass_tolerance.csv", cal.PASS_HEADER, p_rows)
+    s_rows = [
+        ["m.obj", 100, cal.condition_name(d, lv), 0, 20.0 + 10 * lv, 9.0]
+        + [float(abs(k - round(lv))) for k in range(len(script.PRESMOOTH_CSV_HEADER) - 6)]
+        for d, lv in cal.PRESMOOTH_CONDITIONS
+    ]
+    blank = [""] * (len(script.PRESMOOTH_CSV_HEADER) - 5)
+    write_csv(
+        tmp_path / "presmooth_fit.csv",
+        script.PRESMOOTH_CSV_HEADER,
+        s_rows + [["m.obj", "", "clean", "", 5.0, *blank]],
+    )
+    out = tmp_path / "fitted.msgpack"
+    argv = ["--reuse", "--results", str(tmp_path), "--weights", str(weights), "--out", str(out)]
+    assert script.main(argv) == 0
+    fitted = checkpoints.load_weights(out)
+    assert fitted.policy.pass_tolerance in cal.TOLERANCES and fitted.policy.max_passes > 1
+    assert fitted.policy.presmooth_start in cal.STARTS
+    report = (tmp_path / "pass_tolerance.md").read_text()
+    assert f"**{fitted.policy.pass_tolerance:.2f}**" in report
+    assert f"(SHA-256 `{file_sha256(weights)}`)" in report
+    assert "Chosen rule" in (tmp_path / "presmooth_fit.md").read_text()

@@ -1,0 +1,380 @@
+"""Fitting the rules of a `DenoisePolicy` for trained weights on the validation split.
+
+Two rules of `dmd_jax.policy.DenoisePolicy` are numbers fitted for one set of trained
+weights; both are measured on the validation split of the real training meshes
+(`dmd_jax.protocol.validation_files`), never on the test meshes:
+
+* **the pass tolerance** (`fit_pass_tolerance`): `denoise` runs a second network pass
+  while the last one moved the vertices by more than `pass_tolerance` (frame units,
+  mean edges). How far the first pass moves a mesh tells how noisy it was; a second pass
+  helps after heavy noise and hurts after light noise. `pass_rows` measures, per mesh and
+  benchmark-noise level (`PASS_LEVELS`, the crops and seeds of `dmd_jax.protocol`), the
+  normal error after one and two passes and the first pass's move; the tolerance is the
+  one whose rule (a second pass exactly where the first moved more than it) gives the
+  lowest mean error over the benchmark levels. Third passes are not simulated.
+* **the pre-smoothing rule** (`fit_presmooth`): `round((roughness − start) /
+  per_step)` Laplacian steps before the network (`dmd_jax.presmooth`). `presmooth_rows`
+  measures, per mesh and noise condition (`PRESMOOTH_CONDITIONS`: the benchmark noise
+  along the normals up to 0.5 edges, per coordinate up to the heaviest level of the
+  paper's Table II), the noisy roughness and the error after 0-20 steps; the rule is
+  the `(start, per_step)` of a grid with the lowest mean error over the conditions,
+  each weighted equally, among the rules that leave every clean validation mesh alone.
+
+`calibrate` runs both (the pass tolerance first, then the pre-smoothing with it) and
+returns the new policy; `benchmarks/quality/calibrate.py` (`make calibrate`) writes the
+reports and, with `--out`, the weights file carrying it. The measuring functions take
+the denoiser as an argument (default `dmd_jax.inference.denoise`), so the fits can be
+checked on tiny synthetic data without a network.
+
+Host side: NumPy at import; JAX is loaded by the denoiser and the noise.
+"""
+
+from __future__ import annotations
+
+import csv
+import warnings
+import zlib
+from collections.abc import Callable, Sequence
+from typing import NamedTuple
+
+import numpy as np
+
+from dmd_jax import protocol
+
+# Benchmark-noise levels the pass rule is measured at (mean edges along the normals).
+PASS_LEVELS = (0.05, 0.1, 0.2, 0.3, 0.5)
+TOLERANCES = tuple(float(t) for t in np.round(np.arange(0.04, 0.401, 0.01), 2))
+PASS_HEADER = ("mesh", "faces", "level", "seed", "one_pass", "two_passes", "move1", "move2")
+# The pass cap a fitted tolerance runs under when the weights' policy had one pass.
+DEFAULT_MAX_PASSES = 8
+
+# Pre-smoothing crops are smaller than the benchmark's (21 denoise calls per mesh and
+# condition make this fit's cost; the roughness does not depend on the size).
+PRESMOOTH_MAX_FACES = 6_000
+# (direction, Gaussian σ in mean edges): the benchmark's noise along the normals, and
+# per-coordinate noise up to the heaviest level of the paper's Table II (Block, Fandisk).
+PRESMOOTH_CONDITIONS = (
+    ("normal", 0.1),
+    ("normal", 0.2),
+    ("normal", 0.3),
+    ("normal", 0.5),
+    ("isotropic", 0.3),
+    ("isotropic", 0.6),
+    ("isotropic", 1.0),
+    ("isotropic", 2.0),
+    ("isotropic", 3.0),
+)
+STARTS = tuple(float(s) for s in range(10, 81))
+PER_STEPS = tuple(float(p) for p in np.round(np.arange(1.0, 10.01, 0.5), 1))
+# Columns before the per-step errors: 0-20 steps follow (`steps_0` ... `steps_20`).
+PRESMOOTH_HEADER = ("mesh", "faces", "condition", "seed", "roughness", "laplacian")
+
+# A denoiser as `inference.denoise`: (vertices, faces, bundle, **keywords) -> vertices.
+Denoiser = Callable[..., np.ndarray]
+
+
+class Case(NamedTuple):
+    """One validation mesh, cropped as the protocol crops it."""
+
+    name: str  # file name (seeds its noise)
+    clean: np.ndarray  # [n_vertex, 3] float64
+    faces: np.ndarray  # [n_face, 3] int
+
+
+class Calibration(NamedTuple):
+    """What `calibrate` measured and fitted."""
+
+    policy: object  # DenoisePolicy with the fitted rules
+    pass_rows: list[list]  # PASS_HEADER rows
+    presmooth_rows: list[list]  # PRESMOOTH_HEADER + steps_0..steps_20 rows
+    clean_roughness: dict[str, float]  # mesh name -> roughness of the clean crop
+    presmooth_errors: dict[str, float]  # condition -> mean error under the fitted rule
+
+
+def _default_denoiser() -> Denoiser:
+    from dmd_jax.inference import denoise
+
+    return denoise
+
+
+def _normal_error(out, clean, faces) -> float:
+    from dmd_jax.metrics import mesh_metrics
+
+    return float(mesh_metrics(np.asarray(out, np.float64), clean, faces)["normal_deg"])
+
+
+def validation_cases(val_dir=None, max_faces: int = protocol.MAX_FACES) -> list[Case]:
+    """The validation meshes of `val_dir` (default `protocol.validation_dir()`), each
+    cropped to at most `max_faces` faces (`protocol.crop`), in float64."""
+    from dmd_jax.io import load_mesh
+
+    cases = []
+    for path in protocol.validation_files(val_dir):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # "polygons triangulated" and the like
+            clean, faces = load_mesh(path)
+        clean, faces = protocol.crop(np.asarray(clean, np.float64), faces, max_faces)
+        cases.append(Case(path.name, np.asarray(clean, np.float64), faces))
+    return cases
+
+
+# --------------------------------------------------------------------------------------
+# The pass tolerance
+# --------------------------------------------------------------------------------------
+
+
+def pass_rows(
+    cases: Sequence[Case],
+    bundle,
+    levels: Sequence[float] = PASS_LEVELS,
+    *,
+    denoise: Denoiser | None = None,
+    echo: Callable[[str], None] | None = None,
+) -> list[list]:
+    """Per case and level: the errors after one and two passes and each pass's move.
+
+    Args:
+      cases: from `validation_cases`.
+      bundle: the weights (`ModelBundle`), passed on to `denoise`.
+      levels: benchmark-noise σ in mean edges (seeds `protocol.noise_seed`).
+      denoise: the denoiser (default `dmd_jax.inference.denoise`), called with
+        `iterations=1`.
+      echo: progress output, one line per row.
+
+    Returns:
+      Rows of `PASS_HEADER`: errors in degrees, moves in mean edges of the pass's input.
+    """
+    from dmd_jax.mesh import mean_edge_length
+
+    denoise = denoise or _default_denoiser()
+    rows = []
+    for name, clean, faces in cases:
+        for level in levels:
+            seed = protocol.noise_seed(name, level)
+            noisy = protocol.benchmark_noise(clean, faces, level, seed)
+            once = np.asarray(denoise(noisy, faces, bundle, iterations=1), np.float64)
+            twice = np.asarray(denoise(once, faces, bundle, iterations=1), np.float64)
+            err = [_normal_error(x, clean, faces) for x in (once, twice)]
+            moves = [
+                float(np.linalg.norm(b - a, axis=1).mean() / mean_edge_length(a, faces))
+                for a, b in ((noisy, once), (once, twice))
+            ]
+            rows.append([name, len(faces), float(level), seed, *err, *moves])
+            if echo:
+                echo(
+                    f"{name} σ = {level}: one pass {err[0]:.2f}°, two {err[1]:.2f}°, "
+                    f"first pass moved {moves[0]:.3f} edges"
+                )
+    return rows
+
+
+def simulate_passes(rows: Sequence[Sequence], tolerance: float, level: float) -> float:
+    """The mean error at `level` if the second pass ran where `move1 > tolerance`."""
+    errs = [r[5] if r[6] > tolerance else r[4] for r in rows if r[2] == level]
+    return float(np.mean(errs))
+
+
+def fit_pass_tolerance(
+    rows: Sequence[Sequence],
+    tolerances: Sequence[float] = TOLERANCES,
+    levels: Sequence[float] = protocol.NOISE_LEVELS,
+) -> float:
+    """The tolerance with the lowest mean of `simulate_passes` over `levels` (the
+    smallest on ties).
+
+    Raises:
+      ValueError: `rows` hold none of `levels`.
+    """
+    if not any(r[2] in levels for r in rows):
+        raise ValueError(f"no measurement at the levels {tuple(levels)}")
+    scores = [np.mean([simulate_passes(rows, t, lv) for lv in levels]) for t in tolerances]
+    return float(tolerances[int(np.argmin(scores))])
+
+
+# --------------------------------------------------------------------------------------
+# The pre-smoothing rule
+# --------------------------------------------------------------------------------------
+
+
+def condition_name(direction: str, level: float) -> str:
+    """A noise condition's name in the rows and reports, e.g. `"normal 0.2"`."""
+    return f"{direction} {level:g}"
+
+
+def presmooth_rows(
+    cases: Sequence[Case],
+    bundle,
+    conditions: Sequence[tuple[str, float]] = PRESMOOTH_CONDITIONS,
+    *,
+    denoise: Denoiser | None = None,
+    echo: Callable[[str], None] | None = None,
+) -> tuple[list[list], dict[str, float]]:
+    """Per case and condition: the noisy roughness and the error after 0-20 steps.
+
+    The noise is `protocol.benchmark_noise` in the condition's direction, seeded by a
+    CRC32 of `"<file>|<condition>"`; each count of Laplacian steps
+    (`presmooth.laplacian_steps`) is followed by `denoise(..., presmooth=0)` (the
+    weights' pass rule, no pre-smoothing of its own).
+
+    Returns:
+      `(rows, clean_roughness)`: rows of `PRESMOOTH_HEADER` then the 21 errors, and the
+      roughness of every clean case (a rule must leave those alone).
+    """
+    from dmd_jax import baselines
+    from dmd_jax.presmooth import MAX_STEPS, laplacian_steps, roughness
+
+    denoise = denoise or _default_denoiser()
+    rows, clean_roughness = [], {}
+    for name, clean, faces in cases:
+        clean_roughness[name] = float(roughness(clean, faces))
+        for direction, level in conditions:
+            cond = condition_name(direction, level)
+            seed = zlib.crc32(f"{name}|{cond}".encode())
+            noisy = protocol.benchmark_noise(clean, faces, level, seed, direction)
+            errs, x = [], noisy
+            for k in range(MAX_STEPS + 1):
+                if k:
+                    x = laplacian_steps(x, faces, 1)
+                errs.append(_normal_error(denoise(x, faces, bundle, presmooth=0), clean, faces))
+            lap = _normal_error(baselines.run_baseline("laplacian", noisy, faces), clean, faces)
+            rough = float(roughness(noisy, faces))
+            rows.append([name, len(faces), cond, seed, rough, lap, *errs])
+            if echo:
+                echo(
+                    f"{name} {cond}: roughness {rough:.1f}°, no steps {errs[0]:.2f}°, best "
+                    f"{min(errs):.2f}° after {int(np.argmin(errs))}, Laplacian {lap:.2f}°"
+                )
+    return rows, clean_roughness
+
+
+def presmooth_errors(
+    rows: Sequence[Sequence],
+    start: float,
+    per_step: float,
+    conditions: Sequence[tuple[str, float]] = PRESMOOTH_CONDITIONS,
+) -> dict[str, float]:
+    """The mean error per condition when every mesh gets the rule's steps."""
+    from dmd_jax.presmooth import steps_for
+
+    out = {}
+    for direction, level in conditions:
+        cond = condition_name(direction, level)
+        errs = [r[6 + steps_for(r[4], start, per_step)] for r in rows if r[2] == cond]
+        out[cond] = float(np.mean(errs))
+    return out
+
+
+def fit_presmooth(
+    rows: Sequence[Sequence],
+    clean_roughness: dict[str, float],
+    starts: Sequence[float] = STARTS,
+    per_steps: Sequence[float] = PER_STEPS,
+    conditions: Sequence[tuple[str, float]] = PRESMOOTH_CONDITIONS,
+) -> tuple[float, float, dict[str, float]]:
+    """`(start, per_step, errors per condition)` of the best rule on the grid that gives
+    no step to any clean mesh (the first of equals, starts then steps ascending).
+
+    Raises:
+      ValueError: every rule of the grid would smooth a clean mesh.
+    """
+    from dmd_jax.presmooth import steps_for
+
+    best = None
+    for start in starts:
+        for per_step in per_steps:
+            if any(steps_for(r, start, per_step) for r in clean_roughness.values()):
+                continue  # would smooth a clean validation mesh
+            errs = presmooth_errors(rows, start, per_step, conditions)
+            score = float(np.mean(list(errs.values())))
+            if best is None or score < best[0] - 1e-9:
+                best = (score, float(start), float(per_step), errs)
+    if best is None:
+        raise ValueError("every rule of the grid pre-smooths a clean validation mesh")
+    return best[1], best[2], best[3]
+
+
+def read_presmooth_csv(path) -> tuple[list[list], dict[str, float]]:
+    """`presmooth_rows`' output back from the CSV `benchmarks/quality/calibrate.py`
+    writes (clean meshes are rows of condition `clean`), to refit without measuring."""
+    rows, clean = [], {}
+    with open(path, newline="") as fh:
+        for rec in csv.reader(fh):
+            if rec[0] == "mesh":
+                continue
+            if rec[2] == "clean":
+                clean[rec[0]] = float(rec[4])
+                continue
+            rows.append([rec[0], int(rec[1]), rec[2], int(rec[3])] + [float(x) for x in rec[4:]])
+    return rows, clean
+
+
+def read_pass_csv(path) -> list[list]:
+    """`pass_rows`' output back from its CSV, to refit without measuring."""
+    with open(path, newline="") as fh:
+        return [
+            [r[0], int(r[1]), float(r[2]), int(r[3]), *(float(x) for x in r[4:])]
+            for r in csv.reader(fh)
+            if r[0] != "mesh"
+        ]
+
+
+# --------------------------------------------------------------------------------------
+# Both
+# --------------------------------------------------------------------------------------
+
+
+def fitted_policy(policy, *, pass_tolerance=None, presmooth=None):
+    """`policy` with a fitted pass tolerance and/or pre-smoothing rule.
+
+    Args:
+      policy: the weights' current `DenoisePolicy`.
+      pass_tolerance: the fitted tolerance, or None to keep the policy's; a tolerance
+        needs more than one pass to choose from, so a one-pass policy gets
+        `DEFAULT_MAX_PASSES`.
+      presmooth: `(start, per_step)`, or None to keep the policy's.
+    """
+    out = policy
+    if pass_tolerance is not None:
+        passes = policy.max_passes if policy.max_passes > 1 else DEFAULT_MAX_PASSES
+        out = out.replace(pass_tolerance=float(pass_tolerance), max_passes=passes)
+    if presmooth is not None:
+        out = out.replace(
+            presmooth_start=float(presmooth[0]), presmooth_per_step=float(presmooth[1])
+        )
+    return out
+
+
+def calibrate(
+    bundle,
+    val_dir=None,
+    *,
+    denoise: Denoiser | None = None,
+    pass_cases: Sequence[Case] | None = None,
+    presmooth_cases: Sequence[Case] | None = None,
+    echo: Callable[[str], None] | None = None,
+) -> Calibration:
+    """Fits the pass tolerance, then the pre-smoothing rule under it.
+
+    Args:
+      bundle: the weights (`checkpoints.ModelBundle`); its policy is the starting point.
+      val_dir: the real training meshes (default `protocol.validation_dir()`).
+      denoise: the denoiser (default `dmd_jax.inference.denoise`).
+      pass_cases, presmooth_cases: the cases to measure (default: the validation split,
+        cropped to `protocol.MAX_FACES` and `PRESMOOTH_MAX_FACES` faces).
+      echo: progress output.
+
+    Returns:
+      A `Calibration`; its `policy` carries both fitted rules.
+    """
+    if pass_cases is None:
+        pass_cases = validation_cases(val_dir)
+    if presmooth_cases is None:
+        presmooth_cases = validation_cases(val_dir, PRESMOOTH_MAX_FACES)
+    p_rows = pass_rows(pass_cases, bundle, denoise=denoise, echo=echo)
+    policy = fitted_policy(bundle.policy, pass_tolerance=fit_pass_tolerance(p_rows))
+    # The pre-smoothing is measured with the fitted pass rule in force.
+    bundle = bundle._replace(policy=policy)
+    s_rows, clean = presmooth_rows(presmooth_cases, bundle, denoise=denoise, echo=echo)
+    start, per_step, errs = fit_presmooth(s_rows, clean)
+    policy = fitted_policy(policy, presmooth=(start, per_step))
+    return Calibration(policy, p_rows, s_rows, clean, errs)
