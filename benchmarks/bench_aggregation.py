@@ -36,7 +36,6 @@ if __package__ in (None, ""):  # run as a script: make `benchmarks` importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import (  # noqa: E402
-    REPO,
     RESULTS_DIR,
     Timing,
     environment,
@@ -321,8 +320,9 @@ def mesh_problems(names, width: int):
     """Vertex and face graphs of meshes in ../shared/meshes (skipped when absent)."""
     from dmd_jax.graph import build_mesh_graph
     from dmd_jax.io import load_mesh
+    from dmd_jax.protocol import shared_meshes_dir
 
-    folder = Path(os.environ.get("DMD_SHARED_MESHES", REPO.parent / "shared" / "meshes"))
+    folder = shared_meshes_dir()
     for name in names:
         path = folder / name
         if not path.is_file():

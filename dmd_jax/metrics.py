@@ -186,7 +186,7 @@ def face_normal_errors_deg(pred_vertices, gt_vertices, faces, *, undefined=0.0) 
 
 # --------------------------------------------------------------------------------------
 # One vocabulary for printing the metrics: names, units, scaling, legend.
-# `dmd-jax evaluate`, the demo, benchmarks/sota_lite.py and the notebooks all print
+# `dmd-jax evaluate`, the demo, benchmarks/quality/sota_lite.py and the notebooks all print
 # through these, so a number means the same wherever it appears.
 # --------------------------------------------------------------------------------------
 

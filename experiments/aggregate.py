@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from dmd_jax import protocol
 from experiments import studies as st
 from experiments.ablations import ABLATIONS
 
@@ -209,10 +210,10 @@ def _best(rows: list[dict], key: str) -> float | None:
     return min(vals) if vals else None
 
 
-# Labels of `runner.CLASSIC_REFERENCES` in the tables.
+# Labels of `runner.CLASSIC_REFERENCES` in the tables: the protocol's, and the untrained
+# network (not a method of the registry).
 CLASSIC_LABELS = {
-    "taubin": "Taubin",
-    "bnf": "BNF",
+    **{m: protocol.label(m) for m in ("taubin", "bnf")},
     "untrained": "untrained base",
 }
 
