@@ -451,7 +451,8 @@ class TrainHook:
 
 class StopAfter(TrainHook):
     """Stops after `steps` steps of this `train` call, as a killed run would have left
-    it (resume tests); the stop checkpoints, as a graceful one does."""
+    it (resume tests); the stop checkpoints, as a graceful one does. It counts the steps
+    it has seen, so each call takes a new one."""
 
     def __init__(self, steps: int):
         if steps < 1:
