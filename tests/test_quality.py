@@ -37,8 +37,9 @@ def test_sota_lite_on_one_mesh(tmp_path, weights):
             str(folder),
             "--weights",
             str(weights),
-            "--levels",
+            "--conditions",
             "0.2",
+            "impulse:0.3",
             "--methods",
             "meshlab_taubin",
             "bnf",
@@ -56,8 +57,12 @@ def test_sota_lite_on_one_mesh(tmp_path, weights):
 
     with open(tmp_path / "t.csv") as fh:
         rows = list(csv.DictReader(fh))
-    assert [r["method"] for r in rows] == ["noisy", "meshlab_taubin", "bnf", "dmd", "dmd_x2"]
+    methods = ["noisy", "meshlab_taubin", "bnf", "dmd", "dmd_x2"]
+    assert [r["method"] for r in rows] == methods * 2
+    assert [r["noise"] for r in rows] == ["gaussian"] * 5 + ["impulse"] * 5
     assert {r["set"] for r in rows} == {"shared"}
+    impulse = protocol.NoiseCondition("impulse", 0.3)
+    assert int(rows[5]["seed"]) == protocol.condition_seed(mesh.name, impulse)
     clean, f = load_mesh(mesh)
     noisy = protocol.benchmark_noise(clean, f, 0.2, protocol.noise_seed(mesh.name, 0.2))
     expected = mesh_metrics(noisy, clean, f)["normal_deg"]
@@ -66,13 +71,28 @@ def test_sota_lite_on_one_mesh(tmp_path, weights):
     assert float(rows[3]["normal_deg"]) == pytest.approx(
         mesh_metrics(dmd, clean, f)["normal_deg"], rel=1e-9
     )
+    # The crease / flat split against a direct computation.
+    from dmd_jax import comparison
+    from dmd_jax.metrics import face_normal_errors_deg
+
+    errors = face_normal_errors_deg(dmd, clean, f, undefined=float("nan"))
+    crease, flat = comparison.region_errors(errors, comparison.crease_faces(clean, f))
+    assert float(rows[3]["normal_crease_deg"]) == pytest.approx(crease, rel=1e-9)
+    assert float(rows[3]["normal_flat_deg"]) == pytest.approx(flat, rel=1e-9)
+    assert rows[3]["cad"] == str(comparison.is_cad(clean, f))
     report = (tmp_path / "t.md").read_text()
     assert "## Means over meshes" in report and "decimated-knight.off" in report
+    assert "## Per shape: DMD-Net against the best other library denoiser" in report
+    ratio = float(rows[3]["normal_deg"]) / float(rows[2]["normal_deg"])  # against BNF
+    shapes = report.split("## Per shape")[1].split("\n## ")[0]
+    shape_row = next(line for line in shapes.splitlines() if line.startswith("| shared | 0.2 |"))
+    assert f"| {ratio:.3f} |" in shape_row
+    assert "| shared | impulse 0.3 |" in report
     assert "DMD-Net margin" in report and "Median run time" in report
     # --reuse recomputes DMD-Net only: the classic rows come back identical.
     assert (
         sota_lite.main(
-            ["--meshes", str(folder), "--weights", str(weights), "--levels", "0.2"]
+            ["--meshes", str(folder), "--weights", str(weights), "--conditions", "0.2"]
             + ["--methods", "bnf", "dmd", "--no-val", "--reuse"]
             + ["--name", "t", "--out-dir", str(tmp_path)]
         )
@@ -85,7 +105,8 @@ def test_sota_lite_on_one_mesh(tmp_path, weights):
     assert "| method | vertex (×1e-4) | normal (°) | chamfer (×1e-4) |" in report
     assert metrics_legend() in report
     dmd_row = next(line for line in report.splitlines() if line.startswith("| DMD-Net |"))
-    assert float(dmd_row.split("|")[3]) == pytest.approx(float(rows[3]["normal_deg"]), abs=0.01)
+    both = (float(rows[3]["normal_deg"]) + float(rows[8]["normal_deg"])) / 2  # over conditions
+    assert float(dmd_row.split("|")[3]) == pytest.approx(both, abs=0.01)
     assert str(weights) in report and "jax" in report
     # The provenance line under the title: commit and the weights file's SHA-256.
     assert f"with weights `{weights.name}` (SHA-256 `{file_sha256(weights)}`)" in report
@@ -199,3 +220,29 @@ def test_calibrate_script_refits_from_its_csvs(tmp_path, weights):
     assert f"**{fitted.policy.pass_tolerance:.2f}**" in report
     assert f"(SHA-256 `{file_sha256(weights)}`)" in report
     assert "Chosen rule" in (tmp_path / "presmooth_fit.md").read_text()
+
+
+def test_sota_lite_per_shape_and_region_tables_from_rows():
+    from benchmarks.quality import sota_lite
+
+    def row(mesh, method, normal, crease, flat, cad=True, noise="gaussian", level=0.2):
+        return ["shared", mesh, 10, 20, level, 1, method, normal, 0.0, 0.0, 0.1, noise, cad] + [
+            crease,
+            flat,
+        ]
+
+    rows = [
+        row("a.obj", "bnf", 2.0, 6.0, 1.0),
+        row("a.obj", "cnr", 4.0, 5.0, 3.0),
+        row("a.obj", "dmd", 1.0, 5.5, 0.5),
+        row("b.obj", "bnf", 2.0, 8.0, 1.0, cad=False),
+        row("b.obj", "cnr", 1.0, 2.0, 1.0, cad=False),
+        row("b.obj", "dmd", 2.0, 1.0, 1.0, cad=False),
+    ]
+    shapes = sota_lite.per_shape_table(rows)
+    # Ratios 0.5 (a, against BNF) and 2.0 (b, against CNR): geometric mean 1.
+    assert "| shared | 0.2 | 2 | 1.000 | 1 (50 %) | 1 | 2.00 (b.obj) |" in shapes
+    regions = sota_lite.region_table(rows)
+    # Only a.obj is CAD: crease 5.5 against CNR's 5.0, flat 0.5 against BNF's 1.0.
+    assert "| shared | 0.2 | 1 | 5.50 | 5.00 (CNR) | +0.50 | 0.50 | 1.00 (BNF) | -0.50 |" in regions
+    assert "CAD meshes: `shared`: a.obj." in regions

@@ -44,10 +44,10 @@ from benchmarks.common import (  # noqa: E402
     write_csv,
     write_report,
 )
-from dmd_jax import protocol  # noqa: E402
-from dmd_jax.protocol import MAX_FACES, MESH_SUFFIXES, NOISE_LEVELS  # noqa: E402
+from dmd_jax import comparison, protocol  # noqa: E402
+from dmd_jax.protocol import MAX_FACES, MESH_SUFFIXES, QUALITY_CONDITIONS  # noqa: E402
 
-LEVELS = NOISE_LEVELS
+CONDITIONS = QUALITY_CONDITIONS
 REFERENCE = protocol.REFERENCE_METHODS
 DEFAULT_MESH_DIR = protocol.shared_meshes_dir()
 # The fixed validation split of the real training meshes (dmd_jax.data.real).
@@ -64,7 +64,16 @@ CSV_HEADER = (
     "vertex",
     "chamfer",
     "seconds",
+    "noise",
+    "cad",
+    "normal_crease_deg",
+    "normal_flat_deg",
 )
+# The layout of reports before the noise kind and the crease/flat split were recorded:
+# still read (`read_cached`), as Gaussian rows without a region split.
+OLD_CSV_HEADER = CSV_HEADER[:11]
+# Row fields by name (rows are lists in `CSV_HEADER` order).
+COL = {name: i for i, name in enumerate(CSV_HEADER)}
 
 
 def _runner(method: str, faces, bundle):
@@ -84,7 +93,7 @@ def _runner(method: str, faces, bundle):
 def evaluate_mesh(
     path,
     bundle,
-    levels=LEVELS,
+    conditions=CONDITIONS,
     methods=None,
     *,
     mesh_set="shared",
@@ -92,16 +101,18 @@ def evaluate_mesh(
     max_faces: int = 0,
     echo=print,
 ) -> tuple[list[list], list[str]]:
-    """Noise, denoise and score one mesh at every level.
+    """Noise, denoise and score one mesh under every noise condition.
 
     Args:
       path: mesh file.
       bundle: the DMD-Net `ModelBundle`.
-      levels: noise σ in mean edge lengths (Gaussian, along the vertex normals).
+      conditions: `protocol.NoiseCondition`s (kind and level in mean edge lengths,
+        along the vertex normals).
       methods: method ids (default `protocol.benchmark_methods()`).
       mesh_set: the set's name, the first CSV column.
-      cached: `{(set, mesh, level, seed, method): row}` of earlier rows to reuse instead
-        of rerunning (classic methods are deterministic; DMD-Net rows are never cached).
+      cached: `{(set, mesh, noise, level, seed, method): row}` of earlier rows to reuse
+        instead of rerunning (classic methods are deterministic; DMD-Net rows are never
+        cached; a CAD mesh's row without its crease/flat split is rerun).
       max_faces: crop a larger mesh to a connected patch of this many faces
         (`protocol.crop`); 0 keeps every mesh whole.
       echo: progress output.
@@ -111,7 +122,7 @@ def evaluate_mesh(
       noisy input first) and notes on the input (polygons triangulated on load).
     """
     from dmd_jax.io import load_mesh
-    from dmd_jax.metrics import mesh_metrics
+    from dmd_jax.metrics import face_normal_errors_deg, mesh_metrics
 
     methods = protocol.benchmark_methods() if methods is None else tuple(methods)
     cached = cached or {}
@@ -125,20 +136,29 @@ def evaluate_mesh(
         for w in caught
         if "triangulated" in str(w.message)
     ]
+    cad = comparison.is_cad(clean, faces)
+    crease = comparison.crease_faces(clean, faces)
     rows = []
-    for level in levels:
-        seed = protocol.noise_seed(path.name, level)
-        noisy = protocol.benchmark_noise(clean, faces, level, seed)
+    for condition in conditions:
+        level = condition.level
+        seed = protocol.condition_seed(path.name, condition)
+        noisy = protocol.condition_noise(clean, faces, condition, seed)
         block = []
         for name in ("noisy", *methods):
-            key = (mesh_set, path.name, float(level), int(seed), name)
-            if key in cached and not name.startswith("dmd"):
-                block.append(cached[key])
-                continue
+            key = (mesh_set, path.name, condition.kind, float(level), int(seed), name)
+            hit = cached.get(key)
+            if hit is not None and not name.startswith("dmd"):
+                if not cad or np.isfinite(hit[COL["normal_crease_deg"]]):
+                    block.append([*hit[: COL["cad"]], cad, *hit[COL["cad"] + 1 :]])
+                    continue
             start = time.perf_counter()
             v = noisy if name == "noisy" else _runner(name, faces, bundle)(noisy)
             seconds = 0.0 if name == "noisy" else time.perf_counter() - start
-            m = mesh_metrics(np.asarray(v, np.float64), clean, faces)
+            v = np.asarray(v, np.float64)
+            m = mesh_metrics(v, clean, faces)
+            regions = comparison.region_errors(
+                face_normal_errors_deg(v, clean, faces, undefined=np.nan), crease
+            )
             block.append(
                 [
                     mesh_set,
@@ -152,11 +172,14 @@ def evaluate_mesh(
                     m["vertex"],
                     m["chamfer"],
                     seconds,
+                    condition.kind,
+                    cad,
+                    *regions,
                 ]
             )
         rows += block
         errors = "  ".join(f"{_label(r[6])} {r[7]:.2f}°" for r in block)
-        echo(f"  {path.name} σ = {level:g}: {errors}")
+        echo(f"  {path.name} {condition.label}: {errors}")
     return rows, notes
 
 
@@ -180,9 +203,25 @@ def _margin(errs: dict[str, float], methods: list[str]) -> str:
     return f"{errs['dmd'] - min(errs[m] for m in others):+.2f}"
 
 
+def condition_label(row) -> str:
+    """The noise condition of a row as the tables name it: `0.1` (Gaussian σ along the
+    normals, in mean edges, as before), `impulse 0.6`."""
+    return protocol.NoiseCondition(row[COL["noise"]], row[COL["level"]]).label
+
+
+def _condition_order(labels) -> list[str]:
+    known = [c.label for c in protocol.QUALITY_CONDITIONS]
+    return sorted(set(labels), key=lambda x: (known.index(x) if x in known else len(known), x))
+
+
+def _others(methods) -> list[str]:
+    """The library denoisers DMD-Net is rated against (not the input, MeshLab or itself)."""
+    return [m for m in methods if m not in ("noisy", "dmd", "dmd_x2") and m not in REFERENCE]
+
+
 def tables(rows: list[list]) -> tuple[str, str, str]:
-    """Markdown tables of the mean normal error, per mesh set: per mesh and level, means
-    per level, and the median run time of each method.
+    """Markdown tables of the mean normal error, per mesh set: per mesh and noise
+    condition, means per condition, and the median run time of each method.
 
     The `best` column names the library denoiser with the lowest error (the noisy input
     and MeshLab's reference filters never count); `DMD-Net margin` is DMD-Net's error
@@ -191,37 +230,39 @@ def tables(rows: list[list]) -> tuple[str, str, str]:
     by_case: dict[tuple, dict[str, float]] = {}
     n_face = {}
     seconds: dict[tuple, list[float]] = {}
-    for mesh_set, mesh, _n_vertex, faces, level, _seed, method, normal, *_rest in rows:
-        by_case.setdefault((mesh_set, mesh, level), {})[method] = normal
-        n_face[mesh] = faces
-        seconds.setdefault((mesh_set, method), []).append(_rest[-1])
+    for row in rows:
+        mesh_set, mesh, method = row[COL["set"]], row[COL["mesh"]], row[COL["method"]]
+        case = (mesh_set, mesh, condition_label(row))
+        by_case.setdefault(case, {})[method] = row[COL["normal_deg"]]
+        n_face[mesh] = row[COL["n_face"]]
+        seconds.setdefault((mesh_set, method), []).append(row[COL["seconds"]])
     methods = list(dict.fromkeys(r[6] for r in rows))
     sets = list(dict.fromkeys(r[0] for r in rows))
     labels = [_label(m) for m in methods]
 
     detail = [
-        [mesh_set, mesh, n_face[mesh], f"{level:g}"]
+        [mesh_set, mesh, n_face[mesh], cond]
         + [f"{errs[m]:.2f}" for m in methods]
         + [_best(errs, methods), _margin(errs, methods)]
-        for (mesh_set, mesh, level), errs in by_case.items()
+        for (mesh_set, mesh, cond), errs in by_case.items()
     ]
-    headers = ["set", "mesh", "faces", "σ / mean edge", *labels, "best", "DMD-Net margin"]
+    headers = ["set", "mesh", "faces", "noise", *labels, "best", "DMD-Net margin"]
     means = []
     for mesh_set in sets:
-        levels = sorted({lv for (st, _, lv) in by_case if st == mesh_set})
-        for level in [*levels, None]:
+        conds = _condition_order(c for (st, _, c) in by_case if st == mesh_set)
+        for cond in [*conds, None]:
             cases = [
                 e
-                for (st, _, lv), e in by_case.items()
-                if st == mesh_set and (level is None or lv == level)
+                for (st, _, c), e in by_case.items()
+                if st == mesh_set and (cond is None or c == cond)
             ]
             mean = {m: float(np.mean([e[m] for e in cases])) for m in methods}
             means.append(
-                [mesh_set, "all" if level is None else f"{level:g}", len(cases)]
+                [mesh_set, "all" if cond is None else cond, len(cases)]
                 + [f"{mean[m]:.2f}" for m in methods]
                 + [_best(mean, methods), _margin(mean, methods)]
             )
-    mean_headers = ["set", "σ / mean edge", "cases", *labels, "best", "DMD-Net margin"]
+    mean_headers = ["set", "noise", "cases", *labels, "best", "DMD-Net margin"]
     timing = [
         [mesh_set]
         + [
@@ -237,6 +278,106 @@ def tables(rows: list[list]) -> tuple[str, str, str]:
         markdown_table(mean_headers, means),
         markdown_table(timing_headers, timing),
     )
+
+
+def per_shape_table(rows: list[list]) -> str:
+    """DMD-Net rated per mesh against the best other library denoiser of each case.
+
+    Per set and noise condition: the geometric mean over meshes of DMD-Net's normal
+    error divided by the lowest error of every other library denoiser (below 1: DMD-Net
+    wins the typical mesh), how many meshes DMD-Net is best on or within 5 % of the
+    best (`comparison.share_within`), and its worst ratio.
+    """
+    methods = list(dict.fromkeys(r[COL["method"]] for r in rows))
+    if "dmd" not in methods or not _others(methods):
+        return "(no DMD-Net rows or no other library denoiser)"
+    by_case: dict[tuple, dict[str, float]] = {}
+    for row in rows:
+        case = (row[COL["set"]], condition_label(row), row[COL["mesh"]])
+        by_case.setdefault(case, {})[row[COL["method"]]] = row[COL["normal_deg"]]
+    ratios = comparison.ratios_to_best_other(by_case, "dmd", _others(methods))
+    out = []
+    for mesh_set in dict.fromkeys(r[COL["set"]] for r in rows):
+        conds = _condition_order(c for (st, c, _) in ratios if st == mesh_set)
+        for cond in [*conds, None]:
+            group = {
+                k: v
+                for k, v in ratios.items()
+                if k[0] == mesh_set and (cond is None or k[1] == cond)
+            }
+            values = list(group.values())
+            worst = max(group, key=group.get)
+            within = sum(v <= comparison.WITHIN for v in values)
+            out.append(
+                [
+                    mesh_set,
+                    "all" if cond is None else cond,
+                    len(values),
+                    f"{comparison.geometric_mean(values):.3f}",
+                    f"{within} ({100 * within / len(values):.0f} %)",
+                    sum(v <= 1.0 for v in values),
+                    f"{group[worst]:.2f} ({worst[2]}{'' if cond else ', ' + worst[1]})",
+                ]
+            )
+    headers = [
+        "set",
+        "noise",
+        "cases",
+        "DMD-Net / best other (geometric mean)",
+        "best or within 5 %",
+        "best",
+        "worst ratio (mesh)",
+    ]
+    return markdown_table(headers, out)
+
+
+def region_table(rows: list[list]) -> str:
+    """Crease-face and flat-face normal errors on the CAD meshes (`comparison.is_cad`).
+
+    Per set and noise condition, the mean over the CAD meshes of each region's error for
+    DMD-Net and for the best other library denoiser of that region (the one with the
+    lowest mean).
+    """
+    methods = list(dict.fromkeys(r[COL["method"]] for r in rows))
+    others = _others(methods)
+    cad_rows = [r for r in rows if r[COL["cad"]] in (True, "True")]
+    if "dmd" not in methods or not others or not cad_rows:
+        return "(no CAD mesh, no DMD-Net rows or no other library denoiser)"
+    values: dict[tuple, list[tuple[float, float]]] = {}
+    meshes: dict[str, set] = {}
+    for row in cad_rows:
+        key = (row[COL["set"]], condition_label(row), row[COL["method"]])
+        values.setdefault(key, []).append(
+            (row[COL["normal_crease_deg"]], row[COL["normal_flat_deg"]])
+        )
+        meshes.setdefault(row[COL["set"]], set()).add(row[COL["mesh"]])
+    out = []
+    for mesh_set in dict.fromkeys(r[COL["set"]] for r in cad_rows):
+        for cond in _condition_order(c for (st, c, _) in values if st == mesh_set):
+            cells = [mesh_set, cond, len(meshes[mesh_set])]
+            for region in (0, 1):
+
+                def mean(method, region=region, cond=cond, mesh_set=mesh_set):
+                    got = [x[region] for x in values.get((mesh_set, cond, method), [])]
+                    return float(np.nanmean(got)) if got else np.inf
+
+                best = min(others, key=mean)
+                mine, theirs = mean("dmd"), mean(best)
+                cells += [f"{mine:.2f}", f"{theirs:.2f} ({_label(best)})", f"{mine - theirs:+.2f}"]
+            out.append(cells)
+    headers = [
+        "set",
+        "noise",
+        "CAD meshes",
+        "DMD-Net crease",
+        "best other crease",
+        "crease margin",
+        "DMD-Net flat",
+        "best other flat",
+        "flat margin",
+    ]
+    listing = "; ".join(f"`{st}`: {', '.join(sorted(names))}" for st, names in meshes.items())
+    return markdown_table(headers, out) + f"\n\nCAD meshes: {listing}."
 
 
 def metric_means(rows: list[list]) -> str:
@@ -275,7 +416,11 @@ def _weights_description(bundle, weights) -> dict[str, str]:
 
 
 def read_cached(csv_path) -> dict[tuple, list]:
-    """Rows of an earlier report, keyed `(set, mesh, level, seed, method)`."""
+    """Rows of an earlier report, keyed `(set, mesh, noise, level, seed, method)`.
+
+    Reports of the old layout (`OLD_CSV_HEADER`) give Gaussian rows without a
+    crease/flat split (NaN), which `evaluate_mesh` reruns for CAD meshes.
+    """
     import csv
 
     csv_path = Path(csv_path)
@@ -284,7 +429,7 @@ def read_cached(csv_path) -> dict[tuple, list]:
     out = {}
     with open(csv_path) as fh:
         for r in csv.DictReader(fh):
-            if list(r) != list(CSV_HEADER):
+            if list(r) not in (list(CSV_HEADER), list(OLD_CSV_HEADER)):
                 return {}  # another layout: recompute everything
             row = [
                 r["set"],
@@ -298,8 +443,12 @@ def read_cached(csv_path) -> dict[tuple, list]:
                 float(r["vertex"]),
                 float(r["chamfer"]),
                 float(r["seconds"]),
+                r.get("noise", "gaussian"),
+                r.get("cad") == "True",
+                float(r.get("normal_crease_deg", "nan") or "nan"),
+                float(r.get("normal_flat_deg", "nan") or "nan"),
             ]
-            out[(row[0], row[1], row[4], row[5], row[6])] = row
+            out[(row[0], row[1], row[COL["noise"]], row[4], row[5], row[6])] = row
     return out
 
 
@@ -308,7 +457,7 @@ def run(
     *,
     val_dir=DEFAULT_VAL_DIR,
     weights=None,
-    levels=LEVELS,
+    conditions=CONDITIONS,
     skip=(),
     methods=None,
     name: str = "sota_lite",
@@ -326,7 +475,7 @@ def run(
       val_dir: folder of real training meshes whose fixed validation split
         (`dmd_jax.data.real`) is the second set, `val`; None leaves it out.
       weights: DMD-Net weights (default: bundled).
-      levels: noise σ in mean edge lengths.
+      conditions: the noise conditions (`protocol.QUALITY_CONDITIONS`).
       skip: file names of `mesh_dir` to leave out.
       methods: method ids (default `protocol.benchmark_methods()`).
       name, out_dir: report file stem and folder.
@@ -377,7 +526,7 @@ def run(
             mesh_rows, mesh_notes = evaluate_mesh(
                 path,
                 bundle,
-                levels,
+                conditions,
                 methods,
                 mesh_set=mesh_set,
                 cached=cached,
@@ -390,11 +539,14 @@ def run(
         " (classic rows reused from the previous report)" if cached else ""
     )
     detail, means, timing = tables(rows)
+    shapes, regions = per_shape_table(rows), region_table(rows)
     csv_path = write_csv(out_dir / f"{name}.csv", CSV_HEADER, rows)
     intro = (
         "normal (°): mean angle between corresponding face normals (lower is better) after "
-        "Gaussian noise of σ × the mesh's mean edge length along the vertex normals (the "
-        "benchmark protocol of CNR and GCN-Denoiser). Sets: `shared` = every file of "
+        "noise along the vertex normals in units of the mesh's mean edge length: Gaussian "
+        "of σ = 0.1, 0.2, 0.3 (the benchmark protocol of CNR and GCN-Denoiser) and 0.6, "
+        "and impulsive (`impulse 0.6`: 15 % of the vertices moved out by 0.6 edges, 15 % "
+        "in; `dmd_jax.protocol.QUALITY_CONDITIONS`). Sets: `shared` = every file of "
         f"`{Path(mesh_dir).name}/`"
         + (f" except {', '.join(skip)}" if skip else "")
         + (
@@ -417,11 +569,18 @@ def run(
         "`dmd_jax.baselines` "
         "with its defaults (CNR with its bundled weights). `DMD-Net margin` = DMD-Net "
         "minus the best other library denoiser (negative: DMD-Net wins). Noise seeds: "
-        "CRC32 of `<file>|<σ>` (column `seed` of the CSV, which also holds vertex and "
-        "chamfer errors and run times)."
+        "CRC32 of `<file>|<σ>` (impulsive: `<file>|impulse|<level>`; column `seed` of the "
+        "CSV, which also holds vertex and chamfer errors, run times and the crease/flat "
+        "split). Per shape: DMD-Net's error over the best other library denoiser's, per "
+        "mesh (`dmd_jax.comparison`). Crease faces: faces with an edge whose dihedral "
+        f"angle is at least {comparison.CREASE_ANGLE:g}° on the clean mesh; CAD meshes: "
+        f"at least {comparison.CAD_MIN_FLAT_SHARE:.0%} of the edges flat (within "
+        f"{comparison.FLAT_ANGLE:g}°) and {comparison.CAD_MIN_CREASE_SHARE:.1%} on creases."
     )
     sections = [
         ("Means over meshes", means),
+        ("Per shape: DMD-Net against the best other library denoiser", shapes),
+        ("CAD meshes: crease faces and flat faces", regions),
         ("Median run time per mesh (s)", timing),
         ("All metrics, means over meshes and levels", metric_means(rows)),
         ("Per mesh", detail),
@@ -454,7 +613,21 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--weights", default=None, help="weights file or checkpoint dir (default: bundled)"
     )
-    parser.add_argument("--levels", type=float, nargs="+", default=list(LEVELS))
+    parser.add_argument(
+        "--conditions",
+        nargs="+",
+        default=[c.label for c in CONDITIONS],
+        metavar="CONDITION",
+        help="noise conditions: a number is Gaussian σ along the normals in mean edges, "
+        "'impulse:L' impulsive noise of amplitude L mean edges",
+    )
+    parser.add_argument(
+        "--levels",
+        type=float,
+        nargs="+",
+        default=None,
+        help="Gaussian levels only (the benchmark's own conditions), instead of --conditions",
+    )
     parser.add_argument("--skip", nargs="*", default=[], help="file names to leave out")
     parser.add_argument(
         "--methods",
@@ -486,7 +659,11 @@ def main(argv: list[str] | None = None) -> int:
             args.meshes,
             val_dir=None if args.no_val else args.val_meshes,
             weights=args.weights,
-            levels=tuple(args.levels),
+            conditions=(
+                tuple(protocol.parse_condition(c) for c in args.conditions)
+                if args.levels is None
+                else tuple(protocol.NoiseCondition(protocol.NOISE_KIND, lv) for lv in args.levels)
+            ),
             skip=tuple(args.skip),
             methods=None if args.methods is None else tuple(args.methods),
             name=args.name,
