@@ -639,3 +639,16 @@ def test_case14_extreme_coordinates_give_no_raw_numpy_warnings(tmp_path, capsys,
         )
     assert code == 0, err
     assert "Warning" not in err and "note:" not in err  # no face is degenerate
+
+
+def test_case14_cli_does_not_call_a_hidden_face_count_a_point_cloud(tmp_path, capsys):
+    path = tmp_path / "odd.ply"
+    path.write_bytes(_ply_ascii(TET_V, TET_F).replace(b"element face 4", b"element face -4"))
+    code, _, err = run(capsys, "add-noise", path, "-o", tmp_path / "noisy.off", "--level", "0.01")
+    assert code == 2
+    _one_line_error(err, "odd.ply: header line 7: an element needs a name and a count")
+    assert "point cloud" not in err
+    # A real point cloud is still called one.
+    path.write_bytes(_ply_ascii(TET_V, []))
+    code, _, err = run(capsys, "add-noise", path, "-o", tmp_path / "noisy.off", "--level", "0.01")
+    assert code == 2 and "is a point cloud (4 vertices, no faces)" in err
