@@ -41,9 +41,9 @@ def test_benchmark_noise_is_add_noise_along_normals_in_edges():
     offset = noisy - v
     cross = np.cross(offset, vertex_normals_np(v, f))
     assert np.abs(cross).max() < 1e-9 * max(1.0, np.abs(offset).max())
-    sigma = np.linalg.norm(offset, axis=1).std()
-    assert 0.5 * 0.2 * mean_edge_length(v, f) < np.sqrt(np.mean(np.sum(offset**2, 1)))
-    assert sigma > 0
+    # σ = 0.2 mean edges: the RMS offset is that, up to sampling (642 draws).
+    rms = np.sqrt(np.mean(np.sum(offset**2, 1)))
+    assert rms == pytest.approx(0.2 * mean_edge_length(v, f), rel=0.15)
     iso = protocol.benchmark_noise(v, f, 0.2, seed=7, direction="isotropic")
     assert not np.allclose(iso, noisy)
 
