@@ -131,9 +131,11 @@ def read_weights_payload(path, *, fmt: str, versions: tuple[int, ...], kind: str
     """
     from flax import serialization
 
+    from dmd_jax.io import check_readable_file
+
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such weights file")
+    # A FIFO would block the read, a symlink loop is not a missing file: say which.
+    check_readable_file(path, "weights file")
     try:
         payload = serialization.msgpack_restore(path.read_bytes())
     except Exception as exc:  # msgpack raises several types on truncated data

@@ -680,11 +680,12 @@ def _merge_identical_vertices(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
     return v[first[order]], rank[inverse.reshape(-1)].reshape(f.shape)
 
 
-def check_readable_file(path) -> None:
+def check_readable_file(path, what: str = "mesh file") -> None:
     """Refuses, with the reason, a path that is not a regular file one can read.
 
     Says which of the look-alikes of "no such file" it is: a directory, a FIFO or
     device (reading one could block for ever), a symlink loop or a dangling symlink.
+    `what` names the expected file in the messages.
 
     Raises:
       FileNotFoundError: nothing there, or a symlink to nothing.
@@ -699,14 +700,14 @@ def check_readable_file(path) -> None:
             raise FileNotFoundError(
                 f"{path}: a symbolic link to {os.readlink(path)}, which does not exist"
             ) from None
-        raise FileNotFoundError(f"{path}: no such file") from None
+        raise FileNotFoundError(f"{path}: no such {what}") from None
     except OSError as exc:  # ELOOP (a symlink loop), EACCES on a folder, ENAMETOOLONG
         raise OSError(exc.errno, f"{path}: cannot open it ({exc.strerror})") from None
     if stat.S_ISDIR(info.st_mode):
-        raise ValueError(f"{path}: is a directory, not a mesh file")
+        raise ValueError(f"{path}: is a directory, not a {what}")
     if not stat.S_ISREG(info.st_mode):
         kind = "a FIFO (named pipe)" if stat.S_ISFIFO(info.st_mode) else "not a regular file"
-        raise ValueError(f"{path}: is {kind}; save the mesh to a regular file first")
+        raise ValueError(f"{path}: is {kind}; save the {what} to a regular file first")
 
 
 def load_mesh(path, *, polygons: str = "triangulate") -> tuple[np.ndarray, np.ndarray]:

@@ -652,3 +652,19 @@ def test_case14_cli_does_not_call_a_hidden_face_count_a_point_cloud(tmp_path, ca
     path.write_bytes(_ply_ascii(TET_V, []))
     code, _, err = run(capsys, "add-noise", path, "-o", tmp_path / "noisy.off", "--level", "0.01")
     assert code == 2 and "is a point cloud (4 vertices, no faces)" in err
+
+
+def test_case14_weights_fifo_and_symlink_loop_are_named(tmp_path):
+    from dmd_jax.checkpoints import load_weights
+
+    fifo = tmp_path / "w.msgpack"
+    os.mkfifo(fifo)
+    with pytest.raises(ValueError, match="w.msgpack: is a FIFO .*weights file"):
+        load_weights(fifo)  # without blocking on the read
+    loop = tmp_path / "loop.msgpack"
+    os.symlink(loop, loop)
+    with pytest.raises(OSError, match="loop.msgpack: cannot open it") as info:
+        load_weights(loop)
+    assert not isinstance(info.value, FileNotFoundError)
+    with pytest.raises(FileNotFoundError, match="gone.msgpack: no such weights file"):
+        load_weights(tmp_path / "gone.msgpack")
