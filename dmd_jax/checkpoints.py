@@ -321,7 +321,7 @@ def graft_params(fresh, trained):
 
 
 def load_pretrained() -> ModelBundle:
-    """The bundled `small`-preset model (see README, "Bundled weights")."""
+    """The bundled `small`-preset model (its model card: docs/bundled-model.md)."""
     path = pretrained_path()
     if not path.is_file():
         raise FileNotFoundError(f"{path}: the bundled weights are missing from this installation")

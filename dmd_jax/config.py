@@ -19,12 +19,15 @@ Presets (`preset(name)`):
   is not in the text), so the gap must lie in what the text leaves out: hidden fully
   connected layers in the heads and the transformer, the widths inside the densely
   connected aggregators, wider projections. We do not invent layers to reach 30 M.
-* `small`: the recipe of the bundled weights, sized for a 2-core CPU: width 32, FGT-8,
+* `small`: the first stage of the bundled weights' recipe, sized for a 2-core CPU: width 32, FGT-8,
   the resolution-free `"local"` encoding with Taubin-smoothed candidates and the
   normal-first head (`dmd_jax.encoding`, `docs/design-decisions.md`), edge-unit noise
   mostly along normals with clean draws, losses in edge units. (Before 2026-11-30
   `small` was width 48 on absolute bounding-box coordinates; those weights still load,
-  their config travels with them.)
+  their config travels with them.) The bundled file's own config is that of the last
+  of two fine-tunes on top of it (`scripts/train_bundled.sh`, `docs/bundled-model.md`):
+  120 pre-filter passes instead of 60, heavier normal losses, benchmark-weighted noise
+  and their own schedule; `dmd-jax info --weights bundled` prints it.
 * `test`: the `small` recipe at width 8 and 40 steps: a run on a tiny dataset in under
   a minute on 2 cores (`dmd-jax train --preset test`), and the model of unit tests.
 """
@@ -800,7 +803,7 @@ def _paper() -> ExperimentConfig:
 
 
 def _small() -> ExperimentConfig:
-    # The recipe of the bundled weights (README, "Bundled weights"): resolution-free
+    # The first stage of the bundled weights' recipe (docs/bundled-model.md): resolution-free
     # inputs, normal-first head, edge-unit noise mostly along normals with clean draws.
     return ExperimentConfig(
         name="small",
@@ -825,7 +828,7 @@ def _small() -> ExperimentConfig:
         ),
         train=TrainConfig(
             # 6,000 steps: on the same data a 3,000-step run reached 11.7° on the
-            # validation patches and a 6,000-step run 11.1° (README, "Bundled weights").
+            # validation patches and a 6,000-step run 11.1° (docs/history.md).
             steps=6000,
             batch_size=2,
             lr=1e-3,

@@ -7,8 +7,8 @@ arrays are sharded over a one-axis device `Mesh` (`'batch'`) with
 state are replicated. The step itself is `train.make_train_step`, the same code for one
 device (a one-device mesh) and for many.
 
-Multi-host: call `jax.distributed.initialize(...)` first (README, "Multi-device and
-multi-host training"); `jax.devices()` then lists every host's devices, the mesh spans
+Multi-host: call `jax.distributed.initialize(...)` first (docs/training.md, "Multi-device
+and multi-host training"); `jax.devices()` then lists every host's devices, the mesh spans
 them, and every process builds and places only the groups of its own devices
 (`local_groups`).
 

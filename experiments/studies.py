@@ -288,7 +288,7 @@ _SMOKE_TRAIN = {
 }
 
 # The cpu preset's schedule; its step count is sized for `make ablate` in <= 3 h on two
-# free cores (README, "Ablation studies": how the estimate was made).
+# free cores (docs/ablations.md: how the estimate was made).
 _CPU_TRAIN = {
     "steps": 1000,
     "batch_size": 2,

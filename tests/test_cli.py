@@ -691,29 +691,6 @@ def test_train_init_from_weights_file_or_checkpoint(tmp_path):
         np.testing.assert_array_equal(value, new[key])
 
 
-def test_readme_python_blocks_run_with_root_level_names(tmp_path, monkeypatch, capsys):
-    """The README's Python examples, run as written on a small mesh (bundled weights)."""
-    import re
-
-    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
-    blocks = re.findall(r"```python\n(.*?)```", readme, flags=re.S)
-    assert len(blocks) >= 2
-    v, f = icosphere(2)
-    save_mesh(tmp_path / "part.obj", v, f)
-    noisy = v + 0.01 * np.random.default_rng(0).standard_normal(v.shape)
-    save_mesh(tmp_path / "scan.ply", noisy, f)
-    monkeypatch.chdir(tmp_path)
-    for block in blocks:
-        imports = re.findall(r"^(?:from|import) (\S+)", block, flags=re.M)
-        assert set(imports) == {"dmd_jax"}, imports  # root-level names only
-        exec(compile(block, "README.md", "exec"), {})
-    out = capsys.readouterr().out
-    assert "| method | vertex (×1e-4) | normal (°) | chamfer (×1e-4) |" in out
-    for label in ("| noisy |", "| dmd |", "| taubin |", "| bnf |"):
-        assert label in out
-    assert (tmp_path / "scan_denoised.ply").is_file()
-
-
 def test_add_noise_and_denoise_with_at_the_root(files):
     import dmd_jax
 
