@@ -519,9 +519,10 @@ def _cmd_render(args: argparse.Namespace) -> int:
 
         gt_v, gt_f = _load_input(args.gt)
         values = []
-        for path, (v, f) in zip(args.inputs, meshes, strict=True):
-            if v.shape != gt_v.shape or (f.shape != gt_f.shape) or (f != gt_f).any():
-                raise ValueError(f"{path}: needs the same vertices/faces layout as {args.gt}")
+        for i, (path, (v, f)) in enumerate(zip(args.inputs, meshes, strict=True)):
+            # evaluate's correspondence: renumbered vertices (an STL) matched, else refused.
+            v = _in_gt_order(v, f, gt_v, gt_f, path, args.gt)
+            meshes[i] = (v, gt_f)
             values.append(face_normal_errors_deg(v, gt_v, gt_f))
         # The clean mesh is the last panel, with no error of its own.
         meshes.append((gt_v, gt_f))

@@ -171,3 +171,13 @@ def test_help_documents_the_folder_edges(capsys):
     assert "--skip-existing" in text and "resume" in text
     assert "--parents" in text and "--out DIR is always created when missing" in text
     assert "exits with 1 and a summary" in text
+
+
+def test_render_gt_matches_an_stl_output_too(capsys, meshes):
+    tmp, v, f, noisy = meshes
+    save_mesh(tmp / "noisy.stl", noisy, f)
+    code, _, err = run(
+        capsys, "render", tmp / "noisy.stl", "--gt", tmp / "clean.off", "-o", tmp / "r.png"
+    )
+    assert code == 0, err
+    assert "vertices matched to" in err and (tmp / "r.png").is_file()
