@@ -282,7 +282,19 @@ def _strict_json(text: str):
     return json.loads(text, parse_constant=refuse)
 
 
-def test_case3_evaluate_json_of_a_far_off_mesh_is_valid_and_honest(capsys, sphere_files):
+@pytest.fixture
+def float32_jax():
+    """JAX without float64, as the command line runs (conftest turns float64 on)."""
+    import jax
+
+    jax.config.update("jax_enable_x64", False)
+    yield
+    jax.config.update("jax_enable_x64", True)
+
+
+def test_case3_evaluate_json_of_a_far_off_mesh_is_valid_and_honest(
+    capsys, sphere_files, float32_jax
+):
     tmp, v, f = sphere_files
     save_mesh(tmp / "big.off", v * 1e39, f)
     code, out, err = run(
@@ -297,7 +309,7 @@ def test_case3_evaluate_json_of_a_far_off_mesh_is_valid_and_honest(capsys, spher
 
 
 @pytest.mark.parametrize("scale", [1e-15, 1e15, 1e30])
-def test_case3_scaled_copy_has_the_ground_truths_normals(scale):
+def test_case3_scaled_copy_has_the_ground_truths_normals(scale, float32_jax):
     from conftest import icosphere
 
     from dmd_jax.metrics import face_normal_errors_deg, mesh_metrics
