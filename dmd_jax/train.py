@@ -45,6 +45,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
+import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -260,6 +261,173 @@ def make_train_step(cfg: ExperimentConfig, phase: str, mesh: Mesh) -> Callable:
     return jax.jit(step, out_shardings=(replicated, replicated))
 
 
+# ------------------------------------------------------------ shared step programs
+# Train settings the host reads, not the step: which phase runs at which step (scheme,
+# alter_period, two_phase_split) and the init / dropout key (seed, an input).
+_HOST_TRAIN_FIELDS = ("seed", "scheme", "alter_period", "two_phase_split")
+
+
+def step_program_key(cfg: ExperimentConfig, phase: str) -> str:
+    """What the program of `shared_train_step(cfg, phase, ...)` depends on.
+
+    Configs with equal keys compile to one program (per padded shape): the key is the
+    config as JSON without its name, seed and scheme switches, with the phase's loss
+    weights (`phase_loss`) and the dropout rate reduced to on/off; their values reach
+    the program as traced arguments (`step_values`). Whether a term is on stays static:
+    `losses.loss_terms` skips a term of weight 0 entirely, so switching one off changes
+    the program, and the shared program computes exactly the terms the config's own does.
+    Everything else (model, optimiser, loss settings, noise, data) stays in the key, so
+    a setting added later separates programs until it is known not to matter.
+    """
+    d = cfg.to_dict()
+    d.pop("name", None)
+    for name in _HOST_TRAIN_FIELDS:
+        d["train"].pop(name, None)
+    loss = phase_loss(cfg, phase).to_dict()
+    for name in losses.TERMS:
+        loss[name] = bool(loss[name] > 0)
+    d["loss"] = loss
+    d["model"]["dropout"] = bool(cfg.model.dropout > 0)
+    return json.dumps(d, sort_keys=True)
+
+
+def step_values(cfg: ExperimentConfig, phase: str) -> dict[str, Any]:
+    """The traced arguments of a `shared_train_step` program for one config and phase.
+
+    Returns:
+      `{"weights": {term: float32 []}` (the phase's non-zero loss weights),
+      `"train": {"fe": bool [], "rest": bool []}` (the param halves the phase updates),
+      `"keep_prob": float64 []}` (`1 - dropout`, at JAX's default float width once
+      traced; unused when dropout is off).
+    """
+    loss = phase_loss(cfg, phase)
+    weights = {n: np.float32(getattr(loss, n)) for n in losses.TERMS if getattr(loss, n) > 0}
+    return {
+        "weights": weights,
+        "train": {part: np.bool_(part in PHASE_PARTS[phase]) for part in ("fe", "rest")},
+        # A float64 scalar, which JAX takes at its default float width: flax's static
+        # `1.0 - rate` is a Python float and draws its Bernoulli mask at that width.
+        "keep_prob": np.float64(1.0 - cfg.model.dropout),
+    }
+
+
+def _dropout_at(keep_prob) -> Callable:
+    """A flax method interceptor: every active `nn.Dropout` keeps `keep_prob` (traced).
+
+    `nn.Dropout` reads its rate as a Python number (`rate == 0.0` decides whether it
+    runs), so a traced rate cannot go through the module; this replays its `__call__`
+    (same key, same Bernoulli draw) with the traced keep probability. The scale is
+    `x * (1 / keep)`, the form XLA rewrites flax's `x / keep` constant into, so the
+    result is the per-config program's bit for bit on CPU (`tests/test_ablations.py`).
+    """
+
+    def interceptor(next_fun, args, kwargs, context):
+        module = context.module
+        if not isinstance(module, nn.Dropout) or context.method_name != "__call__":
+            return next_fun(*args, **kwargs)
+        inputs = args[0]
+        deterministic = kwargs.get("deterministic", args[1] if len(args) > 1 else None)
+        deterministic = nn.merge_param("deterministic", module.deterministic, deterministic)
+        if module.rate == 0.0 or deterministic:  # static: this config has no dropout
+            return next_fun(*args, **kwargs)
+        rng = kwargs.get("rng", args[2] if len(args) > 2 else None)
+        if rng is None:
+            rng = module.make_rng(module.rng_collection)
+        shape = list(inputs.shape)
+        for dim in module.broadcast_dims:
+            shape[dim] = 1
+        mask = jnp.broadcast_to(jax.random.bernoulli(rng, p=keep_prob, shape=shape), inputs.shape)
+        keep = jnp.asarray(keep_prob, inputs.dtype)
+        return jax.lax.select(mask, inputs * (1 / keep), jnp.zeros_like(inputs))
+
+    return interceptor
+
+
+def shared_train_step(cfg: ExperimentConfig, phase: str, mesh: Mesh) -> Callable:
+    """`make_train_step`'s step with the loss weights, dropout rate and phase traced.
+
+    One program serves every config of one `step_program_key`: in an ablation sweep
+    the rows that differ only in loss weights, dropout rate or training scheme share it
+    (`experiments.multiseed.seeds_step` keeps one per key). It computes what the
+    config's own `make_train_step` computes, up to the order of float operations: the
+    same terms, weighted by the traced values, and the phase's frozen half kept by a
+    select instead of being left out of the update.
+
+    Args:
+      cfg: any config of the key; only its static settings are read.
+      phase: `"all"`, `"fe"` or `"rest"`; only which loss terms it turns on is read.
+      mesh: a one-axis device mesh (`parallel.batch_mesh`).
+
+    Returns:
+      `step(state, noisy, clean, graph, rng, values) -> (state, metrics)`, not jitted:
+      the arguments of `make_train_step`'s step plus `values` (`step_values`).
+    """
+    model = DMDNet(cfg.model)
+    tx = make_optimizer(cfg)
+    loss = phase_loss(cfg, phase)  # which terms are on; their weights come traced
+    use_dropout = cfg.model.dropout > 0
+    axis = parallel.BATCH_AXIS
+
+    def group_terms(params, noisy, clean, graph, rng, keep_prob):
+        noisy, clean, graph = jax.tree.map(lambda x: x[0], (noisy, clean, graph))
+        group_rng = jax.random.fold_in(rng, jax.lax.axis_index(axis)) if use_dropout else None
+        with nn.intercept_methods(_dropout_at(keep_prob)):
+            terms = loss_terms(model, cfg, params, noisy, clean, graph, loss=loss, rng=group_rng)
+        return jax.lax.psum(terms, axis)
+
+    batch_terms = jax.shard_map(
+        group_terms,
+        mesh=mesh,
+        in_specs=(P(), P(axis), P(axis), P(axis), P(), P()),
+        out_specs=P(),
+    )
+
+    def step(state: TrainState, noisy, clean, graph, rng, values):
+        def loss_of(halves):
+            terms = batch_terms(merge_params(halves), noisy, clean, graph, rng, values["keep_prob"])
+            # `losses.reduce_terms` with traced weights, in its order.
+            means = {name: term.mean() for name, term in terms.items()}
+            dtype = next(iter(means.values())).dtype if means else jnp.float32
+            w = values["weights"]
+            total = sum(
+                (w[name].astype(m.dtype) * m for name, m in means.items()), jnp.zeros((), dtype)
+            )
+            return total, means
+
+        (total, means), grads = jax.value_and_grad(loss_of, has_aux=True)(state.params)
+        new_params, new_opt = {}, {}
+        for part in ("fe", "rest"):
+            updates, opt = tx.update(grads[part], state.opt_state[part], state.params[part])
+            params = optax.apply_updates(state.params[part], updates)
+            # A frozen half keeps its params and Adam state exactly (a select, no drift).
+            on = values["train"][part]
+            new_params[part] = jax.tree.map(
+                lambda a, b, on=on: jnp.where(on, a, b), params, state.params[part]
+            )
+            new_opt[part] = jax.tree.map(
+                lambda a, b, on=on: jnp.where(on, a, b), opt, state.opt_state[part]
+            )
+        metrics_ = {"loss": total, "grad_norm": optax.tree.norm(grads), **means}
+        return TrainState(state.step + 1, new_params, new_opt), metrics_
+
+    return step
+
+
+# Jitted model inits, one per model config of the process (the dropout rate left out:
+# init runs the model deterministic, so the rate changes no parameter), so that the
+# trainers of a sweep's rows share one compiled init instead of one each.
+_INIT_PROGRAMS: dict[str, Callable] = {}
+
+
+def _init_program(model_cfg: ModelConfig) -> Callable:
+    model_cfg = model_cfg.with_edits({"dropout": 0.0})
+    key = json.dumps(model_cfg.to_dict(), sort_keys=True)
+    if key not in _INIT_PROGRAMS:
+        model = DMDNet(model_cfg)
+        _INIT_PROGRAMS[key] = jax.jit(lambda rngs, x, g: model.init(rngs, x, g, deterministic=True))
+    return _INIT_PROGRAMS[key]
+
+
 class Trainer:
     """The steps of one experiment on one device mesh, built once per phase.
 
@@ -301,7 +469,7 @@ class Trainer:
         # Jitted: the forward pass is traced once and XLA keeps only the initialisers;
         # run eagerly, every primitive of the forward pass compiled on its own (~35 s of
         # wall time for the test preset on a loaded 2-core machine).
-        init = jax.jit(lambda rngs, x, g: self.model.init(rngs, x, g, deterministic=True))
+        init = _init_program(self.cfg.model)  # shared by the trainers of one model
         variables = init(
             {"params": key, "dropout": key},
             jnp.asarray(first.noisy),

@@ -1,10 +1,11 @@
 """Several seeds of one config trained side by side as one compiled program.
 
 The ablation models are small: one step of one seed leaves most of a CPU idle between
-tiny operations. `seeds_step` wraps `dmd_jax.train.make_train_step` (the library's only
-train step) in `jax.vmap` over a leading *seeds* axis of the state, the batch and the
-dropout key, so the seeds of a row run as one program with operations `n_seeds` times
-larger. Nothing else about training changes: each seed keeps its own parameter-init key
+tiny operations. `seeds_step` wraps `dmd_jax.train.shared_train_step` (the library's
+train step with loss weights, dropout rate and phase as traced arguments) in `jax.vmap`
+over a leading *seeds* axis of the state, the batch and the dropout key, so the seeds of
+a row run as one program with operations `n_seeds` times larger; rows that differ only
+in those traced values share that program (one compile per padded shape). Nothing else about training changes: each seed keeps its own parameter-init key
 (`train.seed`), its own data order, noise and rotations (`pipeline.training_batch` at its
 own seed), its own dropout keys and its own Adam state; the batches of all seeds are
 padded to one common bucket so that they stack. Seed `s` trained here follows the same
@@ -42,7 +43,15 @@ from dmd_jax.pipeline import (
     training_batch,
     unpadded_mesh,
 )
-from dmd_jax.train import Trainer, TrainHook, make_train_step, merge_params, phase_of
+from dmd_jax.train import (
+    Trainer,
+    TrainHook,
+    merge_params,
+    phase_of,
+    shared_train_step,
+    step_program_key,
+    step_values,
+)
 
 
 def same_but_seed(cfgs: Sequence[ExperimentConfig]) -> None:
@@ -71,8 +80,37 @@ def unstack_tree(tree, n: int) -> list:
     return [jax.tree.map(lambda x, i=i: x[i], tree) for i in range(n)]
 
 
-def seeds_step(cfg: ExperimentConfig, phase: str) -> Callable:
+# One jitted, vmapped program per `train.step_program_key` in this process: the rows of
+# a sweep that differ only in loss weights, dropout rate or scheme reuse it (one compile
+# per padded shape for all of them) instead of compiling a program of their own.
+_SEEDS_PROGRAMS: dict[str, Callable] = {}
+
+
+class SeedsStep:
+    """A shared seeds program with one config's traced values (`train.step_values`).
+
+    Attributes:
+      program: the jitted `jax.vmap` of `train.shared_train_step`, shared by key.
+      values: this config's loss weights, phase halves and keep probability.
+    """
+
+    def __init__(self, program: Callable, values: dict):
+        self.program, self.values = program, values
+
+    def __call__(self, states, noisy, clean, graph, rngs):
+        return self.program(states, noisy, clean, graph, rngs, self.values)
+
+    def _cache_size(self) -> int:
+        """Programs the shared step holds (every config of its key counts)."""
+        return self.program._cache_size()
+
+
+def seeds_step(cfg: ExperimentConfig, phase: str) -> SeedsStep:
     """The train step of one phase, vmapped over a leading seeds axis of every input.
+
+    The program is shared by every config of this process with the same
+    `train.step_program_key` (see `_SEEDS_PROGRAMS`); the values that differ between
+    them are passed in, not compiled in.
 
     Returns:
       `step(states, noisy, clean, graph, rngs) -> (states, metrics)`, each argument the
@@ -80,8 +118,26 @@ def seeds_step(cfg: ExperimentConfig, phase: str) -> Callable:
       `stack_trees`; `noisy` `[n_seeds, n_group, n_vertex, 3]`); every metric comes back
       as `[n_seeds]`. One device (a one-device mesh): seeds replace data parallelism.
     """
-    step = make_train_step(cfg, phase, parallel.batch_mesh(jax.devices()[:1]))
-    return jax.jit(jax.vmap(step))
+    key = step_program_key(cfg, phase)
+    if key not in _SEEDS_PROGRAMS:
+        step = shared_train_step(cfg, phase, parallel.batch_mesh(jax.devices()[:1]))
+        # The values are the same for every seed: not vmapped.
+        _SEEDS_PROGRAMS[key] = jax.jit(jax.vmap(step, in_axes=(0, 0, 0, 0, 0, None)))
+    return SeedsStep(_SEEDS_PROGRAMS[key], step_values(cfg, phase))
+
+
+# One evaluation `Trainer` per model config (dropout left out: evaluation runs the model
+# deterministic), so the rows and seeds of one model share its compiled predictor.
+_EVAL_TRAINERS: dict[str, Trainer] = {}
+
+
+def eval_trainer(cfg: ExperimentConfig) -> Trainer:
+    """A `Trainer` whose `predict` serves every config with `cfg`'s model (any dropout)."""
+    model = cfg.model.with_edits({"dropout": 0.0})
+    key = json.dumps(model.to_dict(), sort_keys=True)
+    if key not in _EVAL_TRAINERS:
+        _EVAL_TRAINERS[key] = Trainer(cfg.with_edits({"model": {"dropout": 0.0}}))
+    return _EVAL_TRAINERS[key]
 
 
 def seeds_batch(examples: Sequence[MeshExample], cfgs: Sequence[ExperimentConfig], step: int):
@@ -167,8 +223,9 @@ def train_seeds(
     Returns:
       Per seed: `status` (`ok` or `diverged`), `error`, `step` (the last good step),
       `resumed_from`, `metrics` (`<split>/<metric>` means), `per_mesh` (`<split>/<metric>`
-      lists, test meshes in order), `compiles`, `step_times` (seconds of each timed step
-      of the group, compile steps left out).
+      lists, test meshes in order), `compiles` (train-step programs this call compiled;
+      0 when it reused those of an earlier row of its key), `step_times` (seconds of
+      each timed step of the group, compile steps left out).
 
     Raises:
       ValueError: configs that differ in more than the seed, or runs at different steps.
@@ -198,7 +255,8 @@ def train_seeds(
         states = [restore_checkpoint(m, s) for m, s in zip(managers, states, strict=True)]
     state = stack_trees(states)
     end = t.steps
-    fns: dict[str, Callable] = {}
+    fns: dict[str, SeedsStep] = {}
+    compiles = 0  # programs this call compiled (0 when it reused another row's)
     alive = [True] * n
     last_good = [start] * n
     errors: list[str | None] = [None] * n
@@ -219,7 +277,7 @@ def train_seeds(
             phase = phase_of(t.scheme, step, t.two_phase_fe_steps, t.alter_period)
             if phase not in fns:
                 fns[phase] = seeds_step(cfgs[0], phase)
-            compiling = fns[phase]._cache_size() == 0
+            programs = fns[phase]._cache_size()
             batch = seeds_batch(train_examples, cfgs, step)
             for hook in hooks:
                 batch = hook.before_step(step, batch)
@@ -227,7 +285,10 @@ def train_seeds(
             rngs = step_rngs(cfgs, step)
             new, out = fns[phase](state, batch.noisy, batch.clean, batch.graph, rngs)
             loss = np.asarray(out["loss"])
-            if not compiling:
+            # The shared program grew: this step compiled (for this run or any config).
+            compiled = fns[phase]._cache_size() - programs
+            compiles += compiled
+            if not compiled:
                 times.append(time.perf_counter() - ts)
             state = new
             done = step + 1
@@ -265,10 +326,9 @@ def train_seeds(
         bar.close()
         for fh in logs:
             fh.close()
-    compiles = sum(fn._cache_size() for fn in fns.values())
     results = []
     params = unstack_tree(merge_params(state.params), n)
-    for i, (cfg, tr) in enumerate(zip(cfgs, trainers, strict=True)):
+    for i, cfg in enumerate(cfgs):
         res: dict[str, Any] = {
             "status": "ok" if alive[i] else "diverged",
             "error": errors[i],
@@ -290,7 +350,7 @@ def train_seeds(
                     rotate=t.rotate,
                     encoding=cfg.model.encoding,
                 )
-                rows = evaluate_per_mesh(tr, params[i], batches)
+                rows = evaluate_per_mesh(eval_trainer(cfg), params[i], batches)
                 for k in rows[0]:
                     vals = [float(r[k]) for r in rows]
                     res["per_mesh"][f"{split}/{k}"] = vals

@@ -1,7 +1,10 @@
-"""The ablation tables of `experiments.ablations`, checked against the paper's appendix D."""
+"""The ablation tables of `experiments.ablations`, checked against the paper's appendix D,
+and the train-step programs the sweep's rows share (`train.shared_train_step`)."""
 
 from __future__ import annotations
 
+import jax
+import numpy as np
 import pytest
 
 from dmd_jax.config import LossConfig, preset
@@ -50,3 +53,150 @@ def test_ablation_tables_follow_the_paper():
         ablation_config(base, "width", "x")
     with pytest.raises(ValueError, match="unknown row"):
         ablation_config(base, "depth", "DMD-Net 5")
+
+
+# --------------------------------------------------------------------------------------
+# Shared train-step programs (issue 32 item 3)
+# --------------------------------------------------------------------------------------
+
+
+def _tiny(**edits):
+    """The test preset cut down to compile quickly: depth 1, offset head, no STN, no
+    Taubin candidates; dropout, non-trivial weights and the `alter` scheme (both phases)."""
+    cfg = preset("test").with_edits(
+        {
+            "model": {"depth": 1, "head": "offset", "taubin_iterations": 0, "stn": False},
+            "loss": {
+                "vertex": 0.7,
+                "normal": 0.3,
+                "chamfer": 0.05,
+                "feature": 0.5,
+                "face_normal": 0.0,
+            },
+            "train": {"steps": 4, "batch_size": 1, "scheme": "alter", "log_every": 0},
+        }
+    )
+    return cfg.with_edits(edits)
+
+
+@pytest.fixture(scope="module")
+def tiny_examples():
+    from conftest import icosphere
+
+    from dmd_jax.pipeline import make_examples
+
+    v, f = icosphere(1)
+    rng = np.random.default_rng(0)
+    return make_examples([(v + 0.03 * rng.standard_normal(v.shape), f) for _ in range(2)])
+
+
+class _Compiles:
+    """Counts XLA compilations of functions named `name` (`jax.monitoring` events)."""
+
+    def __init__(self, name: str):
+        self.name, self.count = name, 0
+
+    def __call__(self, event, duration, **kwargs):
+        if event == "/jax/core/compile/backend_compile_duration" and kwargs.get("fun_name") in (
+            self.name,
+            f"jit({self.name})",
+            f"jit_{self.name}",
+        ):
+            self.count += 1
+
+    def __enter__(self):
+        jax.monitoring.register_event_duration_secs_listener(self)
+        return self
+
+    def __exit__(self, *exc):
+        jax.monitoring.unregister_event_duration_listener(self)
+
+
+def _init_states(cfgs, examples):
+    from dmd_jax.train import Trainer
+    from experiments import multiseed
+
+    first = multiseed.seeds_batch(examples, cfgs, 0)
+    states = [Trainer(c).init(jax.tree.map(lambda x, i=i: x[i], first)) for i, c in enumerate(cfgs)]
+    return multiseed.stack_trees(states)
+
+
+def test_the_program_key_keeps_what_changes_the_program():
+    from dmd_jax.train import step_program_key, step_values
+
+    cfg = _tiny(model={"dropout": 0.2})
+    key = step_program_key(cfg, "all")
+    # Weight values, dropout rate, scheme and seed are traced or host-side: one key.
+    for edits in (
+        {"loss": {"vertex": 1.0, "normal": 0.9}},
+        {"model": {"dropout": 0.5}},
+        {"train": {"seed": 3, "scheme": "joint"}},
+    ):
+        assert step_program_key(cfg.with_edits(edits), "all") == key, edits
+    # A term switched off, dropout switched off, another model or optimiser: new program.
+    for edits in (
+        {"loss": {"chamfer": 0.0}},
+        {"model": {"dropout": 0.0}},
+        {"model": {"width": 16}},
+        {"train": {"lr": 2e-3}},
+    ):
+        assert step_program_key(cfg.with_edits(edits), "all") != key, edits
+    # Alter's "rest" phase is U-FE's only phase: every term but the FE's, one program.
+    u_fe = cfg.with_edits({"train": {"scheme": "u_fe"}})
+    assert step_program_key(cfg, "rest") == step_program_key(u_fe, "all")
+    v = step_values(cfg, "rest")
+    assert set(v["weights"]) == {"vertex", "normal", "chamfer"}
+    assert (bool(v["train"]["fe"]), bool(v["train"]["rest"])) == (False, True)
+    assert v["keep_prob"] == 0.8
+
+
+def test_rows_differing_in_weights_dropout_and_scheme_compile_one_program(
+    tiny_examples, monkeypatch
+):
+    from experiments import multiseed
+
+    monkeypatch.setattr(multiseed, "_SEEDS_PROGRAMS", {})
+    rows = [
+        _tiny(model={"dropout": 0.2}, train={"scheme": "u_fe"}),
+        _tiny(model={"dropout": 0.35}, loss={"vertex": 1.0, "normal": 1.0, "chamfer": 1.0}),
+    ]
+    phases = ["all", "rest"]  # U-FE's phase and Alter's second phase
+    with _Compiles("step") as compiles:
+        for cfg, phase in zip(rows, phases, strict=True):
+            state = _init_states([cfg], tiny_examples)
+            batch = multiseed.seeds_batch(tiny_examples, [cfg], 1)
+            step = multiseed.seeds_step(cfg, phase)
+            _, out = step(
+                state, batch.noisy, batch.clean, batch.graph, multiseed.step_rngs([cfg], 1)
+            )
+            assert np.isfinite(np.asarray(out["loss"])).all()
+    assert compiles.count == 1
+    assert len(multiseed._SEEDS_PROGRAMS) == 1
+
+
+# Four train-step compiles (two phases, both ways): ~80 s of CPU, so `make test-slow`.
+@pytest.mark.slow
+def test_a_row_trained_through_the_shared_program_follows_its_own_program(tiny_examples):
+    """Two steps of `alter` (phase "fe", then "rest") with dropout: the shared program
+    gives the per-config program's losses and params."""
+    from dmd_jax import parallel
+    from dmd_jax.train import make_train_step, phase_of
+    from experiments import multiseed
+
+    cfg = _tiny(model={"dropout": 0.35})
+    cfgs = [cfg, cfg.with_edits({"train": {"seed": 4}})]
+    mesh = parallel.batch_mesh(jax.devices()[:1])
+    shared = own = _init_states(cfgs, tiny_examples)
+    t = cfg.train
+    for step in range(2):
+        phase = phase_of(t.scheme, step, t.two_phase_fe_steps, t.alter_period)
+        batch = multiseed.seeds_batch(tiny_examples, cfgs, step)
+        args = (batch.noisy, batch.clean, batch.graph, multiseed.step_rngs(cfgs, step))
+        own, m_own = jax.jit(jax.vmap(make_train_step(cfg, phase, mesh)))(own, *args)
+        shared, m_shared = multiseed.seeds_step(cfg, phase)(shared, *args)
+        assert set(m_own) == set(m_shared)
+        for k in m_own:
+            np.testing.assert_allclose(m_shared[k], m_own[k], rtol=1e-5, atol=1e-7, err_msg=k)
+    assert phase == "rest"
+    for a, b in zip(jax.tree.leaves(shared), jax.tree.leaves(own), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7)
