@@ -332,11 +332,10 @@ def evaluate_checkpoint(cfg, checkpoint_dir, eval_sets) -> tuple[dict, dict]:
       as `multiseed.train_seeds` reports them.
     """
     from dmd_jax.checkpoints import load_params
-    from dmd_jax.train import Trainer
-    from experiments.multiseed import evaluate_per_mesh
+    from experiments.multiseed import eval_trainer, evaluate_per_mesh
 
     params, _ = load_params(checkpoint_dir)
-    trainer = Trainer(cfg)
+    trainer = eval_trainer(cfg)  # the predictor every run of this model shares
     return sweep_scores(cfg, eval_sets, lambda b: evaluate_per_mesh(trainer, params, b))
 
 
@@ -391,13 +390,12 @@ def untrained_reference(cfg, eval_sets) -> dict:
     import jax
 
     from dmd_jax.model import init_params
-    from dmd_jax.train import Trainer
-    from experiments.multiseed import evaluate_per_mesh
+    from experiments.multiseed import eval_trainer, evaluate_per_mesh
 
     if cfg.model.head != "normal":
         return {}
     params = jax.jit(lambda key: init_params(cfg.model, key))(jax.random.PRNGKey(cfg.train.seed))
-    trainer = Trainer(cfg)
+    trainer = eval_trainer(cfg)
 
     def score(batches):
         rows = evaluate_per_mesh(trainer, params, batches)
@@ -819,6 +817,10 @@ def run_sweep(
     p = st.get_preset(p) if isinstance(p, str) else p
     studies = studies or p.studies
     apply_xla_opt_level(p.xla_opt_level)
+    if (workers or p.workers) > 1:
+        # The worker processes share one accelerator: each preallocating most of its
+        # memory (JAX's default on GPU) would leave the second none. No effect on CPU.
+        os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
     if p.jax_cache:
         enable_compilation_cache()
     t0 = time.time()
@@ -891,12 +893,127 @@ def run_sweep(
     return session
 
 
+# What compiling one program costs, in the unit of a job's `cost` (training steps), when
+# rows are packed into worker processes: a test-preset train step compiles in ~20 s of
+# CPU and runs in ~35 ms, a cpu-preset step in ~0.2 s; 100 steps is between the two.
+COMPILE_COST_STEPS = 100
+
+
+def _phases(t) -> set[str]:
+    """The phases a `TrainConfig`'s schedule runs (each its own train-step program)."""
+    from dmd_jax.train import phase_of
+
+    s = t.two_phase_fe_steps
+    probe = set(range(min(t.steps, 2 * t.alter_period + 1))) | {s - 1, s, t.steps - 1}
+    return {phase_of(t.scheme, i, s, t.alter_period) for i in probe if 0 <= i < t.steps}
+
+
+def job_programs(job: dict) -> list[str]:
+    """Short ids of the programs a job compiles: `step:<digest>` per phase of its row's
+    schedule (`train.step_program_key`; none when every seed is trained already) and
+    `model:<digest>`, its model's init and predictor (dropout left out: both run the
+    model deterministic)."""
+    from dmd_jax.config import ExperimentConfig
+    from dmd_jax.train import step_program_key
+
+    cfg = ExperimentConfig.from_dict(job["members"][0]["config"])
+    out = {"model:" + st._digest(cfg.model.with_edits({"dropout": 0.0}).to_dict())}
+    if any(not m["trained"] for m in job["members"]):
+        out |= {"step:" + st._digest(step_program_key(cfg, ph)) for ph in _phases(cfg.train)}
+    return sorted(out)
+
+
+def pack_jobs(jobs: Sequence[dict], workers: int) -> list[list[dict]]:
+    """The jobs in tasks for `workers` processes, rows that share programs in one task.
+
+    A task runs in one process, one job after the other, so a later row reuses what an
+    earlier one compiled (`multiseed.seeds_step`'s shared programs, the model's init
+    and predictor) instead of compiling it in the other process as well. Rows that
+    share a train-step program always go together; rows that share only a model join
+    while the task stays within an even share of the sweep's cost (training steps plus
+    `COMPILE_COST_STEPS` per distinct program), so that no task outgrows one process's
+    share. Tasks come largest first, for the pool to balance; jobs keep plan order.
+
+    Args:
+      jobs: `make_jobs` jobs with `programs` (`job_programs`).
+      workers: processes.
+
+    Returns:
+      Lists of jobs, together all of `jobs`.
+    """
+    n = len(jobs)
+    parent = list(range(n))
+
+    def find(i):
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    def groups():
+        out: dict[int, list[int]] = {}
+        for i in range(n):
+            out.setdefault(find(i), []).append(i)
+        return out
+
+    def cost(members):
+        programs = {p for i in members for p in jobs[i]["programs"]}
+        return sum(jobs[i]["cost"] for i in members) + COMPILE_COST_STEPS * len(programs)
+
+    first: dict[str, int] = {}
+    for i, job in enumerate(jobs):
+        for prog in job["programs"]:
+            if prog.startswith("step:"):
+                if prog in first:
+                    parent[find(i)] = find(first[prog])
+                else:
+                    first[prog] = i
+    cap = cost(range(n)) / max(int(workers), 1)
+    by_model: dict[str, list[int]] = {}
+    for i, job in enumerate(jobs):
+        for prog in job["programs"]:
+            if prog.startswith("model:"):
+                by_model.setdefault(prog, []).append(i)
+    for members in by_model.values():
+        for i in members[1:]:
+            a, b = find(members[0]), find(i)
+            if a != b:
+                g = groups()
+                if cost(g[a] + g[b]) <= cap:
+                    parent[b] = a
+    tasks = sorted(groups().values(), key=lambda m: -cost(m))
+    return [[jobs[i] for i in sorted(m)] for m in tasks]
+
+
+def run_jobs(jobs: Sequence[dict], queue=None) -> list[dict]:
+    """Runs jobs one after the other in this process (a `pack_jobs` task).
+
+    Each outcome, `{"index", "result"}` or `{"index", "error"}` (the exception as text:
+    one broken run must not end a sweep of hours), is put on `queue` as soon as its
+    job ends, so the sweep's log and remaining time follow job by job.
+    """
+    outcomes = []
+    for job in jobs:
+        try:
+            outcome = {"index": job["index"], "result": run_job(job)}
+        except Exception as exc:
+            outcome = {"index": job["index"], "error": f"{type(exc).__name__}: {exc}"}
+        if queue is not None:
+            queue.put(outcome)
+        outcomes.append(outcome)
+    return outcomes
+
+
 def _execute(jobs: list[dict], workers: int, log: Callable, progress: bool) -> list[str]:
     """Runs the jobs (in `workers` processes); a bar and log lines give the remaining time.
 
-    The estimate weighs every job by its `cost` (training steps): remaining = elapsed ×
-    (cost left / cost done), so it is rough until the first rows have finished.
+    With more than one worker the jobs go in `pack_jobs` tasks, so that rows sharing a
+    compiled program meet in one process. The estimate weighs every job by its `cost`
+    (training steps): remaining = elapsed × (cost left / cost done), so it is rough
+    until the first rows have finished.
     """
+    import queue as queue_lib
+
     from tqdm.auto import tqdm
 
     failures: list[str] = []
@@ -904,14 +1021,16 @@ def _execute(jobs: list[dict], workers: int, log: Callable, progress: bool) -> l
     total = sum(j["cost"] for j in jobs) or 1.0
     done = {"cost": 0.0, "jobs": 0}
     t0 = time.time()
+    for i, job in enumerate(jobs):
+        job["index"] = i
     with tqdm(
         total=round(total), desc="ablate", unit="step", disable=not progress, position=0
     ) as bar:
 
-        def finished(job, result=None, exc=None):
-            if exc is not None:
-                failures.append(f"{job['label']}: {type(exc).__name__}: {exc}")
-                log(f"FAILED {job['label']}: {type(exc).__name__}: {exc}")
+        def finished(job, result=None, error=None):
+            if error is not None:
+                failures.append(f"{job['label']}: {error}")
+                log(f"FAILED {job['label']}: {error}")
             else:
                 for msg in result["messages"]:
                     log(msg)
@@ -926,21 +1045,48 @@ def _execute(jobs: list[dict], workers: int, log: Callable, progress: bool) -> l
             )
             bar.update(round(done["cost"]) - bar.n)
 
+        def report(outcome):
+            job = jobs[outcome["index"]]
+            finished(job, outcome.get("result"), outcome.get("error"))
+
         if workers == 1:
-            for job in jobs:
+            for outcome in run_jobs(jobs):
+                report(outcome)
+            return failures
+        for job in jobs:
+            job["programs"] = job_programs(job)
+        tasks = pack_jobs(jobs, workers)
+        log(
+            f"{len(jobs)} jobs in {len(tasks)} tasks for {workers} processes (rows that "
+            f"share a compiled program in one), "
+            f"{len({p for j in jobs for p in j['programs']})} distinct programs"
+        )
+        ctx = multiprocessing.get_context("spawn")
+        reported: set[int] = set()
+        with (
+            ctx.Manager() as manager,
+            concurrent.futures.ProcessPoolExecutor(workers, mp_context=ctx) as pool,
+        ):
+            outcomes = manager.Queue()
+            futures = {pool.submit(run_jobs, task, outcomes): task for task in tasks}
+            while len(reported) < len(jobs):
                 try:
-                    finished(job, run_job(job))
-                except Exception as exc:  # one broken run must not end a sweep of hours
-                    finished(job, exc=exc)
-        else:
-            ctx = multiprocessing.get_context("spawn")
-            with concurrent.futures.ProcessPoolExecutor(workers, mp_context=ctx) as pool:
-                futures = {pool.submit(run_job, job): job for job in jobs}
-                for fut in concurrent.futures.as_completed(futures):
-                    try:
-                        finished(futures[fut], fut.result())
-                    except Exception as exc:
-                        finished(futures[fut], exc=exc)
+                    outcome = outcomes.get(timeout=1.0)
+                except queue_lib.Empty:
+                    # Everything a finished task put is in the queue already: all done
+                    # and empty means the rest died with their process.
+                    if all(f.done() for f in futures):
+                        break
+                    continue
+                reported.add(outcome["index"])
+                report(outcome)
+            for fut, task in futures.items():
+                exc = fut.exception()
+                why = f"{type(exc).__name__}: {exc}" if exc else "no result from its process"
+                for job in task:
+                    if job["index"] not in reported:
+                        reported.add(job["index"])
+                        finished(job, error=why)
     return failures
 
 

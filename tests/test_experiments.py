@@ -517,3 +517,37 @@ def test_smoke_sweep_writes_every_study_with_finite_numbers(tmp_path):
     assert after["train"]["resumed_from"] == 2
     for k, v in before.items():
         np.testing.assert_allclose(after["metrics"][k], v, rtol=1e-5, err_msg=k)
+
+
+# --------------------------------------------------------------------------------------
+# Packing rows into worker processes, and the device benchmark (issue 32 items 3-4)
+# --------------------------------------------------------------------------------------
+
+
+def test_rows_sharing_a_program_are_packed_into_one_process(tmp_path, test_preset, base):
+    runs = st.plan(test_preset, base)
+    jobs = runner.make_jobs(
+        runs, tmp_path, data_dir=tmp_path, preset_name="test", eval_meshes=1, progress=False
+    )
+    for job in jobs:
+        job["programs"] = runner.job_programs(job)
+    tasks = runner.pack_jobs(jobs, 2)
+    assert sorted(j["label"] for t in tasks for j in t) == sorted(j["label"] for j in jobs)
+    where = {j["label"]: i for i, t in enumerate(tasks) for j in t}
+    # The dropout rows with dropout on share one step program, as do Alter, 2-Phase and
+    # U-FE (the phase without the FE term): one process each.
+    assert where["dropout/dr_0.2"] == where["dropout/dr_0.35"] == where["dropout/dr_0.5"]
+    assert where["scheme/alter"] == where["scheme/2-phase"] == where["scheme/u-fe"]
+    steps = {p for j in jobs for p in j["programs"] if p.startswith("step:")}
+    models = {p for j in jobs for p in j["programs"] if p.startswith("model:")}
+    assert len(steps) < sum(1 for j in jobs for p in j["programs"] if p.startswith("step:"))
+    assert len(models) < len(jobs)
+    # No task takes more than an even share of the sweep, and the largest comes first.
+    total = sum(j["cost"] for j in jobs) + runner.COMPILE_COST_STEPS * len(steps | models)
+
+    def cost(task):
+        progs = {p for j in task for p in j["programs"]}
+        return sum(j["cost"] for j in task) + runner.COMPILE_COST_STEPS * len(progs)
+
+    assert all(cost(t) <= total / 2 for t in tasks)
+    assert [cost(t) for t in tasks] == sorted((cost(t) for t in tasks), reverse=True)
