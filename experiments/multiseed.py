@@ -5,10 +5,11 @@ tiny operations. `seeds_step` wraps `dmd_jax.train.shared_train_step` (the libra
 train step with loss weights, dropout rate and phase as traced arguments) in `jax.vmap`
 over a leading *seeds* axis of the state, the batch and the dropout key, so the seeds of
 a row run as one program with operations `n_seeds` times larger; rows that differ only
-in those traced values share that program (one compile per padded shape). Nothing else about training changes: each seed keeps its own parameter-init key
-(`train.seed`), its own data order, noise and rotations (`pipeline.training_batch` at its
-own seed), its own dropout keys and its own Adam state; the batches of all seeds are
-padded to one common bucket so that they stack. Seed `s` trained here follows the same
+in those traced values share that program (one compile per padded shape). Nothing else
+about training changes: each seed keeps its own parameter-init key (`train.seed`), its
+own data order, noise and rotations (`pipeline.training_batch` at its own seed), its own
+dropout keys and its own Adam state; the batches of all seeds are padded to one common
+bucket so that they stack. Seed `s` trained here follows the same
 steps as `dmd_jax.train.train` with `train.seed = s`, up to the order of float sums
 (`tests/test_multiseed.py`).
 
