@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
 PYTEST_WORKERS ?= 2
 
-.PHONY: install test test-slow lint format bench bench-inference bench-inference-scale bench-training ablate ablate-quick ablate-smoke sota demo sota-lite calibrate
+.PHONY: install test test-slow lint format bench bench-inference bench-inference-scale bench-training ablate ablate-quick ablate-smoke ablate-gpu bench-device sota demo sota-lite calibrate
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -124,3 +124,15 @@ ablate-quick: $(STAMP)
 ablate-smoke: $(STAMP)
 	$(BIN)/python -m experiments run --preset test --out out/ablate-smoke \
 		--data-dir out/ablate-smoke-data
+
+# The whole sweep on one GPU (every study, 3 seeds, the paper's schedule scaled to about an
+# hour: the gpu preset, dmd_jax/config.py), into experiments/results/gpu/.
+ablate-gpu: $(STAMP)
+	$(BIN)/python -m experiments run --preset gpu
+	$(BIN)/python -m experiments index
+
+# Training steps/s (small, paper) and denoise time at 1M and 10M faces on the device JAX
+# sees, into experiments/results/device_bench/ (tiny sizes on CPU; SIZE=full forces the
+# real ones, SIZE=tiny shrinks them anywhere).
+bench-device: $(STAMP)
+	$(BIN)/python -m experiments.device_bench $(if $(SIZE),--size $(SIZE))

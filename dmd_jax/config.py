@@ -870,11 +870,61 @@ def _test() -> ExperimentConfig:
     )
 
 
-PRESETS = {"paper": _paper, "small": _small, "test": _test}
+def _gpu() -> ExperimentConfig:
+    """The paper's architecture at width 128: the `gpu` ablation sweep, about an hour.
+
+    `python -m experiments run --preset gpu` (`make ablate-gpu`) trains every study with
+    3 seeds (side by side, one program per row): 31 distinct rows, 27 at `steps` and the
+    4 depth rows at 10/3 of it (the paper's 200 against 60 epochs), i.e. 27 x 1,200 +
+    4 x 4,000 = 48,400 row steps of batch 4.
+
+    Step cost, measured with `python -m experiments.device_bench --size full` on this
+    repository's 2 shared CPU cores (load 5-9, 2026-12-02; CPU seconds per step, which a
+    loaded machine inflates less than wall time): `small` (width 32, batch 2, padded to
+    5,120 vertices) 0.47 s, `paper` (width 512, batch 4, 10,240 vertices) 17.2 s. Per
+    padded vertex, t(W) = a + b W^2 through both: a = 8.5e-5 s, b = 6.1e-9 s, so width
+    128 costs 1.85e-4 s per vertex; a batch of 4 meshes of 900-1,000 vertices pads to
+    4,096, so one seed's step is 0.76 s and a row's (3 seeds) 2.3 s of CPU.
+
+    GPU assumption: one H100/H200-class GPU runs these f32 gather/scatter and width-128
+    matmul kernels 50x faster than the 2 cores, with a floor of 10 ms a step (a few
+    hundred fused kernels and the host's batch): a row step takes max(2.3 / 50, 0.01)
+    = 46 ms, so the 48,400 row steps take 37 min. Compilation: 26 distinct train-step
+    programs and 15 models (init and predictor) once rows share programs
+    (`train.step_program_key`; 33 and 31 without), at an assumed 40 s and 20 s each,
+    22 min of CPU, about half of it hidden behind the other worker's training (2 workers
+    on one GPU). Data (228 meshes on 16 cores), calibration, references and the noise
+    and rotation evaluations: about 6 min. Total: about 37 + 11 + 6 = 54 min. `device_bench` on the
+    GPU measures the two assumptions (steps/s of `small` and `paper`); rescale `steps`
+    by its ratio to them if they are off.
+
+    The learning rate is the cpu preset's (5e-4, cosine, 50 warm-up steps): the paper's
+    constant 1e-4 is tuned for 150,000 steps, not 1,200.
+    """
+    return ExperimentConfig(
+        name="gpu",
+        model=ModelConfig(width=128, fe_two_streams=2, depth=2, variant="fgt8"),
+        loss=LossConfig(feature_curvature="asinh"),
+        train=TrainConfig(
+            steps=1200,
+            batch_size=4,
+            lr=5e-4,
+            schedule="cosine",
+            warmup_steps=50,
+            eval_every=0,
+            ckpt_every=200,
+            ckpt_keep=1,
+            log_every=20,
+        ),
+        data=DataConfig(target_vertices=1000),
+    )
+
+
+PRESETS = {"paper": _paper, "small": _small, "test": _test, "gpu": _gpu}
 
 
 def preset(name: str) -> ExperimentConfig:
-    """The named preset (`paper`, `small` or `test`) as an `ExperimentConfig`."""
+    """The named preset (`paper`, `small`, `test` or `gpu`) as an `ExperimentConfig`."""
     if name not in PRESETS:
         raise ValueError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}")
     return PRESETS[name]()

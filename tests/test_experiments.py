@@ -551,3 +551,34 @@ def test_rows_sharing_a_program_are_packed_into_one_process(tmp_path, test_prese
 
     assert all(cost(t) <= total / 2 for t in tasks)
     assert [cost(t) for t in tasks] == sorted((cost(t) for t in tasks), reverse=True)
+
+
+# One preset and one mesh size: ~35 s of CPU, two thirds of it compiling (both presets
+# and both sizes, `python -m experiments.device_bench` on CPU: ~65 s).
+def test_device_bench_runs_tiny_sizes_on_cpu(tmp_path):
+    from experiments import device_bench
+
+    report = device_bench.run("auto", presets=("paper",), faces=(2_000,), out_dir=tmp_path)
+    assert report["size"] == "tiny" and report["platform"] == "cpu"
+    assert [t["preset"] for t in report["training"]] == ["paper"]
+    assert report["training"][0]["width"] == 8
+    for t in report["training"]:
+        assert t["finite"] and t["steps_per_s"] > 0 and t["compiles"] == 1
+        assert len(t["weights_sha256"]) == 16
+    (inf,) = report["inference"]
+    assert inf["finite"] and inf["faces"] >= 2_000 and inf["median_s"] > 0
+    assert len(report["inference_weights"]["sha256"]) == 16 and report["commit"]
+    md = (tmp_path / "cpu-tiny.md").read_text()
+    assert "steps/s" in md and report["device"] in md
+    assert json.loads((tmp_path / "cpu-tiny.json").read_text())["commit"] == report["commit"]
+
+
+def test_the_gpu_preset_is_the_whole_sweep_with_three_seeds():
+    p = st.get_preset("gpu")
+    runs = st.plan(p, st.base_config(p))
+    assert {r.study for r in runs} == set(st.STUDY_KEYS) and p.seeds == (0, 1, 2)
+    rows = {runner.seedless_hash(r.config): r for r in runs}
+    steps = sorted(r.config.train.steps for r in rows.values())
+    # The sizing in dmd_jax.config._gpu: 27 rows at 1,200 steps, the 4 depth rows at 4,000.
+    assert steps == [1200] * 27 + [4000] * 4
+    assert {r.config.model.width for r in rows.values()} == {128}
