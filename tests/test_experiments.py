@@ -429,7 +429,7 @@ def test_aggregating_the_papers_own_numbers_agrees_with_the_paper(tmp_path, test
     # paper.
     assert sorted(summary["missing"]) == ["encoding", "head", "rotation"]
     index = agg.write_index(tmp_path.parent)
-    assert "Preset `test`" in index.read_text()
+    assert "preset `test`" in index.read_text()  # each section: "## `<dir>/`: preset `test`"
 
 
 def test_reversed_numbers_report_the_disagreements(tmp_path, test_preset, base):
