@@ -157,8 +157,9 @@ def test_rows_differing_in_weights_dropout_and_scheme_compile_one_program(
 
     monkeypatch.setattr(multiseed, "_SEEDS_PROGRAMS", {})
     rows = [
-        _tiny(model={"dropout": 0.2}, train={"scheme": "u_fe"}),
-        _tiny(model={"dropout": 0.35}, loss={"vertex": 1.0, "normal": 1.0, "chamfer": 1.0}),
+        # Chamfer off in both (the blockwise matching is most of what there is to compile).
+        _tiny(model={"dropout": 0.2}, loss={"chamfer": 0.0}, train={"scheme": "u_fe"}),
+        _tiny(model={"dropout": 0.35}, loss={"vertex": 1.0, "normal": 1.0, "chamfer": 0.0}),
     ]
     phases = ["all", "rest"]  # U-FE's phase and Alter's second phase
     with _Compiles("step") as compiles:
