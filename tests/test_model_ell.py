@@ -16,7 +16,8 @@ from conftest import icosphere, shared_mesh_path, tetrahedron
 from test_inference import TINY_CONFIG, tiny_params
 from test_model import FAST_COMPILE, random_params
 
-from dmd_jax import checkpoints, inference, ops
+from dmd_jax import checkpoints, ops
+from dmd_jax import graph as graph_module
 from dmd_jax.config import preset, variant_config
 from dmd_jax.graph import (
     batch_mesh_graphs,
@@ -192,7 +193,7 @@ def test_denoise_ell_matches_segment_sum(small_bundle, monkeypatch):
         built.append(graph.n_vertex)
         return with_ell_layout(graph, **kwargs)
 
-    monkeypatch.setattr(inference, "with_ell_layout", spy)
+    monkeypatch.setattr(graph_module, "with_ell_layout", spy)
     ell = denoise(v, f, small_bundle)
     assert len(built) == 1  # the default builds the layouts...
     seg = denoise(v, f, small_bundle, aggregation="segment_sum")
@@ -253,7 +254,7 @@ def test_denoise_auto_falls_back_to_the_edge_lists_where_a_table_is_mostly_paddi
         built.append(out)
         return out
 
-    monkeypatch.setattr(inference, "with_ell_layout", spy)
+    monkeypatch.setattr(graph_module, "with_ell_layout", spy)
     auto = denoise(v, f, small_bundle)
     assert built[-1].vertex_ell is None and built[-1].face_ell is not None
     forced = denoise(v, f, small_bundle, aggregation="ell")

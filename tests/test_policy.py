@@ -112,7 +112,7 @@ def test_bad_policy_sections_are_named(tmp_path):
         ({"max_passes": 0}, "max_passes must be an integer >= 1"),
         ({"max_passes": 65}, "max_passes must be at most 64"),
         ({"pass_tolerance": -0.1}, "pass_tolerance must be a finite number >= 0"),
-        ({"pass_tolerance": float("inf")}, "pass_tolerance must be a finite"),
+        ({"pass_tolerance": float("inf")}, "pass_tolerance: expected a finite number"),
         ({"presmooth_start": -1.0}, "presmooth_start must be a finite number >= 0"),
         ({"presmooth_start": 1e9}, "presmooth_start is a roughness in degrees"),
         ({"presmooth_per_step": 0.0}, "presmooth_per_step must be a finite number > 0"),

@@ -314,7 +314,7 @@ def test_quality_table_matches_sota_lite():
         if not line.startswith("|") or cells[0] not in names:
             continue
         s, level = names[cells[0]], cells[1]
-        (row,) = [r for r in means if (r["set"], r["σ / mean edge"]) == (s, level)]
+        (row,) = [r for r in means if (r["set"], r["noise"]) == (s, level)]
         best = min(LIBRARY.values(), key=lambda m: number(row[m]))
         meshes = [k for k in cases if k[:2] == (s, level)]
         beaten = sum(any(cases[k][m] < cases[k]["dmd"] for m in LIBRARY) for k in meshes)
