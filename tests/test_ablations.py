@@ -150,6 +150,7 @@ def test_the_program_key_keeps_what_changes_the_program():
     assert v["keep_prob"] == 0.8
 
 
+@pytest.mark.slow  # measured 15-50 s on 2 idle cores; `make test-slow` runs it
 def test_rows_differing_in_weights_dropout_and_scheme_compile_one_program(
     tiny_examples, monkeypatch
 ):

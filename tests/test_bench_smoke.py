@@ -112,6 +112,7 @@ def test_fit_exponent_is_the_log_log_slope():
     assert inference.fit_exponent(rows[:2]) is None
 
 
+@pytest.mark.slow  # measured 15-50 s on 2 idle cores; `make test-slow` runs it
 def test_inference_measure_and_report(tmp_path):
     rows = [
         inference.measure("test", n, repeat=1, budget_s=0.0, pymeshlab=n == 200) for n in (200, 800)

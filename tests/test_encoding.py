@@ -307,6 +307,7 @@ def _bundled_local():
     return bundle
 
 
+@pytest.mark.slow  # measured 15-50 s on 2 idle cores; `make test-slow` runs it
 def test_bundled_model_denoises_two_resolutions_alike(shared_meshes):
     """fandisk and its midpoint subdivision (the same surface, 4x the faces, half the edge
     length) at the same noise in edge units come out with similar normal errors; the
@@ -342,6 +343,7 @@ def test_bundled_model_leaves_a_clean_mesh_nearly_unchanged(shared_meshes):
     assert np.linalg.norm(out - v, axis=1).max() < 1.0 * mean_edge_length(v, f)
 
 
+@pytest.mark.slow  # measured 12-20 s on 2 idle cores; `make test-slow` runs it
 def test_bilateral_pre_filter_ell_path_equals_edge_lists():
     from dmd_jax.graph import with_ell_layout
 
@@ -400,6 +402,7 @@ def test_head_consistency_needs_the_normal_head():
         ModelConfig(encoding="local", head="offset", head_consistency=True)
 
 
+@pytest.mark.slow  # measured 15-50 s on 2 idle cores; `make test-slow` runs it
 def test_grafted_consistency_head_starts_as_the_trained_model():
     import dmd_jax
     from dmd_jax.checkpoints import ModelBundle, graft_params

@@ -555,6 +555,7 @@ def test_rows_sharing_a_program_are_packed_into_one_process(tmp_path, test_prese
 
 # One preset and one mesh size: ~35 s of CPU, two thirds of it compiling (both presets
 # and both sizes, `python -m experiments.device_bench` on CPU: ~65 s).
+@pytest.mark.slow  # measured 15-50 s on 2 idle cores; `make test-slow` runs it
 def test_device_bench_runs_tiny_sizes_on_cpu(tmp_path):
     from experiments import device_bench
 

@@ -108,6 +108,7 @@ def _batch_signatures(cfg, examples) -> set:
     return signatures
 
 
+@pytest.mark.slow  # measured 15-50 s on 2 idle cores; `make test-slow` runs it
 def test_nan_crash_then_resume_is_bit_identical_to_an_uninterrupted_run(tmp_path):
     # One test, not several sharing fixtures: pytest-xdist deals consecutive tests to
     # different workers, and each would then pay for the reference run again.

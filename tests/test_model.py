@@ -355,6 +355,7 @@ def test_variant_forward_grad_and_permutation_equivariance(cfg):
 # --------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow  # measured 12-20 s on 2 idle cores; `make test-slow` runs it
 def test_batch_equals_each_mesh_alone():
     # MT has the most per-mesh state: two W_tf per mesh, plus the STN matrix and the
     # attention softmax (per receiver).

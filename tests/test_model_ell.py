@@ -135,7 +135,15 @@ def test_attention_aggregator_ignores_ell():
     )
 
 
-@pytest.mark.parametrize("variant", ["fgt8", "fgt3", "fgt_1s"])
+@pytest.mark.parametrize(
+    "variant",
+    # fgt3 and fgt_1s take ~20 s each: `make test-slow`.
+    [
+        "fgt8",
+        pytest.param("fgt3", marks=pytest.mark.slow),
+        pytest.param("fgt_1s", marks=pytest.mark.slow),
+    ],
+)
 def test_dmdnet_forward_and_gradient_match_segment_sum(variant):
     # fgt8 is the `test` preset (FE, transformer, two-stream denoiser); fgt3 feeds the
     # transformer 3 columns; fgt_1s runs single-stream networks (no face graph use).

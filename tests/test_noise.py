@@ -337,6 +337,7 @@ def test_sampler_without_new_options_is_unchanged():
         assert s.direction == "isotropic" and s.level > 0
 
 
+@pytest.mark.slow  # measured 12-20 s on 2 idle cores; `make test-slow` runs it
 def test_unit_noise_draws_do_not_depend_on_the_rows_drawn():
     """`unit_noise` draws a power-of-two row count and slices; the first rows of a draw
     are the same however many rows are drawn, so that rounding changes no value."""

@@ -79,7 +79,20 @@ def test_notebook_needs_no_shared_data(name):
     assert not re.search(r"shared/|SHARED_MESHES|shared_mesh", source)
 
 
-@pytest.mark.parametrize("name", NOTEBOOKS)
+# The four heaviest notebooks (15-40 s each on 2 idle cores) run with `make test-slow`
+# and `make notebooks`; the default suite executes the other three.
+HEAVY_NOTEBOOKS = {
+    "03_geometry_and_features",
+    "04_noise_models",
+    "05_feature_guided_transformer",
+    "07_bundled_model_layer_by_layer",
+}
+
+
+@pytest.mark.parametrize(
+    "name",
+    [pytest.param(n, marks=pytest.mark.slow) if n in HEAVY_NOTEBOOKS else n for n in NOTEBOOKS],
+)
 def test_notebook_executes(name, tmp_path):
     if name in runner.NEEDS_WEIGHTS and (reason := runner.weights_available()):
         pytest.skip(reason)

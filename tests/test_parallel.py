@@ -466,6 +466,7 @@ TRAIN_LOOP_SCRIPT = textwrap.dedent(
 )
 
 
+@pytest.mark.slow  # measured 15-50 s on 2 idle cores; `make test-slow` runs it
 def test_train_loop_data_parallel_on_two_devices(tmp_path):
     env = dict(os.environ, JAX_PLATFORMS="cpu")
     flags = "--xla_force_host_platform_device_count=2"

@@ -97,7 +97,7 @@ PERTURB_CASES = [
     pytest.param(TINY_LOCAL, id="fgt8-local-normal", marks=SLOW),
     pytest.param(dict(TINY_LOCAL, stn=True, variant="mt"), id="mt-stn"),
     # Taubin candidates reach 2 rings a λ|μ pair, farther than 3 dual pre-filter passes.
-    pytest.param(dict(TINY_LOCAL, taubin_iterations=4), id="taubin-candidates"),
+    pytest.param(dict(TINY_LOCAL, taubin_iterations=4), id="taubin-candidates", marks=SLOW),
     # One pair is kept after 1 and 2 pairs (snapshots stay distinct): the reach is 2 pairs.
     pytest.param(dict(TINY_LOCAL, taubin_iterations=1), id="taubin-one-pair", marks=SLOW),
     pytest.param(dict(TINY, encoding="xyz", head="offset"), id="fgt8-xyz-offset", marks=SLOW),

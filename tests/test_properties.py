@@ -155,6 +155,7 @@ def check_permutation_equivariance(bundle, mesh, seed):
     np.testing.assert_allclose(out, base[perm], rtol=0, atol=1e-6 * _extent(v))
 
 
+@pytest.mark.slow  # measured 12-20 s on 2 idle cores; `make test-slow` runs it
 @FEW
 @given(mesh=meshes())
 def test_denoise_finite_and_shaped(bundle, mesh):

@@ -176,6 +176,7 @@ def test_train_and_evaluate_is_the_old_cli_assembly(tmp_path, run_data):
         np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.slow  # measured 15-50 s on 2 idle cores; `make test-slow` runs it
 def test_train_and_evaluate_fine_tunes_from_init_from(tmp_path, run_data):
     from dmd_jax.checkpoints import save_weights
     from dmd_jax.data.training_sets import training_sets
@@ -246,6 +247,7 @@ def test_hooks_see_every_step_and_a_stop_checkpoints(tmp_path):
         train.StopAfter(0)
 
 
+@pytest.mark.slow  # measured 15-50 s on 2 idle cores; `make test-slow` runs it
 def test_resume_reads_a_config_json_written_before_new_fields(tmp_path):
     """A run whose `config.json` predates a setting resumes; one whose recorded setting
     differs from this run's does not."""
