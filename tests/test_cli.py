@@ -650,6 +650,7 @@ def test_export_weights_says_which_step(capsys, tmp_path):
         np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.slow  # measured 18-26 s on 2 idle cores; `make test-slow` runs it
 def test_train_init_from_weights_file_or_checkpoint(tmp_path):
     """`train --init-from` (`train.init_params_from`) takes a weights file or a checkpoint;
     settings without parameters (vertex iterations, pass tolerance) may differ, parameter

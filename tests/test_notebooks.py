@@ -79,10 +79,11 @@ def test_notebook_needs_no_shared_data(name):
     assert not re.search(r"shared/|SHARED_MESHES|shared_mesh", source)
 
 
-# The four heaviest notebooks (15-40 s each on 2 idle cores) run with `make test-slow`
-# and `make notebooks`; the default suite executes the other three.
+# The five heaviest notebooks (15-40 s each on 2 idle cores) run with `make test-slow`
+# and `make notebooks`; the default suite executes the other two.
 HEAVY_NOTEBOOKS = {
     "03_geometry_and_features",
+    "06_denoise_walkthrough",
     "04_noise_models",
     "05_feature_guided_transformer",
     "07_bundled_model_layer_by_layer",

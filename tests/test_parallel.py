@@ -225,6 +225,7 @@ CONFIGS = [
             "train": {"batch_size": 3},
         },
         id="denoiser-only",
+        marks=pytest.mark.slow,  # ~30 s on 2 idle cores
     ),
     pytest.param(
         {"model": {"dtype": "float64"}, "train": {"batch_size": 3}},

@@ -95,7 +95,7 @@ TINY_LOCAL = dict(TINY, encoding="local", head="normal", filter_iterations=3, ve
 SLOW = pytest.mark.slow
 PERTURB_CASES = [
     pytest.param(TINY_LOCAL, id="fgt8-local-normal", marks=SLOW),
-    pytest.param(dict(TINY_LOCAL, stn=True, variant="mt"), id="mt-stn"),
+    pytest.param(dict(TINY_LOCAL, stn=True, variant="mt"), id="mt-stn", marks=SLOW),
     # Taubin candidates reach 2 rings a λ|μ pair, farther than 3 dual pre-filter passes.
     pytest.param(dict(TINY_LOCAL, taubin_iterations=4), id="taubin-candidates", marks=SLOW),
     # One pair is kept after 1 and 2 pairs (snapshots stay distinct): the reach is 2 pairs.
