@@ -180,9 +180,10 @@ display(HTML(viewer.to_html(include_plotlyjs=True, full_html=False)))
 # the feature-preserving methods keep them. The noise of section 2 is drawn per
 # coordinate, so it also has a tangential part, which BNF's normal-driven vertex update
 # does not remove (nor does DMD-Net's network alone), while Taubin's umbrella steps even
-# it out. DMD-Net's default pre-smoothing (docs/benchmarks.md, "The fitted rules") measures how rough
-# the noisy part is (the median angle between neighbouring face normals) and runs a
-# few uniform Laplacian steps before the network; `return_info=True` says how many. The cell below
+# it out. DMD-Net's default pre-smoothing (docs/benchmarks.md, "The fitted rules")
+# measures how rough the noisy part is (the median angle between neighbouring face
+# normals) and runs a few uniform Laplacian steps before the network;
+# `return_info=True` says how many. The cell below
 # measures the error on the faces along the clean part's creases (a dihedral angle
 # over 30°) and on the rest: DMD-Net is lowest of the three on both and BNF highest;
 # the network alone (`presmooth=0`) is far behind on both, and the tangential
