@@ -100,10 +100,11 @@ def worker(preset: str, n_face: int, mode: str, mesh_dir: Path, budget: str) -> 
         # The patch path forced, sized from the same budget (`memory_plan.plan` would
         # take the whole-mesh path where it fits); the weights' own pass policy.
         vv, ff = dmd_jax.mesh.validate_mesh(v, f)
+        budget_bytes = memory_plan.parse_memory(budget)
         out, stats = patch_runner.denoise_patches(
-            vv, ff, bundle, bundle.policy, "auto", memory_plan.parse_memory(budget)
+            vv, ff, bundle, bundle.policy, "auto", budget_bytes
         )
-        info = SimpleNamespace(path="patches", budget_bytes=memory_plan.parse_memory(budget))
+        info = SimpleNamespace(path="patches", budget_bytes=budget_bytes)
         info.__dict__.update(stats._asdict())
     else:
         out, info = dmd_jax.denoise(v, f, bundle, max_memory=10**15, return_info=True)

@@ -21,22 +21,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from dmd_jax import protocol
+
 ROOT = Path(__file__).resolve().parents[1]
 README = (ROOT / "README.md").read_text()
 RESULTS = ROOT / "benchmarks" / "results"
 # The README's prose and tables (code blocks removed), whitespace collapsed.
 PROSE = " ".join(re.sub(r"```.*?```", " ", README, flags=re.S).split())
-# sota_lite method keys of the library's denoisers (MeshLab's filters are references).
+# sota_lite method keys of the library's denoisers and their labels (MeshLab's filters
+# are references; DMD-Net is the one compared), from the protocol's registry.
 LIBRARY = {
-    "laplacian": "Laplacian",
-    "taubin": "Taubin",
-    "bmd": "BMD",
-    "nifp": "NIFP",
-    "fefp": "FEFP",
-    "bnf": "BNF",
-    "gnf": "GNF",
-    "l0": "L0",
-    "cnr": "CNR",
+    m: protocol.label(m)
+    for m in protocol.benchmark_methods()
+    if m not in (*protocol.REFERENCE_METHODS, "dmd")
 }
 
 

@@ -195,10 +195,8 @@ def _best(errs: dict[str, float], methods: list[str]) -> str:
 
 def _margin(errs: dict[str, float], methods: list[str]) -> str:
     """DMD-Net's error minus the best other library denoiser's (negative: DMD-Net wins)."""
-    if "dmd" not in methods:
-        return ""
-    others = [m for m in methods if m not in ("noisy", "dmd", "dmd_x2") and m not in REFERENCE]
-    if not others:
+    others = _others(methods)
+    if "dmd" not in methods or not others:
         return ""
     return f"{errs['dmd'] - min(errs[m] for m in others):+.2f}"
 
