@@ -33,7 +33,7 @@ import numpy as np
 from dmd_jax.config import ExperimentConfig
 from dmd_jax.graph import build_mesh_graph, pad_mesh_graph, padded_sizes_for
 from dmd_jax.io import atomic_write
-from dmd_jax.policy import DenoisePolicy, from_legacy_model_fields
+from dmd_jax.policy import DenoisePolicy, from_legacy_model_fields, trained_policy
 
 WEIGHTS_FORMAT = "dmd_jax-weights"
 # 2: a `policy` section beside the config (2026-12-02). 1: the rules inside the model config.
@@ -44,8 +44,8 @@ PRETRAINED_NAME = "dmd_small.msgpack"
 
 class ModelBundle(NamedTuple):
     """Trained params with the config that built them, where they came from, and the
-    policy `denoise` runs them with (the default policy for a training checkpoint:
-    one pass, no pre-smoothing, no relaxation)."""
+    policy `denoise` runs them with (for a training checkpoint, `policy.trained_policy`:
+    the passes the run trained, no pre-smoothing, no relaxation)."""
 
     params: Any
     config: ExperimentConfig
@@ -344,7 +344,7 @@ def as_bundle(params=None, config: ExperimentConfig | None = None) -> ModelBundl
             "raw params need their config: pass config=..., or use load_pretrained() / "
             "load_weights() which carry it"
         )
-    return ModelBundle(params=params, config=config, meta={})
+    return ModelBundle(params=params, config=config, meta={}, policy=trained_policy(config))
 
 
 def load_model(path=None) -> ModelBundle:
@@ -356,7 +356,8 @@ def load_model(path=None) -> ModelBundle:
         newest step, see `load_params`).
 
     Returns:
-      A `ModelBundle`; for a checkpoint its meta is `{"source": str(path)}`.
+      A `ModelBundle`; for a checkpoint its meta is `{"source": str(path)}` and its
+      policy `policy.trained_policy(config)`.
 
     Raises:
       FileNotFoundError: the bundled weights or `path` are missing.
@@ -367,7 +368,9 @@ def load_model(path=None) -> ModelBundle:
     path = Path(path)
     if path.is_dir():
         params, config = load_params(path)
-        return ModelBundle(params=params, config=config, meta={"source": str(path)})
+        return ModelBundle(
+            params=params, config=config, meta={"source": str(path)}, policy=trained_policy(config)
+        )
     return load_weights(path)
 
 

@@ -745,7 +745,7 @@ def _cmd_export_weights(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from dmd_jax.checkpoints import load_params, load_weights, save_weights
-    from dmd_jax.policy import DenoisePolicy
+    from dmd_jax.policy import trained_policy
 
     source = Path(args.checkpoint)
     if source.is_file():
@@ -757,7 +757,7 @@ def _cmd_export_weights(args: argparse.Namespace) -> int:
         meta["exported_from"] = str(args.checkpoint)
     else:
         params, cfg = load_params(source)
-        policy = DenoisePolicy()
+        policy = trained_policy(cfg)
         step = _latest_step(source)
         meta = {"source": str(args.checkpoint), "platform": platform.platform()}
         if step is not None:

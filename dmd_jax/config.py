@@ -49,6 +49,9 @@ from dmd_jax.constants import ENCODINGS, FILTER_RANGE_SIGMAS, NOISE_KINDS, local
 VARIANT_NAMES = ("fgt8", "fgt3", "wo_t", "mt", "do_2s", "do_1s", "fgt_1s")
 SCHEMES = ("joint", "alter", "two_phase", "u_fe")
 SCHEDULES = ("constant", "cosine")
+# Network passes a training step may unroll (`TrainConfig.passes`): each costs a forward
+# and backward pass of the whole batch.
+MAX_TRAIN_PASSES = 8
 DTYPES = ("float32", "float64")
 HEADS = ("offset", "normal")
 # How the feature extractor's curvature targets are expressed: the paper's raw values, or
@@ -597,6 +600,13 @@ class TrainConfig(_ConfigMixin):
         (`train.init_params_from`: the same parameter shapes, or a grafted
         `head_consistency` input); the optimizer starts fresh. None: a fresh init. A run
         that resumes from its own checkpoint ignores it.
+      passes: network passes unrolled per training mesh (a weight-shared cascade): pass
+        `k + 1` starts from pass `k`'s output, with no gradient through that input, and
+        every pass's output is scored against the clean mesh (the loss averages the
+        passes' terms). So the network learns to denoise its own output too, and the
+        pass count `denoise` runs is a trained setting (`DenoisePolicy.max_passes`),
+        not a fitted threshold. Evaluation during training runs the same passes. At
+        most `MAX_TRAIN_PASSES`.
     """
 
     lr: float = _static(1e-4)
@@ -619,6 +629,7 @@ class TrainConfig(_ConfigMixin):
     rotate: bool = _static(True)
     seed: int = _static(0)
     init_from: str | None = _static(None)
+    passes: int = _static(1)
 
     @property
     def learning_rate(self) -> float:
@@ -648,6 +659,11 @@ class TrainConfig(_ConfigMixin):
         _check_positive_int("ckpt_keep", self.ckpt_keep)
         _check_positive_int("seed", self.seed, minimum=0)
         _check_path("init_from", self.init_from)
+        _check_positive_int("passes", self.passes)
+        _check(
+            self.passes <= MAX_TRAIN_PASSES,
+            f"passes must be at most {MAX_TRAIN_PASSES}, got {self.passes}",
+        )
 
 
 @struct.dataclass

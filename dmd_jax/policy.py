@@ -109,6 +109,20 @@ class DenoisePolicy(_ConfigMixin):
         return out
 
 
+def trained_policy(config) -> DenoisePolicy:
+    """The policy a network's training implies: the passes it was trained to run.
+
+    A run with `TrainConfig.passes = k` scores the network after each of `k` passes, so
+    `denoise` runs `k` (no tolerance, no pre-smoothing, no relaxation). It is the
+    policy of a training checkpoint and of weights exported from one, until a fitted
+    or edited policy replaces it (`dmd-jax export-weights`).
+
+    Args:
+      config: the run's `ExperimentConfig`.
+    """
+    return DenoisePolicy(max_passes=config.train.passes)
+
+
 def check_count(name: str, value, *, minimum: int = 0, most: int) -> int:
     """`value` as an int if it is a whole number in `[minimum, most]` (a bool is not).
 

@@ -169,9 +169,13 @@ def loss_terms(
 ) -> dict[str, losses.Term]:
     """The loss terms (sums and counts) of one padded group of meshes.
 
+    With `cfg.train.passes` above 1 the network runs that many times, each pass on the
+    last one's output (gradient stopped there), and the terms of every pass are added:
+    their means are the loss averaged over the passes.
+
     Args:
       model: `DMDNet(cfg.model)`.
-      cfg: the experiment config (how feature targets are expressed).
+      cfg: the experiment config (how feature targets are expressed, the passes).
       params: the model's params.
       noisy, clean: `[n_vertex, 3]` in the frame of the model's encoding.
       graph: the group's padded `MeshGraph`.
@@ -179,32 +183,42 @@ def loss_terms(
       rng: dropout key, or None (deterministic).
     """
     deterministic = rng is None
-    out, feats, aux = model.apply(
-        {"params": params},
-        noisy,
-        graph,
-        deterministic=deterministic,
-        rngs=None if deterministic else {"dropout": rng},
-    )
     target_feats = None
-    if feats is not None:
-        target_feats = geometry.vertex_features(clean, graph.faces)
-        if cfg.loss.feature_curvature == "asinh":
-            target_feats = target_feats.at[:, 3:].set(jnp.arcsinh(target_feats[:, 3:]))
-    return losses.loss_terms(
-        out,
-        clean,
-        graph.faces,
-        pred_features=feats,
-        target_features=target_feats,
-        weights=loss,
-        # The normal-first head's own prediction, before its vertex update.
-        pred_face_normals=aux.get("face_normals"),
-        vertex_mask=graph.vertex_mask,
-        face_mask=graph.face_mask,
-        vertex_graph=graph.vertex_graph,
-        n_graph=graph.n_graph,
-    )
+    total: dict[str, losses.Term] = {}
+    x = noisy
+    for k in range(cfg.train.passes):
+        out, feats, aux = model.apply(
+            {"params": params},
+            x,
+            graph,
+            deterministic=deterministic,
+            rngs=None
+            if deterministic
+            else {"dropout": rng if k == 0 else jax.random.fold_in(rng, k)},
+        )
+        if feats is not None and target_feats is None:
+            target_feats = geometry.vertex_features(clean, graph.faces)
+            if cfg.loss.feature_curvature == "asinh":
+                target_feats = target_feats.at[:, 3:].set(jnp.arcsinh(target_feats[:, 3:]))
+        terms = losses.loss_terms(
+            out,
+            clean,
+            graph.faces,
+            pred_features=feats,
+            target_features=target_feats,
+            weights=loss,
+            # The normal-first head's own prediction, before its vertex update.
+            pred_face_normals=aux.get("face_normals"),
+            vertex_mask=graph.vertex_mask,
+            face_mask=graph.face_mask,
+            vertex_graph=graph.vertex_graph,
+            n_graph=graph.n_graph,
+        )
+        total = terms if not total else jax.tree.map(jnp.add, total, terms)
+        # The next pass learns to denoise this output as given: no gradient flows back
+        # through it (a cascade of one shared network, as `denoise` runs it).
+        x = jax.lax.stop_gradient(out)
+    return total
 
 
 def make_train_step(cfg: ExperimentConfig, phase: str, mesh: Mesh) -> Callable:
@@ -497,7 +511,10 @@ class Trainer:
 
     # ---------------------------------------------------------------- eval
     def _predict(self, params, noisy, graph):
+        # The passes the run trains (`TrainConfig.passes`); features of the first.
         out, feats, _ = self.model.apply({"params": params}, noisy, graph, deterministic=True)
+        for _ in range(self.cfg.train.passes - 1):
+            out, _, _ = self.model.apply({"params": params}, out, graph, deterministic=True)
         return out, feats
 
     def predict(self, params: dict, batch: Batch):

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import icosphere
 from test_inference import TINY_CONFIG, tiny_params
 
 import dmd_jax
@@ -219,3 +220,18 @@ def test_large_offsets_with_a_stray_vertex_denoise_as_at_the_origin(reference, b
     np.testing.assert_array_equal(out[-1], [0.0, 0.0, 0.0])
     # float64 holds the offset to ~1e-16 relative: 1e-9 of an edge at 1e7.
     np.testing.assert_allclose(out[:-1] - shift, expected, atol=1e-5)
+
+
+def test_a_run_trained_for_k_passes_is_run_for_k_passes():
+    """Raw params with their config (as a checkpoint gives them) carry the policy their
+    training implies: `TrainConfig.passes` passes, no tolerance, no pre-smoothing."""
+    from dmd_jax.policy import DenoisePolicy, trained_policy
+
+    cfg = TINY_CONFIG.with_edits({"train": {"passes": 3}})
+    assert trained_policy(cfg) == DenoisePolicy(max_passes=3)
+    bundle = checkpoints.as_bundle(tiny_params(), cfg)
+    assert bundle.policy == DenoisePolicy(max_passes=3)
+    assert checkpoints.as_bundle(tiny_params(), TINY_CONFIG).policy == DenoisePolicy()
+    v, f = icosphere(2)
+    _, info = dmd_jax.denoise(v, f, bundle, return_info=True)
+    assert info.passes == 3

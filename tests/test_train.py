@@ -317,3 +317,68 @@ def test_training_sets_read_meshes_without_jax():
     code = "import sys, dmd_jax.data.training_sets; print({'jax', 'flax'} & set(sys.modules))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "set()"
+
+
+# ---------------------------------------------------------------- unrolled passes
+
+
+def _one_group(cfg):
+    examples = pipeline.make_examples([icosphere(1)])
+    batch = pipeline.training_batch(examples, 0, batch_size=1, seed=0, noise=cfg.noise)
+    return jax.tree.map(lambda x: jnp.asarray(x[0]), (batch.noisy, batch.clean, batch.graph))
+
+
+def test_passes_add_each_pass_terms_with_the_gradient_stopped_between_them():
+    """`train.passes=2` scores the network on the noisy mesh and on its own output: the
+    terms are the sums of two one-pass calls, the second fed the first's output, and no
+    gradient reaches the first pass through the second's input."""
+    cfg1 = config.preset("test").with_edits(TINY)
+    cfg2 = cfg1.with_edits({"train": {"passes": 2}})
+    noisy, clean, graph = _one_group(cfg1)
+    model = train.DMDNet(cfg1.model)
+    params = train._init_program(cfg1.model)(
+        {"params": jax.random.PRNGKey(0), "dropout": jax.random.PRNGKey(0)}, noisy, graph
+    )["params"]
+    loss = train.phase_loss(cfg1, "all")
+
+    def one(p, x):
+        return train.loss_terms(model, cfg1, p, x, clean, graph, loss=loss)
+
+    first_out = model.apply({"params": params}, noisy, graph, deterministic=True)[0]
+    by_hand = jax.tree.map(jnp.add, one(params, noisy), one(params, first_out))
+    both = train.loss_terms(model, cfg2, params, noisy, clean, graph, loss=loss)
+    assert set(both) == set(by_hand)
+    for name in both:
+        np.testing.assert_allclose(both[name].total, by_hand[name].total, rtol=1e-5)
+        assert int(both[name].count) == 2 * int(one(params, noisy)[name].count)
+
+    def total(terms):
+        return sum(t.mean() for t in terms.values())
+
+    # The gradient: the first call's own, plus the second's with its input held fixed.
+    grads = jax.grad(
+        lambda p: total(train.loss_terms(model, cfg2, p, noisy, clean, graph, loss=loss))
+    )(params)
+    fixed = jax.lax.stop_gradient(first_out)
+    want = jax.grad(lambda p: total(jax.tree.map(jnp.add, one(p, noisy), one(p, fixed))))(params)
+    for a, b in zip(jax.tree.leaves(grads), jax.tree.leaves(want), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-7)
+
+
+def test_evaluation_runs_the_trained_passes():
+    cfg = config.preset("test").with_edits(TINY).with_edits({"train": {"passes": 3}})
+    noisy, _, graph = _one_group(cfg)
+    trainer = train.Trainer(cfg)
+    params = train._init_program(cfg.model)(
+        {"params": jax.random.PRNGKey(1), "dropout": jax.random.PRNGKey(1)}, noisy, graph
+    )["params"]
+    x = noisy
+    for _ in range(3):
+        x = trainer.model.apply({"params": params}, x, graph, deterministic=True)[0]
+    np.testing.assert_allclose(trainer._predict(params, noisy, graph)[0], x, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("passes", [0, config.MAX_TRAIN_PASSES + 1, 1.5, True])
+def test_passes_are_bounded(passes):
+    with pytest.raises(ValueError, match="passes"):
+        config.preset("test").with_edits({"train": {"passes": passes}})
