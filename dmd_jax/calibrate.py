@@ -352,6 +352,7 @@ def calibrate(
     pass_cases: Sequence[Case] | None = None,
     presmooth_cases: Sequence[Case] | None = None,
     echo: Callable[[str], None] | None = None,
+    fit_passes: bool | None = None,
 ) -> Calibration:
     """Fits the pass tolerance, then the pre-smoothing rule under it.
 
@@ -362,17 +363,25 @@ def calibrate(
       pass_cases, presmooth_cases: the cases to measure (default: the validation split,
         cropped to `protocol.MAX_FACES` and `PRESMOOTH_MAX_FACES` faces).
       echo: progress output.
+      fit_passes: whether to fit the pass tolerance. None: only for a network trained
+        one pass at a time (`TrainConfig.passes == 1`); a network trained as a cascade
+        keeps the passes of its policy (`policy.trained_policy`), and no pass rows are
+        measured.
 
     Returns:
-      A `Calibration`; its `policy` carries both fitted rules.
+      A `Calibration`; its `policy` carries the fitted rules.
     """
-    if pass_cases is None:
-        pass_cases = validation_cases(val_dir)
+    if fit_passes is None:
+        fit_passes = bundle.config is None or bundle.config.train.passes == 1
     if presmooth_cases is None:
         presmooth_cases = validation_cases(val_dir, PRESMOOTH_MAX_FACES)
-    p_rows = pass_rows(pass_cases, bundle, denoise=denoise, echo=echo)
-    policy = fitted_policy(bundle.policy, pass_tolerance=fit_pass_tolerance(p_rows))
-    # The pre-smoothing is measured with the fitted pass rule in force.
+    p_rows, policy = [], bundle.policy
+    if fit_passes:
+        if pass_cases is None:
+            pass_cases = validation_cases(val_dir)
+        p_rows = pass_rows(pass_cases, bundle, denoise=denoise, echo=echo)
+        policy = fitted_policy(policy, pass_tolerance=fit_pass_tolerance(p_rows))
+    # The pre-smoothing is measured with the pass rule in force.
     bundle = bundle._replace(policy=policy)
     s_rows, clean = presmooth_rows(presmooth_cases, bundle, denoise=denoise, echo=echo)
     start, per_step, errs = fit_presmooth(s_rows, clean)

@@ -126,3 +126,18 @@ def test_csv_round_trip(tmp_path, cases):
         s_rows + [[m, "", "clean", "", r, *blank] for m, r in clean.items()],
     )
     assert cal.read_presmooth_csv(tmp_path / "s.csv") == (s_rows, clean)
+
+
+def test_a_cascade_keeps_its_trained_passes(cases):
+    """Weights trained with `train.passes = 2` get only the pre-smoothing rule fitted:
+    no pass rows are measured and the policy keeps its two passes, no tolerance."""
+    from dmd_jax.config import preset
+
+    cfg = preset("test").with_edits({"train": {"passes": 2}})
+    bundle = ModelBundle(params=None, config=cfg, meta={}, policy=DenoisePolicy(max_passes=2))
+    stub = StubDenoiser()
+    fit = cal.calibrate(bundle, denoise=stub, presmooth_cases=cases[:1])
+    assert fit.pass_rows == []
+    assert (fit.policy.max_passes, fit.policy.pass_tolerance) == (2, 0.0)
+    assert fit.policy.presmooths
+    assert len(stub.calls) == len(cal.PRESMOOTH_CONDITIONS) * (MAX_STEPS + 1)

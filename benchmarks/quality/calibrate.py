@@ -4,8 +4,9 @@ A thin script over `dmd_jax.calibrate` (where the method is described): it measu
 pass rule and the pre-smoothing rule of DMD-Net weights on the validation split of
 `../shared/meshes/train`, fits both, writes `results/pass_tolerance.{md,csv}` and
 `results/presmooth_fit.{md,csv}`, prints the fitted `DenoisePolicy` and, with `--out`,
-writes a weights file with the same params and the fitted policy. Never run on the test
-meshes.
+writes a weights file with the same params and the fitted policy. Weights trained as a
+cascade (`train.passes` above 1) keep their trained pass count: only the pre-smoothing
+rule is fitted, and the pass report is left as it is. Never run on the test meshes.
 
 ```bash
 python benchmarks/quality/calibrate.py                     # bundled weights (~20 min, 2 cores)
@@ -161,30 +162,37 @@ def main(argv: list[str] | None = None) -> int:
     from dmd_jax.checkpoints import load_model, save_weights
 
     bundle = load_model(args.weights)
+    # A network trained as a cascade (train.passes > 1) runs its trained passes: only
+    # the pre-smoothing rule is fitted for it.
+    fit_passes = bundle.config.train.passes == 1
     results = Path(args.results)
     pass_csv, presmooth_csv = results / "pass_tolerance.csv", results / "presmooth_fit.csv"
     if args.reuse:
-        p_rows = cal.read_pass_csv(pass_csv)
+        p_rows = cal.read_pass_csv(pass_csv) if fit_passes else []
         s_rows, clean = cal.read_presmooth_csv(presmooth_csv)
-        tolerance = cal.fit_pass_tolerance(p_rows)
+        tolerance = cal.fit_pass_tolerance(p_rows) if fit_passes else None
         start, per_step, errs = cal.fit_presmooth(s_rows, clean)
         policy = cal.fitted_policy(
             bundle.policy, pass_tolerance=tolerance, presmooth=(start, per_step)
         )
     else:
-        fit = cal.calibrate(bundle, args.val_meshes, echo=print)
+        fit = cal.calibrate(bundle, args.val_meshes, echo=print, fit_passes=fit_passes)
         policy, p_rows, s_rows, clean, errs = fit
         tolerance, start, per_step = (
             policy.pass_tolerance,
             policy.presmooth_start,
             policy.presmooth_per_step,
         )
-        write_csv(pass_csv, cal.PASS_HEADER, p_rows)
+        if fit_passes:
+            write_csv(pass_csv, cal.PASS_HEADER, p_rows)
         blank = [""] * (len(PRESMOOTH_CSV_HEADER) - 5)
         clean_rows = [[m, "", "clean", "", r, *blank] for m, r in clean.items()]
         write_csv(presmooth_csv, PRESMOOTH_CSV_HEADER, s_rows + clean_rows)
     weights = args.weights or BUNDLED
-    pass_report(p_rows, tolerance, weights, results / "pass_tolerance.md")
+    if fit_passes:
+        pass_report(p_rows, tolerance, weights, results / "pass_tolerance.md")
+    else:
+        print(f"pass count trained, not fitted: {policy.max_passes} (train.passes)")
     presmooth_report(s_rows, clean, start, per_step, errs, weights, results / "presmooth_fit.md")
     print(f"fitted policy: {policy}")
     if args.out:
