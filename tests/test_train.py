@@ -341,12 +341,20 @@ def test_passes_add_each_pass_terms_with_the_gradient_stopped_between_them():
     )["params"]
     loss = train.phase_loss(cfg1, "all")
 
+    # Jitted: run eagerly, every primitive of the model compiles on its own (~50 s).
+    @jax.jit
     def one(p, x):
         return train.loss_terms(model, cfg1, p, x, clean, graph, loss=loss)
 
-    first_out = model.apply({"params": params}, noisy, graph, deterministic=True)[0]
+    @jax.jit
+    def two(p):
+        return train.loss_terms(model, cfg2, p, noisy, clean, graph, loss=loss)
+
+    first_out = jax.jit(lambda p: model.apply({"params": p}, noisy, graph, deterministic=True)[0])(
+        params
+    )
     by_hand = jax.tree.map(jnp.add, one(params, noisy), one(params, first_out))
-    both = train.loss_terms(model, cfg2, params, noisy, clean, graph, loss=loss)
+    both = two(params)
     assert set(both) == set(by_hand)
     for name in both:
         np.testing.assert_allclose(both[name].total, by_hand[name].total, rtol=1e-5)
@@ -356,11 +364,10 @@ def test_passes_add_each_pass_terms_with_the_gradient_stopped_between_them():
         return sum(t.mean() for t in terms.values())
 
     # The gradient: the first call's own, plus the second's with its input held fixed.
-    grads = jax.grad(
-        lambda p: total(train.loss_terms(model, cfg2, p, noisy, clean, graph, loss=loss))
+    grads = jax.jit(jax.grad(lambda p: total(two(p))))(params)
+    want = jax.jit(
+        jax.grad(lambda p: total(jax.tree.map(jnp.add, one(p, noisy), one(p, first_out))))
     )(params)
-    fixed = jax.lax.stop_gradient(first_out)
-    want = jax.grad(lambda p: total(jax.tree.map(jnp.add, one(p, noisy), one(p, fixed))))(params)
     for a, b in zip(jax.tree.leaves(grads), jax.tree.leaves(want), strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-7)
 
@@ -372,9 +379,10 @@ def test_evaluation_runs_the_trained_passes():
     params = train._init_program(cfg.model)(
         {"params": jax.random.PRNGKey(1), "dropout": jax.random.PRNGKey(1)}, noisy, graph
     )["params"]
+    apply = jax.jit(lambda x: trainer.model.apply({"params": params}, x, graph, deterministic=True))
     x = noisy
     for _ in range(3):
-        x = trainer.model.apply({"params": params}, x, graph, deterministic=True)[0]
+        x = apply(x)[0]
     np.testing.assert_allclose(trainer._predict(params, noisy, graph)[0], x, rtol=1e-5, atol=1e-6)
 
 
