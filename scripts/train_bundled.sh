@@ -12,18 +12,8 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${1:-runs/bundled}
-BIN=${BIN:-.venv/bin}
-REAL=${REAL:-../shared/meshes/train}
-DATA=${DATA:-data/gen_v2}
 mkdir -p "$OUT"
-
-# 190 procedural meshes: 19 categories x 10, seed 2 (128 train, 32 test-intra, 30 test-inter).
-if [ ! -f "$DATA/manifest.json" ]; then
-  "$BIN/python" -c "from dmd_jax.data.dataset import make_dataset; \
-    make_dataset('$DATA', per_category=10, seed=2, workers=2, min_vertices=1000, max_vertices=4000)"
-fi
-
-TRAIN=("$BIN/dmd-jax" train --data "$DATA" --preset small --eval-meshes 8 --real-meshes "$REAL")
+source scripts/recipe_common.sh  # BIN, REAL, DATA (made if missing), TRAIN
 WIDE='noise.edge_levels=[0.05,0.1,0.15,0.2,0.25,0.3,0.4,0.5,0.6,0.8,1.0]'
 BENCH='noise.edge_levels=[0.05,0.1,0.1,0.15,0.2,0.2,0.25,0.3,0.3,0.4,0.5,0.6,0.8,1.0]'
 

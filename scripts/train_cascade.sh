@@ -13,16 +13,8 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${1:-runs/cascade}
-BIN=${BIN:-.venv/bin}
-REAL=${REAL:-../shared/meshes/train}
-DATA=${DATA:-data/gen_v2}
 mkdir -p "$OUT"
-if [ ! -f "$DATA/manifest.json" ]; then
-  "$BIN/python" -c "from dmd_jax.data.dataset import make_dataset; \
-    make_dataset('$DATA', per_category=10, seed=2, workers=2, min_vertices=1000, max_vertices=4000)"
-fi
-
-TRAIN=("$BIN/dmd-jax" train --data "$DATA" --preset small --eval-meshes 8 --real-meshes "$REAL")
+source scripts/recipe_common.sh  # BIN, REAL, DATA (made if missing), TRAIN
 COMMON=(train.passes=2 train.warmup_steps=50 train.seed=5 loss.normal=3.0 loss.face_normal=3.0
   noise.p_normal=0.8 model.filter_iterations=120)
 BENCH='noise.edge_levels=[0.05,0.1,0.1,0.15,0.2,0.2,0.25,0.3,0.3,0.4,0.5,0.6,0.8,1.0]'
