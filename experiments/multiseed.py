@@ -127,15 +127,17 @@ def seeds_step(cfg: ExperimentConfig, phase: str) -> SeedsStep:
     return SeedsStep(_SEEDS_PROGRAMS[key], step_values(cfg, phase))
 
 
-# One evaluation `Trainer` per model config (dropout left out: evaluation runs the model
-# deterministic), so the rows and seeds of one model share its compiled predictor.
+# One evaluation `Trainer` per model config and trained pass count (dropout left out:
+# evaluation runs the model deterministic), so the rows and seeds of one model share its
+# compiled predictor.
 _EVAL_TRAINERS: dict[str, Trainer] = {}
 
 
 def eval_trainer(cfg: ExperimentConfig) -> Trainer:
-    """A `Trainer` whose `predict` serves every config with `cfg`'s model (any dropout)."""
+    """A `Trainer` whose `predict` serves every config with `cfg`'s model (any dropout)
+    and `cfg`'s `train.passes` (the passes evaluation runs)."""
     model = cfg.model.with_edits({"dropout": 0.0})
-    key = json.dumps(model.to_dict(), sort_keys=True)
+    key = json.dumps([model.to_dict(), cfg.train.passes], sort_keys=True)
     if key not in _EVAL_TRAINERS:
         _EVAL_TRAINERS[key] = Trainer(cfg.with_edits({"model": {"dropout": 0.0}}))
     return _EVAL_TRAINERS[key]

@@ -135,3 +135,15 @@ def test_sweep_trains_a_rows_seeds_together_and_resumes_one_seed(tmp_path):
     assert after["train"]["resumed_from"] == 2 and after["train"]["group_seeds"] == 1
     for k, v in before["metrics"].items():
         np.testing.assert_allclose(after["metrics"][k], v, rtol=1e-5, err_msg=k)
+
+
+def test_eval_trainer_is_shared_per_model_and_pass_count():
+    """Rows of one model share an evaluation predictor only when they train the same
+    number of passes: evaluation runs a row's `train.passes`."""
+    from dmd_jax.config import preset
+    from experiments.multiseed import eval_trainer
+
+    cfg = preset("test")
+    assert eval_trainer(cfg) is eval_trainer(cfg.with_edits({"model": {"dropout": 0.1}}))
+    two = eval_trainer(cfg.with_edits({"train": {"passes": 2}}))
+    assert two is not eval_trainer(cfg) and two.cfg.train.passes == 2
