@@ -401,6 +401,93 @@ def paired_bootstrap(
     return float(d.mean()), float(low), float(high)
 
 
+# Detectability: the power a difference must be found with, and the most seeds a row can
+# take on two CPU cores (a 5-seed cpu-offset sweep is about two 3-hour sessions; 20 seeds
+# is four times that, a week of sessions at most).
+POWER = 0.8
+AFFORDABLE_SEEDS = 20
+
+
+def variance_components(diff) -> tuple[float, float, float]:
+    """Seed, mesh and residual variances of paired differences (crossed random effects).
+
+    `diff[s, m] = mu + a_s + b_m + e_sm` with independent seed effects `a` (what the
+    training's randomness adds), mesh effects `b` (which test meshes a row helps) and a
+    residual `e`; the method-of-moments (two-way ANOVA) estimates, clipped at 0. With one
+    seed the seed effect cannot be told from the residual: both are returned as 0 and the
+    whole spread goes to the meshes.
+
+    Args:
+      diff: `[n_seeds, n_meshes]` (a 1-D array is one seed).
+
+    Returns:
+      `(var_seed, var_mesh, var_residual)`.
+    """
+    d = np.atleast_2d(np.asarray(diff, np.float64))
+    n_s, n_m = d.shape
+    if d.size == 0:
+        raise ValueError("variance_components needs at least one difference")
+    if n_m < 2:
+        return 0.0, 0.0, float(d.var(ddof=1)) if n_s > 1 else 0.0
+    if n_s < 2:
+        return 0.0, float(d[0].var(ddof=1)), 0.0
+    seed_means, mesh_means = d.mean(1), d.mean(0)
+    resid = d - seed_means[:, None] - mesh_means[None, :] + d.mean()
+    ms_e = float((resid**2).sum() / ((n_s - 1) * (n_m - 1)))
+    ms_s = n_m * float(seed_means.var(ddof=1))
+    ms_m = n_s * float(mesh_means.var(ddof=1))
+    return max(0.0, (ms_s - ms_e) / n_m), max(0.0, (ms_m - ms_e) / n_s), ms_e
+
+
+def _z(level: float, power: float) -> float:
+    from statistics import NormalDist
+
+    return NormalDist().inv_cdf(1 - (1 - level) / 2) + NormalDist().inv_cdf(power)
+
+
+def detectable_difference(
+    components: tuple[float, float, float],
+    n_seeds: int,
+    n_meshes: int,
+    *,
+    level: float = CONFIDENCE,
+    power: float = POWER,
+) -> float:
+    """The smallest true mean difference a sweep of `n_seeds` x `n_meshes` finds.
+
+    A two-sided `level` interval excludes 0 with probability `power` when the true
+    difference is `(z_{1-alpha/2} + z_power) * SE`, with the standard error of the grand
+    mean under crossed random effects `SE^2 = v_s / S + v_m / M + v_e / (S M)`
+    (`variance_components`). At 95 % and 80 % power the factor is 2.80.
+    """
+    v_s, v_m, v_e = components
+    se2 = v_s / n_seeds + v_m / n_meshes + v_e / (n_seeds * n_meshes)
+    return _z(level, power) * math.sqrt(se2)
+
+
+def seeds_needed(
+    components: tuple[float, float, float],
+    n_meshes: int,
+    difference: float,
+    *,
+    level: float = CONFIDENCE,
+    power: float = POWER,
+) -> float:
+    """Seeds for `detectable_difference` to reach `|difference|` with `n_meshes` meshes.
+
+    Returns:
+      The smallest seed count (at least 1), or `math.inf` when the mesh-to-mesh spread of
+      `n_meshes` test meshes alone keeps the detectable difference above it (more seeds
+      cannot help; more test meshes could).
+    """
+    v_s, v_m, v_e = components
+    target = (abs(float(difference)) / _z(level, power)) ** 2
+    room = target - v_m / n_meshes
+    if room <= 0:
+        return math.inf
+    return float(max(1, math.ceil((v_s + v_e / n_meshes) / room - 1e-12)))
+
+
 def verdict(low: float, high: float, paper_sign: float | None) -> str:
     """What an interval of `row - reference` (lower error is better) says.
 
@@ -466,10 +553,16 @@ def study_intervals(study: st.Study, records: dict[str, list[dict]]) -> list[dic
             if not np.all(np.isfinite(diff)):
                 continue
             mean, low, high = paired_bootstrap(diff)
-            sign = None
+            comps = variance_components(diff)
+            n_s, n_m = diff.shape
+            sign = claim = None
             if row in paper and ref in paper and key in pcols:
                 i = pcols.index(key)
                 sign = float(np.sign(paper[row][i] - paper[ref][i]))
+                # The paper's difference as a fraction of its reference row, applied to
+                # ours: its meshes, noise and units are not ours, its relative claim is.
+                ours = float(np.mean([b[s] for s in seeds])) * scale
+                claim = (paper[row][i] - paper[ref][i]) / paper[ref][i] * ours
             out.append(
                 {
                     "row": row,
@@ -482,6 +575,12 @@ def study_intervals(study: st.Study, records: dict[str, list[dict]]) -> list[dic
                     "verdict": verdict(low, high, sign),
                     "n_seeds": len(seeds),
                     "n_meshes": int(diff.shape[1]),
+                    # With one seed the seed spread is unknown: no detectability.
+                    "mdd": detectable_difference(comps, n_s, n_m) if n_s > 1 else None,
+                    "claim": claim,
+                    "seeds_needed": (
+                        seeds_needed(comps, n_m, claim) if n_s > 1 and claim else None
+                    ),
                 }
             )
     return out
@@ -539,6 +638,83 @@ def verdict_text(study: st.Study, intervals: list[dict]) -> str:
             if text:
                 parts.append(f"{name}: {text}.")
     return head + " ".join(parts) + "\n"
+
+
+def detectability_text(study: st.Study, intervals: list[dict]) -> str:
+    """What the study's sweep could have found, in one paragraph (`study_intervals`).
+
+    The smallest detectable difference per column (median over the study's rows) and,
+    for the paper's claimed differences scaled to our errors, how many are within reach
+    of the seeds run, of `AFFORDABLE_SEEDS`, of more, or of no seed count at all.
+    """
+    ivs = [iv for iv in intervals if iv.get("mdd") is not None]
+    if not ivs:
+        return ""
+    n_s = min(iv["n_seeds"] for iv in ivs)
+    n_m = min(iv["n_meshes"] for iv in ivs)
+    per_col = []
+    for key, _, _ in interval_keys(study):
+        values = [iv["mdd"] for iv in ivs if iv["column"] == key]
+        if values:
+            per_col.append(f"{_short(key)} {fmt(float(np.median(values)))}")
+    text = (
+        f"*{study.title}*, smallest detectable differences (found by a {CONFIDENCE:.0%} "
+        f"interval with {POWER:.0%} power, from the seed-to-seed and mesh-to-mesh spread "
+        f"of {n_s} seeds × {n_m} test meshes; median over the rows, table units): "
+        f"{', '.join(per_col)}."
+    )
+    claims = [iv for iv in ivs if iv.get("seeds_needed") is not None]
+    if claims:
+        need = [iv["seeds_needed"] for iv in claims]
+        now = sum(n <= iv["n_seeds"] for n, iv in zip(need, claims, strict=True))
+        afford = sum(
+            iv["n_seeds"] < n <= AFFORDABLE_SEEDS for n, iv in zip(need, claims, strict=True)
+        )
+        more = sum(AFFORDABLE_SEEDS < n < math.inf for n in need)
+        never = sum(n == math.inf for n in need)
+        finite = [n for n in need if n < math.inf]
+        # The interval excludes the paper's own size of effect (in its direction).
+        ruled_out = sum(
+            (iv["high"] < iv["claim"]) if iv["claim"] > 0 else (iv["low"] > iv["claim"])
+            for iv in claims
+        )
+        text += (
+            f" The paper's {len(claims)} differences, each as a fraction of its reference "
+            f"row applied to ours: {now} detectable with the {n_s} seeds run, {afford} with "
+            f"at most {AFFORDABLE_SEEDS}, {more} only with more, {never} with no seed count "
+            f"on these {n_m} test meshes (their mesh-to-mesh spread alone exceeds the "
+            "difference)"
+            + (f"; median seeds needed where finite: {int(np.median(finite))}" if finite else "")
+            + f". {ruled_out} of {len(claims)} intervals exclude the paper's size of effect: "
+            "a difference that large is ruled out on this recipe."
+        )
+    return text + "\n"
+
+
+def detectability_markdown(study: st.Study, intervals: list[dict]) -> str:
+    """Per (row, column): the detectable difference and the seeds the paper's claim needs."""
+    ivs = [iv for iv in intervals if iv.get("mdd") is not None]
+    if not ivs:
+        return ""
+    cols = [(k, label) for k, _, label in interval_keys(study)]
+    cells: dict[tuple[str, str], str] = {}
+    for iv in ivs:
+        cell = fmt(iv["mdd"])
+        if iv.get("seeds_needed") is not None:
+            n = iv["seeds_needed"]
+            cell += f" / {fmt(abs(iv['claim']))}: " + ("∞" if n == math.inf else f"{int(n)}")
+        cells[(iv["row"], iv["column"])] = cell
+    rows = [r for r in study.rows if any((r, k) in cells for k, _ in cols)]
+    body = [[r, *(cells.get((r, k), "–") for k, _ in cols)] for r in rows]
+    n_s = min(iv["n_seeds"] for iv in ivs)
+    legend = (
+        f"Detectable difference from **{study.reference}** with {n_s} seeds "
+        f"({CONFIDENCE:.0%} two-sided, {POWER:.0%} power, table units); where the paper "
+        "has both numbers, `/ claim: seeds`: the paper's difference scaled to our "
+        "reference row and the seeds that would detect it with these test meshes (∞: no "
+        "seed count would).\n\n"
+    )
+    return legend + _table(["Model", *(label for _, label in cols)], body)
 
 
 def intervals_markdown(study: st.Study, intervals: list[dict]) -> str:
@@ -905,10 +1081,12 @@ def aggregate(out_dir) -> dict[str, Any]:
         table = study_markdown(study, rows, reference, classic)
         cmp = compare_with_paper(study, rows)
         intervals = study_intervals(study, records[study.key])
-        verdict_line = verdict_text(study, intervals)
+        verdict_line = verdict_text(study, intervals) + detectability_text(study, intervals)
         text = verdict_line + comparison_text(study, rows, cmp, reference, classic)
         if intervals:
             table += "\n" + intervals_markdown(study, intervals)
+            detect = detectability_markdown(study, intervals)
+            table += ("\n" + detect) if detect else ""
         paper = (
             f"The paper's table (`{study.paper_table}`):\n\n{paper_markdown(study)}\n"
             if study.paper_table
