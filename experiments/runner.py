@@ -537,7 +537,8 @@ def _train_members(job: dict, members: list[dict], train_ex, evals, log) -> None
     their seeds side by side (`multiseed.train_seeds`), and writes one per member.
 
     Members that resume from different steps (one was trained alone earlier) train in
-    separate groups, each group in one program.
+    separate groups, each group in one program; a group larger than the job's
+    `seeds_together` is split into groups of that size, trained one after the other.
     """
     from dmd_jax.config import ExperimentConfig
     from experiments.multiseed import resume_step, train_seeds
@@ -547,7 +548,13 @@ def _train_members(job: dict, members: list[dict], train_ex, evals, log) -> None
     groups: dict[int, list[dict]] = {}
     for m in todo:
         groups.setdefault(resume_step(out_dir / m["home"]), []).append(m)
-    for start, group in sorted(groups.items()):
+    size = job.get("seeds_together") or len(members) or 1
+    chunks = [
+        (start, group[i : i + size])
+        for start, group in sorted(groups.items())
+        for i in range(0, len(group), size)
+    ]
+    for start, group in chunks:
         cfgs = [ExperimentConfig.from_dict(m["config"]) for m in group]
         homes = [out_dir / m["home"] for m in group]
         t0, c0 = time.time(), time.process_time()
@@ -625,10 +632,15 @@ def run_job(job: dict) -> dict:
         messages.append(msg)
 
     train_ex, evals = load_examples(job["data_dir"], job["eval_meshes"])
-    _train_members(job, job["members"], train_ex, evals, log)
+    members = job["members"]
+    # Each group of seeds is evaluated as soon as it is trained, so a sweep stopped
+    # inside a row keeps (and can commit) the seeds it finished.
+    size = job.get("seeds_together") or len(members) or 1
     trains = []
-    for member in job["members"]:
-        trains.append(_evaluate_member(job, member, evals, log))
+    for i in range(0, len(members), size):
+        group = members[i : i + size]
+        _train_members(job, group, train_ex, evals, log)
+        trains += [_evaluate_member(job, member, evals, log) for member in group]
     return {"label": job["label"], "messages": messages, "train": trains}
 
 
@@ -746,7 +758,14 @@ def seedless_hash(cfg) -> str:
 
 
 def make_jobs(
-    runs: Sequence[st.RunSpec], out_dir: Path, *, data_dir, preset_name, eval_meshes, progress
+    runs: Sequence[st.RunSpec],
+    out_dir: Path,
+    *,
+    data_dir,
+    preset_name,
+    eval_meshes,
+    progress,
+    seeds_together: int | None = None,
 ) -> list[dict]:
     """One job per row (configs equal up to the seed) that still has a run without
     `metrics.json`; its members are the row's seeds (one training hash each)."""
@@ -778,6 +797,7 @@ def make_jobs(
                 "out_dir": str(out_dir),
                 "data_dir": str(data_dir),
                 "eval_meshes": eval_meshes,
+                "seeds_together": seeds_together,
                 "preset": preset_name,
                 "label": f"{first.study}/{st.slug(first.row)}",
                 "members": members,
@@ -856,6 +876,7 @@ def run_sweep(
         preset_name=p.name,
         eval_meshes=p.eval_meshes,
         progress=progress and (workers or p.workers) <= 1,
+        seeds_together=p.seeds_together,
     )
     n_done = len(runs) - sum(len(m["runs"]) for j in jobs for m in j["members"])
     log(

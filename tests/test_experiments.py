@@ -583,3 +583,67 @@ def test_the_gpu_preset_is_the_whole_sweep_with_three_seeds():
     # The sizing in dmd_jax.config._gpu: 27 rows at 1,200 steps, the 4 depth rows at 4,000.
     assert steps == [1200] * 27 + [4000] * 4
     assert {r.config.model.width for r in rows.values()} == {128}
+
+
+def test_the_cpu_offset_preset_is_the_cpu_sweep_with_the_network_doing_the_work():
+    """Issue 32's second recipe: the cpu preset's data, model size and evaluation, with
+    the direct-offset head (the identity before training), 3,000 steps, 5 seeds."""
+    cpu, off = st.get_preset("cpu"), st.get_preset("cpu-offset")
+    assert off.dataset_name == cpu.dataset_name == "cpu"  # the same test meshes
+    assert off.seeds == (0, 1, 2, 3, 4) and off.workers == 2
+    b_cpu, b_off = st.base_config(cpu), st.base_config(off)
+    assert b_cpu.model.head == "normal" and b_off.model.head == "offset"
+    assert b_off.model.replace(head="normal") == b_cpu.model
+    assert (b_off.train.steps, b_off.train.lr) == (3000, 1e-3)
+    assert b_off.data == b_cpu.data and b_off.noise == b_cpu.noise
+    runs = st.plan(off, b_off)
+    assert {r.study for r in runs} == set(st.STUDY_KEYS)
+    assert {r.seed for r in runs} == set(off.seeds)
+    # Rows keep their own head where the study sets one (the head study's normal-first).
+    heads = {(r.study, r.row): r.config.model.head for r in runs}
+    assert heads[("structure", "FGT-8")] == "offset"
+    assert heads[("head", "normal-first")] == "normal"
+
+
+def test_seeds_together_splits_a_row_into_groups_trained_one_after_the_other(
+    tmp_path, monkeypatch, test_preset, base
+):
+    from experiments import multiseed
+
+    runs = [r for r in st.plan(test_preset.with_changes(seeds=(0, 1, 2)), base)]
+    row = [r for r in runs if r.study == "structure" and r.row == "FGT-3"]
+    calls = []
+
+    def fake_train_seeds(cfgs, train_ex, homes, **kwargs):
+        calls.append([c.train.seed for c in cfgs])
+        return [
+            {
+                "status": "ok",
+                "error": None,
+                "step": 2,
+                "resumed_from": 0,
+                "metrics": {},
+                "per_mesh": {},
+                "compiles": 0,
+                "step_times": [0.1],
+            }
+            for _ in cfgs
+        ]
+
+    monkeypatch.setattr(multiseed, "train_seeds", fake_train_seeds)
+    for together, want in ((None, [[0, 1, 2]]), (1, [[0], [1], [2]]), (2, [[0, 1], [2]])):
+        calls.clear()
+        out = tmp_path / f"t{together}"
+        (job,) = runner.make_jobs(
+            row,
+            out,
+            data_dir=tmp_path,
+            preset_name="test",
+            eval_meshes=1,
+            progress=False,
+            seeds_together=together,
+        )
+        assert job["seeds_together"] == together
+        runner._train_members(job, job["members"], [], {}, lambda msg: None)
+        assert calls == want
+        assert all((out / m["home"] / "train_metrics.json").is_file() for m in job["members"])
