@@ -1251,7 +1251,16 @@ of the error reduction is therefore already in the untrained row (`cpu/`, test-i
 normal error: noisy 20.6°, untrained 14.2°, trained base 11.5°), and rows that change
 only the learnt network's shape (attention, STN, depth, structure) differ by tenths or
 hundredths of a degree: an *undecided* verdict there means "no effect this sweep can
-resolve", not a failed run.
+resolve", not a failed run. Each verdict paragraph is followed by what the sweep could
+have found: the smallest detectable difference (95 % interval, 80 % power) and the seeds
+the paper's own difference, scaled to our reference row, would need; on `cpu/` most of
+the paper's structure, depth, attention and STN differences were within reach of 3 seeds
+and their intervals exclude a difference of the paper's size (docs/ablations.md).
+
+`cpu-offset/` is the second base recipe, where the network does the work: `cpu` with the
+direct-offset head (the identity before training), 3,000 steps at lr 1e-3, 5 seeds per
+row (`make ablate ABLATE_PRESET=cpu-offset`). About 17 hours of two cores: it is filled
+over several sessions, seed-major, and its README says which studies and seeds are done.
 
 ## How these sweeps differ from the paper, and how to read them
 
@@ -1278,9 +1287,10 @@ resolve", not a failed run.
   centre; the three losses are taken in that frame, vertex per coordinate like the other
   tables. A network that changes nothing is exactly equivariant, so the table also gives
   each model's denoising error.
-* Seeds and intervals: the `cpu` and `cpu-quick` presets train every row at 3 seeds
-  (parameter init, data order, noise and dropout keys), a row's seeds side by side as
-  one program (`experiments.multiseed`). Every model is scored on the same noisy test
+* Seeds and intervals: the `cpu` and `cpu-quick` presets train every row at 3 seeds,
+  `cpu-offset` at 5 (parameter init, data order, noise and dropout keys), a row's seeds
+  side by side as one program (`experiments.multiseed`; `cpu-offset` one seed after the
+  other, `AblatePreset.seeds_together`). Every model is scored on the same noisy test
   meshes (one fixed evaluation key), so a table cell, the mean over seeds and test
   meshes ± the standard deviation of the per-seed means, shows the training's spread.
   Each row's difference from the paper's chosen variant gets a 95 % paired bootstrap
