@@ -317,6 +317,36 @@ _QUICK_STUDIES = ("encoding", "head", "attention", "stn")
 # The cpu-offset preset: the offset head needs 3x the cpu preset's steps to beat Taubin.
 _OFFSET_STEPS = 3000
 
+_CPU = AblatePreset(
+    name="cpu",
+    base="small",
+    edits={
+        "name": "ablate-cpu",
+        # The recipe the recorded rows were trained with; the head study has a row
+        # with the bundled model's Taubin candidates.
+        "model": {"width": 32, "stn_width": 16, "taubin_iterations": 0},
+        "loss": {"feature_curvature": "asinh"},
+        "train": _CPU_TRAIN,
+    },
+    study_edits={},
+    categories=None,
+    test_inter=DEFAULT_TEST_INTER,
+    per_category=6,
+    # Two meshes of 322-383 vertices pad to the 768 bucket, one to 384: one compiled
+    # train step and one predictor per config (the seeds of a row share both).
+    min_vertices=322,
+    max_vertices=383,
+    eval_meshes=None,
+    seeds=(0, 1, 2),
+    workers=2,
+    dataset_workers=2,
+    description=(
+        f"CPU sweep: width 32, {_CPU_TRAIN['steps']} steps of batch 2 (lr 5e-4, cosine), "
+        "3 seeds per row trained together, 80 training meshes of 322-383 vertices, all "
+        "34 test meshes"
+    ),
+)
+
 PRESETS: dict[str, AblatePreset] = {
     "test": AblatePreset(
         name="test",
@@ -340,59 +370,14 @@ PRESETS: dict[str, AblatePreset] = {
         dataset_workers=1,
         description="smoke sweep: width 8, 2 steps per run, 1 test mesh per split",
     ),
-    "cpu": AblatePreset(
-        name="cpu",
-        base="small",
-        edits={
-            "name": "ablate-cpu",
-            # The recipe the recorded rows were trained with; the head study has a row
-            # with the bundled model's Taubin candidates.
-            "model": {"width": 32, "stn_width": 16, "taubin_iterations": 0},
-            "loss": {"feature_curvature": "asinh"},
-            "train": _CPU_TRAIN,
-        },
-        study_edits={},
-        categories=None,
-        test_inter=DEFAULT_TEST_INTER,
-        per_category=6,
-        # Two meshes of 322-383 vertices pad to the 768 bucket, one to 384: one compiled
-        # train step and one predictor per config (the seeds of a row share both).
-        min_vertices=322,
-        max_vertices=383,
-        eval_meshes=None,
-        seeds=(0, 1, 2),
-        workers=2,
-        dataset_workers=2,
-        description=(
-            f"CPU sweep: width 32, {_CPU_TRAIN['steps']} steps of batch 2 (lr 5e-4, cosine), "
-            "3 seeds per row trained together, 80 training meshes of 322-383 vertices, all "
-            "34 test meshes"
-        ),
-    ),
-    "cpu-quick": AblatePreset(
+    "cpu": _CPU,
+    "cpu-quick": _CPU.with_changes(
         name="cpu-quick",
-        base="small",
-        edits={
-            "name": "ablate-cpu",
-            # The recipe the recorded rows were trained with; the head study has a row
-            # with the bundled model's Taubin candidates.
-            "model": {"width": 32, "stn_width": 16, "taubin_iterations": 0},
-            "loss": {"feature_curvature": "asinh"},
-            "train": {**_CPU_TRAIN, "steps": _QUICK_STEPS, "warmup_steps": 25},
-        },
-        study_edits={},
-        categories=None,
-        test_inter=DEFAULT_TEST_INTER,
-        per_category=6,
-        min_vertices=322,
-        max_vertices=383,
+        edits={**_CPU.edits, "train": {**_CPU_TRAIN, "steps": _QUICK_STEPS, "warmup_steps": 25}},
         # The first 8 meshes of each test split: 16 meshes x 3 seeds per interval.
         eval_meshes=8,
-        seeds=(0, 1, 2),
-        workers=2,
         dataset="cpu",  # the cpu preset's dataset and calibration, generated once
         studies=_QUICK_STUDIES,
-        dataset_workers=2,
         description=(
             f"first look: the cpu preset at {_QUICK_STEPS} steps, studies "
             f"{', '.join(_QUICK_STUDIES)}, 3 seeds per row, 8 test meshes per split"
@@ -406,27 +391,17 @@ PRESETS: dict[str, AblatePreset] = {
     # its FGT-8 row scored 9.74 / 8.61 degrees (test-intra / test-inter) against
     # Taubin's 11.61 / 9.11; 2,000 steps at 1e-3 or 2e-3 gave 10.2 / 9.7, 1,000 steps at
     # 5e-4 (the cpu head study's offset row) 11.1 / 10.3 (docs/ablations.md).
-    "cpu-offset": AblatePreset(
+    "cpu-offset": _CPU.with_changes(
         name="cpu-offset",
-        base="small",
         edits={
+            **_CPU.edits,
             "name": "ablate-cpu-offset",
-            "model": {"width": 32, "stn_width": 16, "taubin_iterations": 0, "head": "offset"},
-            "loss": {"feature_curvature": "asinh"},
+            "model": {**_CPU.edits["model"], "head": "offset"},
             "train": {**_CPU_TRAIN, "steps": _OFFSET_STEPS, "lr": 1e-3},
         },
-        study_edits={},
-        categories=None,
-        test_inter=DEFAULT_TEST_INTER,
-        per_category=6,
-        min_vertices=322,
-        max_vertices=383,
-        eval_meshes=None,
         seeds=(0, 1, 2, 3, 4),
-        workers=2,
         seeds_together=1,
         dataset="cpu",  # the cpu preset's dataset and calibration: the same test meshes
-        dataset_workers=2,
         description=(
             f"network-does-the-work sweep: the cpu preset with the direct-offset head, "
             f"{_OFFSET_STEPS} steps of batch 2 (lr 1e-3, cosine), 5 seeds per row one after "
