@@ -537,8 +537,8 @@ def _train_members(job: dict, members: list[dict], train_ex, evals, log) -> None
     their seeds side by side (`multiseed.train_seeds`), and writes one per member.
 
     Members that resume from different steps (one was trained alone earlier) train in
-    separate groups, each group in one program; a group larger than the job's
-    `seeds_together` is split into groups of that size, trained one after the other.
+    separate groups, each group in one program. (`run_job` passes the row's seeds in
+    groups of the job's `seeds_together`.)
     """
     from dmd_jax.config import ExperimentConfig
     from experiments.multiseed import resume_step, train_seeds
@@ -548,13 +548,7 @@ def _train_members(job: dict, members: list[dict], train_ex, evals, log) -> None
     groups: dict[int, list[dict]] = {}
     for m in todo:
         groups.setdefault(resume_step(out_dir / m["home"]), []).append(m)
-    size = job.get("seeds_together") or len(members) or 1
-    chunks = [
-        (start, group[i : i + size])
-        for start, group in sorted(groups.items())
-        for i in range(0, len(group), size)
-    ]
-    for start, group in chunks:
+    for start, group in sorted(groups.items()):
         cfgs = [ExperimentConfig.from_dict(m["config"]) for m in group]
         homes = [out_dir / m["home"] for m in group]
         t0, c0 = time.time(), time.process_time()

@@ -631,8 +631,16 @@ def test_seeds_together_splits_a_row_into_groups_trained_one_after_the_other(
         ]
 
     monkeypatch.setattr(multiseed, "train_seeds", fake_train_seeds)
+    monkeypatch.setattr(runner, "load_examples", lambda data_dir, eval_meshes: ([], {}))
+    evaluated = []
+    monkeypatch.setattr(
+        runner,
+        "_evaluate_member",
+        lambda job, member, evals, log: evaluated.append((len(calls), member["home"])),
+    )
     for together, want in ((None, [[0, 1, 2]]), (1, [[0], [1], [2]]), (2, [[0, 1], [2]])):
         calls.clear()
+        evaluated.clear()
         out = tmp_path / f"t{together}"
         (job,) = runner.make_jobs(
             row,
@@ -644,6 +652,12 @@ def test_seeds_together_splits_a_row_into_groups_trained_one_after_the_other(
             seeds_together=together,
         )
         assert job["seeds_together"] == together
-        runner._train_members(job, job["members"], [], {}, lambda msg: None)
+        runner.run_job(job)
         assert calls == want
         assert all((out / m["home"] / "train_metrics.json").is_file() for m in job["members"])
+        # Each group is evaluated right after it is trained, before the next trains.
+        seeds_done = [sum(len(g) for g in calls[:n]) for n, _ in evaluated]
+        assert seeds_done == [
+            sum(len(g) for g in want[: 1 + next(i for i, g in enumerate(want) if k in g)])
+            for k in range(3)
+        ]
