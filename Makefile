@@ -107,7 +107,8 @@ sota: $(STAMP)
 
 # The paper's ablation studies (experiments/): every study at $(ABLATE_PRESET) (cpu: 29
 # rows x 3 seeds of 1000 steps, each row's seeds trained together, sized for <= 3 h on two
-# free cores; paper: for a GPU). Reruns skip finished runs and resume interrupted ones;
+# free cores; cpu-offset: the direct-offset head, where the network does the work, 5 seeds,
+# about 17 h over several sessions; paper: for a GPU). Reruns skip finished runs and resume interrupted ones;
 # results and tables go to experiments/results/$(ABLATE_PRESET)/.
 ABLATE_PRESET ?= cpu
 ablate: $(STAMP)
