@@ -401,9 +401,9 @@ def paired_bootstrap(
     return float(d.mean()), float(low), float(high)
 
 
-# Detectability: the power a difference must be found with, and the most seeds a row can
-# take on two CPU cores (a 5-seed cpu-offset sweep is about two 3-hour sessions; 20 seeds
-# is four times that, a week of sessions at most).
+# Detectability: the power a difference must be found with, and the seed count called
+# affordable (four times the 5-seed cpu-offset sweep, itself about 17 h of two CPU cores:
+# more than that is a job for a device).
 POWER = 0.8
 AFFORDABLE_SEEDS = 20
 
