@@ -246,3 +246,75 @@ def test_sota_lite_per_shape_and_region_tables_from_rows():
     # Only a.obj is CAD: crease 5.5 against CNR's 5.0, flat 0.5 against BNF's 1.0.
     assert "| shared | 0.2 | 1 | 5.50 | 5.00 (CNR) | +0.50 | 0.50 | 1.00 (BNF) | -0.50 |" in regions
     assert "CAD meshes: `shared`: a.obj." in regions
+
+
+def test_policy_headroom_strategies_from_rows():
+    from benchmarks.quality import policy_headroom as ph
+
+    R = ph.RULE
+
+    def rows(mesh, errs, rule=(2, 1)):
+        # errs: {(presmooth, passes): error}; the policy's own row is (rule, rule).
+        return [[mesh, "gaussian", 0.2, 7, p, k, e, *rule] for (p, k), e in errs.items()]
+
+    data = rows("a.obj", {(R, R): 4.0, (0, R): 3.0, (4, R): 5.0, (R, 2): 2.0}) + rows(
+        "b.obj", {(R, R): 6.0, (0, R): 6.5, (4, R): 1.0, (R, 2): 7.0}, rule=(0, 1)
+    )
+    s = ph.strategies(data)
+    a, b = ("a.obj", "gaussian", 0.2, 7), ("b.obj", "gaussian", 0.2, 7)
+    assert s["policy"] == {a: 4.0, b: 6.0}
+    # Constant settings: (0, rule) sums 9.5, (4, rule) 6.0, (rule, 2) 9.0.
+    assert s["best constant (presmooth 4, passes rule)"] == {a: 5.0, b: 1.0}
+    assert s["oracle pre-smoothing"] == {a: 3.0, b: 1.0}
+    assert s["oracle passes"] == {a: 2.0, b: 6.0}
+    assert s["oracle both"] == {a: 2.0, b: 1.0}
+    table = ph.summary_table(s, {a: 2.0, b: 2.0})
+    # The policy's ratios 2 and 3: geometric mean sqrt(6); neither within 5 %.
+    assert "| policy | 5.00 / 2.449 / 0 % | 5.00 / 2.449 / 0 % |" in table
+    assert "| oracle both | 1.50 / 0.707 / 100 % |" in table
+    with pytest.raises(ValueError, match="no other denoiser"):
+        ph.summary_table(s, {a: 2.0})
+    chosen = ph.chosen_table(data)
+    # The oracle's pre-smoothing: a 0 (rule 2), b 4 (rule 0); passes a 2, b 1 (rule).
+    assert "| 0.2 | 2 | 1.0 | 2.0 | 0 / 2 | 1.0 | 1.5 |" in chosen
+
+
+def test_policy_headroom_on_one_mesh(tmp_path, weights):
+    import csv
+
+    from benchmarks.common import write_csv
+    from benchmarks.quality import policy_headroom as ph
+
+    mesh = shared_mesh_path("decimated-knight.off")
+    folder = tmp_path / "meshes"
+    folder.mkdir()
+    (folder / mesh.name).symlink_to(mesh)
+    cond = protocol.parse_condition("0.2")
+    seed = protocol.condition_seed(mesh.name, cond)
+    reference = tmp_path / "ref.csv"
+    header = ["set", "mesh", "level", "seed", "method", "normal_deg", "noise"]
+    write_csv(reference, header, [["shared", mesh.name, 0.2, seed, "bnf", 5.0, "gaussian"]])
+    argv = ["--set", "shared", "--meshes", str(folder), "--weights", str(weights)]
+    argv += ["--reference", str(reference), "--conditions", "0.2", "--out-dir", str(tmp_path)]
+    assert ph.main([*argv, "--presmooth", "0", "3", "--passes", "1", "2"]) == 0
+    with open(tmp_path / "policy_headroom.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [(r["presmooth"], r["passes"]) for r in rows] == [
+        ("rule", "rule"),
+        ("0", "rule"),
+        ("3", "rule"),
+        ("rule", "1"),
+        ("rule", "2"),
+    ]
+    # A fixed count equal to the policy's gives the policy's result.
+    rule = rows[0]
+    for r in rows[1:]:
+        if r["presmooth"] == rule["rule_presmooth"] or r["passes"] == rule["rule_passes"]:
+            assert float(r["normal_deg"]) == pytest.approx(float(rule["normal_deg"]), abs=1e-4)
+    report = (tmp_path / "policy_headroom.md").read_text()
+    assert f"(SHA-256 `{file_sha256(weights)}`)" in report
+    assert "| oracle both |" in report and "| policy |" in report
+    # The tables again from the CSV; a reference without the case is an error.
+    assert ph.main([*argv, "--reuse"]) == 0
+    write_csv(reference, header, [["shared", "other.obj", 0.2, seed, "bnf", 5.0, "gaussian"]])
+    assert ph.main([*argv, "--reuse"]) == 2
