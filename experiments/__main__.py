@@ -38,7 +38,13 @@ def _parser() -> argparse.ArgumentParser:
         p.add_argument(
             "--studies", nargs="+", choices=STUDY_KEYS, help="default: the preset's (cpu: all)"
         )
-        p.add_argument("--seeds", nargs="+", type=int, help="training seeds (default: preset's)")
+        p.add_argument(
+            "--seeds",
+            nargs="+",
+            type=int,
+            help="run (or list) only these seeds now (default: the preset's); the tables "
+            "keep every seed of the preset",
+        )
         p.add_argument(
             "--out", type=Path, help="results dir (default experiments/results/<preset>)"
         )
@@ -70,9 +76,9 @@ def _parser() -> argparse.ArgumentParser:
 def _resolve(args):
     from experiments.studies import get_preset
 
+    # `--seeds` chooses what runs now; the preset (and the plan the tables read) keeps
+    # its own seeds too (`runner.run_sweep`).
     p = get_preset(args.preset)
-    if args.seeds:
-        p = p.with_changes(seeds=tuple(args.seeds))
     out = args.out or REPO / "experiments" / "results" / p.name
     data = args.data_dir or REPO / "data" / f"ablate-{p.dataset_name}"
     return p, out, data
@@ -91,6 +97,7 @@ def main(argv=None) -> int:
             out,
             data,
             studies=args.studies,
+            seeds=args.seeds,
             workers=args.workers,
             progress=not args.no_progress,
             aggregate=not args.no_aggregate,
@@ -111,9 +118,13 @@ def main(argv=None) -> int:
         )
         if p.calibrate_curvature and gammas is None:
             print(f"(no calibration in {data} yet: ids below use the paper's gammas)")
+        if args.seeds:
+            p = p.with_changes(seeds=tuple(sorted({*p.seeds, *args.seeds})))
         runs = st.plan(p, st.base_config(p, gammas), args.studies or p.studies)
         homes = st.training_homes(runs)
         for r in runs:
+            if args.seeds and r.seed not in args.seeds:
+                continue
             done = (out / r.study / r.run_id / "metrics.json").is_file()
             home = homes[r.train_hash]
             shared = "" if home is r else f"  (model of {home.study}/{home.run_id})"

@@ -1100,6 +1100,7 @@ def aggregate(out_dir) -> dict[str, Any]:
         summary["studies"][study.key] = {
             "finished_rows": len(finished),
             "rows": len(rows),
+            "seeds_finished": sorted({r["n_seeds"] for r in finished}),
             "table": {r["row"]: {k: v[0] for k, v in r["values"].items()} for r in rows},
             "comparison": cmp,
             "intervals": intervals,
@@ -1207,8 +1208,15 @@ def _preset_readme(out_dir: Path, plan: dict, summary: dict, sections: list[str]
                 )
                 + ")."
             )
+    # Seeds finished per row, by study: "5", or "2–5" when rows differ.
+    done = [
+        (k, str(n[0]) if len(n) == 1 else f"{n[0]}–{n[-1]}")
+        for k, v in summary["studies"].items()
+        if (n := v.get("seeds_finished"))
+    ]
     lines.append(
-        f"* Seeds and intervals: {len(p['seeds'])} seed(s) per row; a cell is the mean over "
+        f"* Seeds and intervals: the preset has {len(p['seeds'])} seed(s) per row; finished "
+        f"per row: {', '.join(f'{k} {n}' for k, n in done) or 'none'}; a cell is the mean over "
         "seeds and test meshes ± the standard deviation of the per-seed means; each row's "
         f"difference from the study's reference row has a {CONFIDENCE:.0%} paired bootstrap "
         f"interval over seeds and test meshes ({BOOTSTRAP_RESAMPLES} resamples, RNG seed "

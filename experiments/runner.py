@@ -811,6 +811,7 @@ def run_sweep(
     data_dir,
     *,
     studies: Sequence[str] | None = None,
+    seeds: Sequence[int] | None = None,
     workers: int | None = None,
     progress: bool = True,
     aggregate: bool = True,
@@ -823,6 +824,9 @@ def run_sweep(
       out_dir: results directory.
       data_dir: dataset cache (generated on first use).
       studies: study keys (default: the preset's, `None` there: all).
+      seeds: run only these seeds now (default: the preset's). The plan (`plan.json`,
+        what the tables are made of) keeps every seed of the preset and adds these, so a
+        sweep run seed by seed, over sessions, aggregates all of them.
       workers: parallel training processes (default: the preset's).
       progress: progress bars.
       aggregate: write the tables, plots and README afterwards.
@@ -830,6 +834,9 @@ def run_sweep(
     """
     p = st.get_preset(p) if isinstance(p, str) else p
     studies = studies or p.studies
+    if seeds:
+        seeds = tuple(int(x) for x in seeds)
+        p = p.with_changes(seeds=tuple(sorted({*p.seeds, *seeds})))
     apply_xla_opt_level(p.xla_opt_level)
     if (workers or p.workers) > 1:
         # The worker processes share one accelerator: each preallocating most of its
@@ -841,7 +848,10 @@ def run_sweep(
     out_dir, data_dir = Path(out_dir), Path(data_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     log = _Log(out_dir / "ablate.log", echo)
-    log(f"preset {p.name}: {p.description}; studies {', '.join(studies or st.STUDY_KEYS)}")
+    log(
+        f"preset {p.name}: {p.description}; studies {', '.join(studies or st.STUDY_KEYS)}"
+        + (f"; seeds {', '.join(map(str, seeds))} of {list(p.seeds)}" if seeds else "")
+    )
     ds = ensure_dataset(p, data_dir, progress=progress)
     log(f"dataset {data_dir}: {ds.counts()}")
     train_ex, evals = load_examples(str(data_dir), p.eval_meshes)
@@ -862,7 +872,11 @@ def run_sweep(
             ],
         },
     )
-    runs = [r for r in all_runs if studies is None or r.study in studies]
+    runs = [
+        r
+        for r in all_runs
+        if (studies is None or r.study in studies) and (not seeds or r.seed in seeds)
+    ]
     jobs = make_jobs(
         runs,
         out_dir,

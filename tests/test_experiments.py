@@ -661,3 +661,33 @@ def test_seeds_together_splits_a_row_into_groups_trained_one_after_the_other(
             sum(len(g) for g in want[: 1 + next(i for i, g in enumerate(want) if k in g)])
             for k in range(3)
         ]
+
+
+def test_seeds_run_now_leave_the_plan_with_every_seed(tmp_path, monkeypatch, test_preset):
+    """`run --seeds 2 3` trains only seeds 2 and 3, but plan.json (what the tables are
+    made of) keeps the preset's seeds too, so a sweep run seed by seed aggregates all."""
+    from experiments.__main__ import main
+
+    class Counts:
+        def counts(self):
+            return {}
+
+    jobs_run = []
+    monkeypatch.setattr(runner, "ensure_dataset", lambda p, data_dir, progress=True: Counts())
+    monkeypatch.setattr(runner, "load_examples", lambda data_dir, eval_meshes: ([], {}))
+    monkeypatch.setattr(runner, "ensure_calibration", lambda data_dir, train_ex: None)
+    monkeypatch.setattr(runner, "ensure_references", lambda out_dir, cfg, evals: {})
+    monkeypatch.setattr(
+        runner, "_execute", lambda jobs, workers, log, progress: jobs_run.extend(jobs) or []
+    )
+    preset = test_preset.with_changes(seeds=(0, 1))
+    monkeypatch.setattr(st, "get_preset", lambda name: preset)
+    out = tmp_path / "out"
+    argv = ["run", "--preset", "test", "--studies", "stn", "--seeds", "2", "3"]
+    assert main([*argv, "--out", str(out), "--data-dir", str(tmp_path), "--no-aggregate"]) == 0
+    trained = {r["seed"] for j in jobs_run for m in j["members"] for r in m["runs"]}
+    assert trained == {2, 3}
+    plan = json.loads((out / "plan.json").read_text())
+    assert plan["preset"]["seeds"] == [0, 1, 2, 3]
+    assert {r["seed"] for r in plan["runs"] if r["study"] == "stn"} == {0, 1, 2, 3}
+    assert "seeds 2, 3 of [0, 1, 2, 3]" in (out / "ablate.log").read_text()
