@@ -283,6 +283,9 @@ def test_local_model_gradients_reach_every_parameter(head, variant):
     assert not dead, dead
 
 
+# Slow (30 s on 2 cores): test_properties checks the same property of the bundled local
+# model on random meshes in the default suite.
+@pytest.mark.slow
 def test_denoise_local_model_is_translation_and_scale_equivariant():
     v, f = bumpy_sphere()
     cfg = ExperimentConfig(model=local_config())

@@ -131,6 +131,9 @@ def _leaves(result):
     return jax.tree.leaves(jax.device_get(result["state"].params))
 
 
+# Slow (42 s on 2 cores): a one-time check of the refactor against the old assembly;
+# the CLI and train_and_evaluate tests of the default suite run the path itself.
+@pytest.mark.slow
 def test_train_and_evaluate_is_the_old_cli_assembly(tmp_path, run_data):
     """The refactored path trains exactly what `dmd-jax train` assembled by hand before
     `train_and_evaluate` existed (its code written out here, 2026-12-02): the same
