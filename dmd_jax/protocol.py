@@ -58,6 +58,7 @@ __all__ = [
     "condition_noise",
     "condition_seed",
     "crop",
+    "is_rival",
     "label",
     "mesh_files",
     "noise_seed",
@@ -84,6 +85,14 @@ _DEPRECATED_SHARED_MESHES_ENV = "DMD_SHARED_MESHES"
 # pymeshlab's filters (`dmd_jax.baselines.meshlab`): reference columns of the quality
 # tables, not denoisers of this library (never counted as the best).
 REFERENCE_METHODS = ("meshlab_taubin", "meshlab_two_step")
+
+
+def is_rival(method: str) -> bool:
+    """Whether DMD-Net is rated against `method` in the quality tables: a library
+    denoiser, not the noisy input, MeshLab's references or DMD-Net itself (one pass or
+    `dmd_x2`)."""
+    return method not in ("noisy", "dmd", "dmd_x2", *REFERENCE_METHODS)
+
 
 # Display labels of every method id (and of the noisy input) in reports and tables.
 LABELS = {

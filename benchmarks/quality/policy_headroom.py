@@ -65,8 +65,6 @@ CSV_HEADER = (
     "rule_presmooth",
     "rule_passes",
 )
-# Methods of a sota_lite CSV that DMD-Net is not rated against.
-NOT_RIVALS = ("noisy", "dmd", "dmd_x2", *protocol.REFERENCE_METHODS)
 
 
 def run_mesh(path, bundle, conditions, presmooth, passes, *, max_faces, echo=print):
@@ -140,7 +138,7 @@ def best_others(reference_csv, mesh_set: str) -> dict[tuple, float]:
     best: dict[tuple, float] = {}
     with open(reference_csv) as fh:
         for r in csv.DictReader(fh):
-            if r["set"] != mesh_set or r["method"] in NOT_RIVALS:
+            if r["set"] != mesh_set or not protocol.is_rival(r["method"]):
                 continue
             key = (r["mesh"], r.get("noise", "gaussian"), float(r["level"]), int(r["seed"]))
             best[key] = min(best.get(key, float("inf")), float(r["normal_deg"]))

@@ -214,7 +214,7 @@ def _condition_order(labels) -> list[str]:
 
 def _others(methods) -> list[str]:
     """The library denoisers DMD-Net is rated against (not the input, MeshLab or itself)."""
-    return [m for m in methods if m not in ("noisy", "dmd", "dmd_x2") and m not in REFERENCE]
+    return [m for m in methods if protocol.is_rival(m)]
 
 
 def tables(rows: list[list]) -> tuple[str, str, str]:
