@@ -118,8 +118,7 @@ def main(argv=None) -> int:
         )
         if p.calibrate_curvature and gammas is None:
             print(f"(no calibration in {data} yet: ids below use the paper's gammas)")
-        if args.seeds:
-            p = p.with_changes(seeds=tuple(sorted({*p.seeds, *args.seeds})))
+        p = p.with_seeds(args.seeds)
         runs = st.plan(p, st.base_config(p, gammas), args.studies or p.studies)
         homes = st.training_homes(runs)
         for r in runs:

@@ -834,9 +834,7 @@ def run_sweep(
     """
     p = st.get_preset(p) if isinstance(p, str) else p
     studies = studies or p.studies
-    if seeds:
-        seeds = tuple(int(x) for x in seeds)
-        p = p.with_changes(seeds=tuple(sorted({*p.seeds, *seeds})))
+    p = p.with_seeds(seeds)
     apply_xla_opt_level(p.xla_opt_level)
     if (workers or p.workers) > 1:
         # The worker processes share one accelerator: each preallocating most of its

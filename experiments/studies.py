@@ -273,6 +273,13 @@ class AblatePreset:
     def with_changes(self, **changes) -> AblatePreset:
         return dataclasses.replace(self, **changes)
 
+    def with_seeds(self, seeds: Sequence[int] | None) -> AblatePreset:
+        """This preset planned over its own seeds and `seeds` too (`run --seeds`, which
+        chooses what trains now, never what the tables are made of)."""
+        if not seeds:
+            return self
+        return self.with_changes(seeds=tuple(sorted({*self.seeds, *map(int, seeds)})))
+
     def data_edits(self) -> dict[str, Any]:
         """The `DataConfig` edits that record this preset's dataset in every config."""
         return {
