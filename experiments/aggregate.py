@@ -1335,7 +1335,12 @@ def write_index(results_root, presets: Sequence[str] | None = None) -> Path:
     lines += [NOTES, ""]
     for d in dirs:
         summary = json.loads((d / "summary.json").read_text())
-        done = [k for k, v in summary["studies"].items() if v.get("finished_rows")]
+        # A study with some rows but not all is "not (fully) run", not finished.
+        done = [
+            k
+            for k, v in summary["studies"].items()
+            if v.get("finished_rows") and k not in summary["missing"]
+        ]
         lines += [
             f"## `{d.name}/`: preset `{summary['preset']}` ([README]({d.name}/README.md))",
             "",

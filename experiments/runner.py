@@ -751,6 +751,63 @@ def seedless_hash(cfg) -> str:
     return st.config_hash(cfg.with_edits({"train": {"seed": 0}}))
 
 
+def _evaluation_key(train_hash: str, evaluation: dict) -> str:
+    return train_hash + json.dumps(evaluation, sort_keys=True)
+
+
+def reuse_finished(
+    runs: Sequence[st.RunSpec], sources: Sequence[st.RunSpec], out_dir: Path, log
+) -> list[str]:
+    """Writes the `metrics.json` of every run in `runs` that has none but whose model and
+    evaluation (training hash, evaluation spec) some finished run of `sources` already
+    has: its metrics are those, not a retraining's.
+
+    Within one checkout the runner reuses the trained model (its checkpoints); this
+    reuses the *result*, which is what a fresh checkout has, since checkpoints are not
+    committed. Without it a study whose base row another study already scored retrains
+    it, and the retrained seeds differ from the committed ones (XLA's CPU reductions are
+    not bitwise reproducible across processes), so one row would have two values.
+
+    Returns the `study/run_id` of the runs written.
+    """
+    finished: dict[str, tuple[st.RunSpec, dict]] = {}
+    for r in sources:
+        path = out_dir / r.study / r.run_id / "metrics.json"
+        if path.is_file():
+            finished.setdefault(_evaluation_key(r.train_hash, r.evaluation), (r, _read_json(path)))
+    written = []
+    for r in runs:
+        run_dir = out_dir / r.study / r.run_id
+        if (run_dir / "metrics.json").is_file():
+            continue
+        hit = finished.get(_evaluation_key(r.train_hash, r.evaluation))
+        if hit is None:
+            continue
+        src, record = hit
+        src_rel, rel = f"{src.study}/{src.run_id}", f"{r.study}/{r.run_id}"
+        record = {
+            **record,
+            "study": r.study,
+            "row": r.row,
+            "seed": r.seed,
+            "run_id": r.run_id,
+            "results_of": src_rel,
+        }
+        run_dir.mkdir(parents=True, exist_ok=True)
+        _write_json(run_dir / "config.json", r.config.to_dict())
+        (run_dir / "run.log").write_text(
+            f"run {rel}: study {r.study}, row {r.row!r}, seed {r.seed}\n"
+            f"config hash {r.train_hash}, evaluation {r.evaluation['kind']}: the same "
+            f"model and evaluation as {src_rel}, whose metrics.json this copies "
+            f"(trained in {record.get('trained_in', src_rel)})\n"
+        )
+        _write_json(run_dir / "metrics.json", record)
+        written.append(rel)
+    if written:
+        log(f"{len(written)} runs reuse the results of finished runs (same model, evaluation)")
+    return written
+
+
 def make_jobs(
     runs: Sequence[st.RunSpec],
     out_dir: Path,
@@ -875,6 +932,7 @@ def run_sweep(
         for r in all_runs
         if (studies is None or r.study in studies) and (not seeds or r.seed in seeds)
     ]
+    reuse_finished(runs, all_runs, out_dir, log)
     jobs = make_jobs(
         runs,
         out_dir,

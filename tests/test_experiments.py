@@ -87,6 +87,45 @@ def test_run_ids_are_deterministic_and_equal_settings_train_once(test_preset, ba
     assert (home.study, home.row) == ("scheme", "Joint")
 
 
+def test_a_fresh_checkout_reuses_another_studys_result_instead_of_retraining(
+    tmp_path, test_preset, base
+):
+    # Checkpoints are not committed: in a fresh checkout only metrics.json is there. A
+    # row another study already scored (the shared base model) takes its result.
+    runs = st.plan(test_preset, base)
+    by_row = {(r.study, r.row): r for r in runs}
+    src, dst = by_row[("scheme", "Joint")], by_row[("depth", "DMD-Net 2")]
+    other = by_row[("depth", "DMD-Net 1")]
+    record = {
+        "study": "scheme",
+        "row": "Joint",
+        "run_id": src.run_id,
+        "trained_in": "x/y",
+        "metrics": {"test_intra/normal": 9.5},
+        "per_mesh": {"normal": [9.0, 10.0]},
+        "evaluation": src.evaluation,
+        "status": "ok",
+    }
+    (tmp_path / src.study / src.run_id).mkdir(parents=True)
+    (tmp_path / src.study / src.run_id / "metrics.json").write_text(json.dumps(record))
+    depth = [r for r in runs if r.study == "depth"]
+    written = runner.reuse_finished(depth, runs, tmp_path, lambda m: None)
+    assert written == [f"depth/{dst.run_id}"]
+    got = json.loads((tmp_path / "depth" / dst.run_id / "metrics.json").read_text())
+    assert got["metrics"] == record["metrics"] and got["per_mesh"] == record["per_mesh"]
+    assert (got["study"], got["row"], got["run_id"]) == ("depth", "DMD-Net 2", dst.run_id)
+    assert got["results_of"] == f"scheme/{src.run_id}" and got["trained_in"] == "x/y"
+    assert not (tmp_path / "depth" / other.run_id).exists()
+    jobs = runner.make_jobs(
+        depth, tmp_path, data_dir=tmp_path, preset_name="test", eval_meshes=1, progress=False
+    )
+    assert {j["label"] for j in jobs} == {"depth/dmd-net_1", "depth/dmd-net_3", "depth/dmd-net_4"}
+    # A second call writes nothing; a different evaluation of the same model is not reused.
+    assert runner.reuse_finished(depth, runs, tmp_path, lambda m: None) == []
+    noise = [r for r in runs if r.study == "noise"]
+    assert all(r.evaluation != src.evaluation for r in noise)
+
+
 def test_hash_ignores_the_name_and_sees_every_setting(base):
     assert st.config_hash(base) == st.config_hash(base.with_edits({"name": "other"}))
     assert st.config_hash(base) != st.config_hash(base.with_edits({"train": {"seed": 1}}))
