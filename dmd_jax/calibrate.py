@@ -387,3 +387,259 @@ def calibrate(
     start, per_step, errs = fit_presmooth(s_rows, clean)
     policy = fitted_policy(policy, presmooth=(start, per_step))
     return Calibration(policy, p_rows, s_rows, clean, errs)
+
+
+# --------------------------------------------------------------------------------------
+# The learned pre-smoothing choice
+# --------------------------------------------------------------------------------------
+
+# What the learned choice is fitted on: the *training* split of the real meshes (the
+# validation split stays for choosing and reporting), crops of at most this many faces,
+# these conditions (`protocol.NoiseCondition`; None: the clean mesh, which must get no
+# steps), and the counts the choice picks from (those of
+# `benchmarks/quality/policy_headroom.py`, whose validation rows then score it).
+LEARN_MAX_FACES = 8_000
+LEARN_CONDITIONS = (
+    *(protocol.NoiseCondition(protocol.NOISE_KIND, s) for s in (0.05, 0.1, 0.2, 0.3, 0.45, 0.6)),
+    protocol.NoiseCondition("impulse", 0.3),
+    protocol.NoiseCondition("impulse", 0.6),
+    None,
+)
+LEARN_GRID = (0, 1, 2, 3, 4, 6, 8, 11)
+# The training noise draws differ from the benchmark's of the same mesh and condition.
+LEARN_SEED_OFFSET = 7
+# Neighbour counts tried, chosen by cross-validation over whole training meshes.
+LEARN_NEIGHBOURS = (5, 10, 20, 40)
+LEARN_FOLDS = 5
+LEARN_DECIMALS = 4
+
+
+def learn_header(grid: Sequence[int] = LEARN_GRID) -> tuple[str, ...]:
+    """The columns of `learn_rows`: the case, its features, the rule's steps, the errors."""
+    from dmd_jax.presmooth import FEATURE_NAMES
+
+    return (
+        "mesh",
+        "noise",
+        "level",
+        "seed",
+        *FEATURE_NAMES,
+        "rule_steps",
+        *(f"error_{k}" for k in grid),
+    )
+
+
+def training_cases(train_dir=None, max_faces: int = LEARN_MAX_FACES) -> list[Case]:
+    """The training-split meshes of `train_dir` (default `protocol.validation_dir()`, the
+    folder both splits live in), cropped as `validation_cases` crops."""
+    from dmd_jax.data.real import mesh_files
+    from dmd_jax.io import load_mesh
+
+    folder = protocol.validation_dir() if train_dir is None else train_dir
+    cases = []
+    for path in mesh_files(folder, "train"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            clean, faces = load_mesh(path)
+        clean, faces = protocol.crop(np.asarray(clean, np.float64), faces, max_faces)
+        cases.append(Case(path.name, np.asarray(clean, np.float64), faces))
+    return cases
+
+
+def learn_rows(
+    cases: Sequence[Case],
+    bundle,
+    conditions=LEARN_CONDITIONS,
+    grid: Sequence[int] = LEARN_GRID,
+    *,
+    denoise: Denoiser | None = None,
+    echo: Callable[[str], None] | None = None,
+) -> list[list]:
+    """Per case and condition: the noisy mesh's features, the steps the weights' own
+    rule gives it and the normal error after each count of `grid` (`learn_header`).
+
+    Each count runs `denoise(..., presmooth=k)` (the weights' pass rule after it).
+    """
+    from dmd_jax.presmooth import noise_features
+
+    denoise = denoise or _default_denoiser()
+    rows = []
+    for name, clean, faces in cases:
+        for cond in conditions:
+            if cond is None:
+                kind, level, seed, noisy = "clean", 0.0, 0, clean
+            else:
+                kind, level = cond.kind, float(cond.level)
+                seed = protocol.condition_seed(name, cond) + LEARN_SEED_OFFSET
+                noisy = protocol.condition_noise(clean, faces, cond, seed)
+            _, info = denoise(noisy, faces, bundle, return_info=True)
+            errs = [
+                _normal_error(denoise(noisy, faces, bundle, presmooth=k), clean, faces)
+                for k in grid
+            ]
+            rows.append(
+                [
+                    name,
+                    kind,
+                    level,
+                    seed,
+                    *noise_features(noisy, faces),
+                    info.presmooth_steps,
+                    *errs,
+                ]
+            )
+            if echo:
+                echo(
+                    f"{name} {kind} {level:g}: best {min(errs):.2f}° after "
+                    f"{grid[int(np.argmin(errs))]} steps, rule {info.presmooth_steps}"
+                )
+    return rows
+
+
+def read_learn_csv(path, grid: Sequence[int] = LEARN_GRID) -> list[list]:
+    """`learn_rows`' output back from its CSV (numbers parsed)."""
+    header = learn_header(grid)
+    with open(path, newline="") as fh:
+        reader = csv.DictReader(fh)
+        if tuple(reader.fieldnames or ()) != header:
+            raise ValueError(f"{path}: expected the columns {list(header)}")
+        return [
+            [
+                r["mesh"],
+                r["noise"],
+                float(r["level"]),
+                int(r["seed"]),
+                *(float(r[h]) for h in header[4 : -len(grid) - 1]),
+                int(r["rule_steps"]),
+                *(float(r[h]) for h in header[-len(grid) :]),
+            ]
+            for r in reader
+        ]
+
+
+def _split_rows(rows: Sequence[Sequence], grid: Sequence[int]):
+    n = len(grid)
+    features = np.array([r[4 : -n - 1] for r in rows], np.float64)
+    errors = np.array([r[-n:] for r in rows], np.float64)
+    return features, errors
+
+
+class LearnedPresmooth(NamedTuple):
+    """A fitted learned pre-smoothing choice: the `DenoisePolicy` fields it sets."""
+
+    grid: tuple[int, ...]
+    center: tuple[float, ...]
+    scale: tuple[float, ...]
+    examples: tuple[float, ...]
+    regrets: tuple[float, ...]
+    neighbours: int
+    cv_regret: dict[int, float]  # neighbours -> cross-validated geometric-mean regret
+
+    def policy_fields(self) -> dict:
+        return {
+            "presmooth_grid": self.grid,
+            "presmooth_center": self.center,
+            "presmooth_scale": self.scale,
+            "presmooth_examples": self.examples,
+            "presmooth_regrets": self.regrets,
+            "presmooth_neighbours": self.neighbours,
+        }
+
+    def choose(self, features) -> np.ndarray:
+        """`[n]` chosen counts for `[n, n_features]` features."""
+        return _choose(
+            self.grid,
+            self.center,
+            self.scale,
+            self.examples,
+            self.regrets,
+            self.neighbours,
+            features,
+        )
+
+
+def _choose(grid, center, scale, examples, regrets, neighbours, features) -> np.ndarray:
+    from dmd_jax.presmooth import learned_steps
+
+    return np.array(
+        [learned_steps(f, grid, center, scale, examples, regrets, neighbours) for f in features]
+    )
+
+
+def _standardise(features):
+    center = features.mean(axis=0)
+    scale = features.std(axis=0)
+    return center, np.where(scale > 1e-9, scale, 1.0)
+
+
+def regret_of(errors: np.ndarray, chosen_index: np.ndarray) -> float:
+    """Geometric mean over cases of the chosen count's error over the best count's."""
+    picked = errors[np.arange(len(errors)), chosen_index]
+    return float(np.exp(np.mean(np.log(picked / errors.min(axis=1)))))
+
+
+def fit_learned_presmooth(
+    rows: Sequence[Sequence],
+    grid: Sequence[int] = LEARN_GRID,
+    *,
+    neighbours: Sequence[int] = LEARN_NEIGHBOURS,
+    folds: int = LEARN_FOLDS,
+) -> LearnedPresmooth:
+    """Fits the learned choice on `learn_rows` (the training split).
+
+    Every row becomes an example: its standardised features and the regret of each
+    count, `log(error / best error of the case)` (`presmooth.learned_steps`). The
+    number of neighbours is the one of `neighbours` with the lowest regret of the
+    choice in `folds`-fold cross-validation that holds out whole meshes (a mesh's
+    conditions are never split between the examples and the cases scored).
+
+    Raises:
+      ValueError: fewer meshes than folds, fewer rows than a neighbour count, or an
+        error that is not positive and finite.
+    """
+    grid = tuple(int(k) for k in grid)
+    features, errors = _split_rows(rows, grid)
+    if not (np.all(np.isfinite(errors)) and np.all(errors > 0)):
+        raise ValueError("the errors must be positive and finite")
+    meshes = sorted({r[0] for r in rows})
+    if len(meshes) < folds:
+        raise ValueError(f"{len(meshes)} meshes: cross-validation needs at least {folds}")
+    regrets = np.log(errors / errors.min(axis=1, keepdims=True))
+    fold_of = {m: i % folds for i, m in enumerate(meshes)}
+    fold = np.array([fold_of[r[0]] for r in rows])
+    cv = {}
+    for k in neighbours:
+        if k > int((fold != 0).sum()):
+            raise ValueError(f"{len(rows)} rows are too few for {k} neighbours")
+        chosen = np.zeros(len(rows), int)
+        for f in range(folds):
+            train, test = fold != f, fold == f
+            center, scale = _standardise(features[train])
+            picked = _choose(
+                grid,
+                center,
+                scale,
+                ((features[train] - center) / scale).ravel(),
+                regrets[train].ravel(),
+                k,
+                features[test],
+            )
+            chosen[test] = [grid.index(int(p)) for p in picked]
+        cv[int(k)] = regret_of(errors, chosen)
+    best = min(cv, key=cv.get)
+    center, scale = _standardise(features)
+
+    def stored(x):
+        # Four decimals of standardised features and of log ratios keep the weights
+        # file small; 1e-4 of a standard deviation is far below the features' own noise.
+        return tuple(round(float(v), LEARN_DECIMALS) for v in np.ravel(x))
+
+    return LearnedPresmooth(
+        grid,
+        tuple(map(float, center)),
+        tuple(map(float, scale)),
+        stored((features - center) / scale),
+        stored(regrets),
+        best,
+        cv,
+    )

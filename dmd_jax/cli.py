@@ -247,9 +247,18 @@ def _cmd_denoise(args: argparse.Namespace) -> int:
     if args.presmooth is not None:
         if args.method != "dmd":
             raise ValueError("--presmooth is for --method dmd (the network)")
-        if args.presmooth < 0:
-            raise ValueError(f"--presmooth must be 0 or more steps, got {args.presmooth}")
-        extra["presmooth"] = args.presmooth
+        if args.presmooth != "rule":
+            try:
+                steps = int(args.presmooth)
+            except ValueError:
+                steps = -1
+            if steps < 0:
+                raise ValueError(
+                    f"--presmooth must be 0 or more steps, or 'rule', got {args.presmooth!r}"
+                )
+            extra["presmooth"] = steps
+        else:
+            extra["presmooth"] = "rule"
     pairs = _denoise_inputs(args)
     weights = args.weights
     if args.method == "dmd" and args.out is not None:
@@ -788,6 +797,8 @@ def _edited_policy(policy, args: argparse.Namespace):
     if args.max_passes is not None:
         edits["max_passes"] = args.max_passes
     if args.presmooth is not None:
+        # An explicit rule is the one to run: it replaces a learned choice.
+        policy = policy.with_presmooth_rule()
         edits["presmooth_start"], edits["presmooth_per_step"] = args.presmooth
     if args.relax_steps is not None:
         edits["relax_steps"] = args.relax_steps
@@ -889,11 +900,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--presmooth",
-        type=int,
         default=None,
         metavar="STEPS",
-        help="uniform Laplacian steps before the network (default: the pre-smoothing rule "
-        "stored with the weights, as many steps as the mesh's roughness asks for; 0: none)",
+        help="uniform Laplacian steps before the network (default: the weights' policy "
+        "chooses, from what the noisy mesh looks like; 0: none; 'rule': the roughness "
+        "rule stored with the weights, in place of the learned choice)",
     )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.add_argument(
@@ -1121,7 +1132,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar=("START", "PER_STEP"),
         help="store this pre-smoothing rule in the weights' policy (degrees of roughness: "
         "round((roughness - START) / PER_STEP) steps; fit it with `make calibrate`; "
-        "START 0 turns it off)",
+        "START 0 turns it off), in place of a learned pre-smoothing choice",
     )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.set_defaults(func=_cmd_export_weights)

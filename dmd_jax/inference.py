@@ -34,6 +34,7 @@ from dmd_jax.patch_runner import denoise_patches
 from dmd_jax.policy import (
     MAX_PASSES_LIMIT,
     MAX_RELAX_STEPS,
+    PRESMOOTH_RULE,
     DenoisePolicy,
     check_count,
     presmooth_plan,
@@ -154,7 +155,7 @@ def denoise(
     *,
     policy: DenoisePolicy | None = None,
     iterations: int | None = None,
-    presmooth: int | None = None,
+    presmooth: int | str | None = None,
     relax: int | None = None,
     aggregation: str = "auto",
     max_memory=None,
@@ -192,8 +193,9 @@ def denoise(
       iterations: a fixed number of network passes, each starting from the last,
         instead of the policy's pass rule.
       presmooth: a fixed number of uniform Laplacian steps before the network
-        (`dmd_jax.presmooth`) instead of the policy's roughness rule; 0 gives the
-        network the mesh as it is.
+        (`dmd_jax.presmooth`) instead of the policy's choice; 0 gives the network the
+        mesh as it is; `"rule"` runs the policy's roughness rule where the policy
+        learns its pre-smoothing (`policy.PRESMOOTH_RULE`).
       relax: steps of feature-preserving tangential relaxation of the result
         (`dmd_jax.relax.relax_tangential`) instead of the policy's; for noise with a
         tangential part (per-coordinate noise): the network moves vertices along normals
@@ -240,7 +242,7 @@ def denoise(
         check_count("iterations", iterations, minimum=1, most=MAX_PASSES_LIMIT)
     if relax is not None:
         check_count("relax", relax, most=MAX_RELAX_STEPS)
-    if presmooth is not None:
+    if presmooth is not None and not (isinstance(presmooth, str) and presmooth == PRESMOOTH_RULE):
         check_count("presmooth", presmooth, most=MAX_STEPS)
     check_aggregation(aggregation)
     if patch_size is not None:

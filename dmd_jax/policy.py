@@ -48,6 +48,17 @@ class DenoisePolicy(_ConfigMixin):
         steps, clipped to `presmooth.MAX_STEPS`, before the network, where the roughness
         is the noisy mesh's median angle (degrees) between edge-adjacent face normals
         (`dmd_jax.presmooth`). `presmooth_start` 0: no pre-smoothing.
+      presmooth_grid, presmooth_center, presmooth_scale, presmooth_examples,
+        presmooth_regrets, presmooth_neighbours: the learned pre-smoothing choice, in
+        place of the roughness rule when `presmooth_grid` is set (the rule's numbers
+        stay: `denoise(..., presmooth="rule")` runs them): `presmooth.learned_steps` reads
+        the noisy mesh's `presmooth.noise_features` and runs the count of
+        `presmooth_grid` of least mean regret (log error over the best count's) over the
+        `presmooth_neighbours` nearest training examples; where the rule asks for more
+        steps than the grid's largest count (noise heavier than any training example),
+        the rule's count. Fitted for one set of weights
+        on the training split of `shared/meshes/train`
+        (`benchmarks/quality/presmooth_learn.py`); empty: off.
       relax_steps: steps of feature-preserving tangential relaxation after the network
         (`dmd_jax.relax.relax_tangential`); 0 leaves the result as the network made it.
     """
@@ -57,6 +68,12 @@ class DenoisePolicy(_ConfigMixin):
     presmooth_start: float = _static(0.0)
     presmooth_per_step: float = _static(5.0)
     relax_steps: int = _static(0)
+    presmooth_grid: tuple[int, ...] = _static(())
+    presmooth_center: tuple[float, ...] = _static(())
+    presmooth_scale: tuple[float, ...] = _static(())
+    presmooth_examples: tuple[float, ...] = _static(())
+    presmooth_regrets: tuple[float, ...] = _static(())
+    presmooth_neighbours: int = _static(0)
 
     def __post_init__(self):
         _check_positive_int("max_passes", self.max_passes)
@@ -81,10 +98,75 @@ class DenoisePolicy(_ConfigMixin):
             f"relax_steps must be at most {MAX_RELAX_STEPS}, got {self.relax_steps}",
         )
 
+        self._check_learned_presmoothing()
+
+    def _check_learned_presmoothing(self) -> None:
+        # A weights file is untrusted: sizes and values are checked before any is used.
+        from dmd_jax import presmooth
+
+        grid, n_features = self.presmooth_grid, len(presmooth.FEATURE_NAMES)
+        fields = (
+            self.presmooth_center,
+            self.presmooth_scale,
+            self.presmooth_examples,
+            self.presmooth_regrets,
+        )
+        if not grid and not any(fields) and not self.presmooth_neighbours:
+            return
+        _check(
+            0 < len(grid) <= presmooth.MAX_STEPS + 1
+            and all(isinstance(k, int) and 0 <= k <= presmooth.MAX_STEPS for k in grid)
+            and list(grid) == sorted(set(grid)),
+            f"presmooth_grid must be ascending distinct step counts from 0 to "
+            f"{presmooth.MAX_STEPS}, got {grid!r}",
+        )
+        n_example = len(self.presmooth_examples) // n_features
+        _check(
+            0 < n_example <= presmooth.MAX_EXAMPLES,
+            f"presmooth_examples must hold 1 to {presmooth.MAX_EXAMPLES} examples of "
+            f"{n_features} features, got {len(self.presmooth_examples)} numbers",
+        )
+        want = {
+            "presmooth_center": n_features,
+            "presmooth_scale": n_features,
+            "presmooth_examples": n_example * n_features,
+            "presmooth_regrets": n_example * len(grid),
+        }
+        for name, size in want.items():
+            values = getattr(self, name)
+            _check(
+                len(values) == size and all(math.isfinite(x) for x in values),
+                f"{name} must hold {size} finite numbers ({n_example} examples, "
+                f"{len(grid)} counts), got {len(values)}",
+            )
+        _check(all(x > 0 for x in self.presmooth_scale), "presmooth_scale must be positive")
+        _check_positive_int("presmooth_neighbours", self.presmooth_neighbours)
+        _check(
+            self.presmooth_neighbours <= n_example,
+            f"presmooth_neighbours must be at most the {n_example} examples, got "
+            f"{self.presmooth_neighbours}",
+        )
+
     @property
     def presmooths(self) -> bool:
-        """Whether the pre-smoothing rule is on."""
-        return self.presmooth_start > 0
+        """Whether `denoise` chooses pre-smoothing steps (the rule or the learned choice)."""
+        return self.presmooth_start > 0 or self.learns_presmoothing
+
+    def with_presmooth_rule(self) -> DenoisePolicy:
+        """This policy with its roughness rule in place of the learned choice."""
+        return self.replace(
+            presmooth_grid=(),
+            presmooth_center=(),
+            presmooth_scale=(),
+            presmooth_examples=(),
+            presmooth_regrets=(),
+            presmooth_neighbours=0,
+        )
+
+    @property
+    def learns_presmoothing(self) -> bool:
+        """Whether the learned choice, not the roughness rule, picks the steps."""
+        return bool(self.presmooth_grid)
 
     def overridden(
         self, *, iterations: int | None = None, relax: int | None = None
@@ -181,23 +263,48 @@ class PresmoothPlan(NamedTuple):
     roughness: float | None
 
 
+# `denoise(..., presmooth=PRESMOOTH_RULE)`: the roughness rule, not the learned choice.
+PRESMOOTH_RULE = "rule"
+
+
 def presmooth_plan(
-    policy: DenoisePolicy, vertices: np.ndarray, faces: np.ndarray, steps: int | None
+    policy: DenoisePolicy, vertices: np.ndarray, faces: np.ndarray, steps: int | str | None
 ) -> PresmoothPlan:
-    """How many pre-smoothing steps to run: `steps` if given, else the policy's rule.
+    """How many pre-smoothing steps to run: `steps` if given, else the policy's choice
+    (learned, or its roughness rule; `steps=PRESMOOTH_RULE`: the rule).
 
     Args:
       policy: the policy.
       vertices: `[n_vertex, 3]` noisy positions (any frame: the roughness is scale free).
       faces: `[n_face, 3]` faces.
-      steps: a caller's fixed step count, or None.
+      steps: a caller's fixed step count, `PRESMOOTH_RULE`, or None.
     """
     from dmd_jax import presmooth
 
+    if isinstance(steps, str) and steps == PRESMOOTH_RULE:
+        policy, steps = policy.with_presmooth_rule(), None
     if steps is not None:
         return PresmoothPlan(check_count("presmooth", steps, most=presmooth.MAX_STEPS), None)
     if not policy.presmooths:
         return PresmoothPlan(0, None)
+    if policy.learns_presmoothing:
+        features = presmooth.noise_features(vertices, faces)
+        steps = presmooth.learned_steps(
+            features,
+            policy.presmooth_grid,
+            policy.presmooth_center,
+            policy.presmooth_scale,
+            policy.presmooth_examples,
+            policy.presmooth_regrets,
+            policy.presmooth_neighbours,
+        )
+        # The median angle the features read (of a mesh's first faces, for a large one).
+        rough = float(np.exp(features[1]) - 0.5)
+        # Noise rougher than any training example asked for (the rule wants more steps
+        # than the largest count learned, as for the paper's per-coordinate noise of
+        # several edges): a nearest-neighbour choice cannot extrapolate; the rule can.
+        beyond = presmooth.steps_for(rough, policy.presmooth_start, policy.presmooth_per_step)
+        return PresmoothPlan(beyond if beyond > max(policy.presmooth_grid) else steps, rough)
     rough = presmooth.roughness(vertices, faces)
     return PresmoothPlan(
         presmooth.steps_for(rough, policy.presmooth_start, policy.presmooth_per_step), rough

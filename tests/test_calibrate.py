@@ -141,3 +141,86 @@ def test_a_cascade_keeps_its_trained_passes(cases):
     assert (fit.policy.max_passes, fit.policy.pass_tolerance) == (2, 0.0)
     assert fit.policy.presmooths
     assert len(stub.calls) == len(cal.PRESMOOTH_CONDITIONS) * (MAX_STEPS + 1)
+
+
+# --------------------------------------------------------------------------------------
+# The learned pre-smoothing choice
+# --------------------------------------------------------------------------------------
+
+
+def _learn_rows(n_mesh=10, seed=0):
+    """Synthetic `learn_rows`: every feature reads how noisy a case is (each its own
+    linear function of the level, plus noise), and the best count grows with the level."""
+    from dmd_jax.presmooth import FEATURE_NAMES
+
+    rng = np.random.default_rng(seed)
+    slopes = np.linspace(-2.0, 3.0, len(FEATURE_NAMES))
+    grid = np.array(cal.LEARN_GRID, float)
+    rows = []
+    for m in range(n_mesh):
+        for level in np.linspace(0, 1, 9):
+            x = slopes * level + rng.normal(scale=0.05, size=len(FEATURE_NAMES))
+            best = 11 * level
+            errors = 5.0 + 0.3 * np.abs(grid - best)
+            rows.append([f"m{m}.ply", "gaussian", level, m, *x, 0, *errors])
+    return rows
+
+
+def test_fit_learned_presmooth_recovers_a_known_choice():
+    rows = _learn_rows()
+    fit = cal.fit_learned_presmooth(rows)
+    assert set(fit.cv_regret) == set(cal.LEARN_NEIGHBOURS)
+    assert fit.neighbours == min(fit.cv_regret, key=fit.cv_regret.get)
+    # Held-out meshes of the same law: the chosen count is the best one or next to it.
+    test = _learn_rows(n_mesh=3, seed=1)
+    features, errors = cal._split_rows(test, cal.LEARN_GRID)
+    chosen = fit.choose(features)
+    best = np.array(cal.LEARN_GRID)[errors.argmin(axis=1)]
+    grid = list(cal.LEARN_GRID)
+    assert all(abs(grid.index(c) - grid.index(b)) <= 1 for c, b in zip(chosen, best, strict=True))
+    assert cal.regret_of(errors, np.array([grid.index(c) for c in chosen])) < 1.05
+    # The fields make a valid policy (its JSON round-trips, as in a weights file).
+    policy = DenoisePolicy(presmooth_start=27.0, presmooth_per_step=4.5, **fit.policy_fields())
+    assert policy.learns_presmoothing and policy.presmooths
+    assert DenoisePolicy.from_dict(policy.to_dict()) == policy
+
+
+def test_fit_learned_presmooth_rejects_what_cannot_be_fitted():
+    rows = _learn_rows(n_mesh=3)
+    with pytest.raises(ValueError, match="cross-validation needs at least 5"):
+        cal.fit_learned_presmooth(rows)
+    bad = _learn_rows()
+    bad[0][-1] = float("nan")
+    with pytest.raises(ValueError, match="positive and finite"):
+        cal.fit_learned_presmooth(bad)
+
+
+def test_learn_rows_measure_every_count_under_the_rule(cases, tmp_path):
+    stub = StubDenoiser()
+
+    def denoise(vertices, faces, bundle, return_info=False, **kw):
+        out = stub(vertices, faces, bundle, **kw)
+        if return_info:
+
+            class Info:
+                presmooth_steps = 3
+
+            return out, Info()
+        return out
+
+    conds = (protocol.NoiseCondition("gaussian", 0.2), None)
+    rows = cal.learn_rows(cases, None, conds, grid=(0, 2), denoise=denoise)
+    assert len(rows) == len(cases) * 2
+    assert [r[1] for r in rows[:2]] == ["gaussian", "clean"]
+    assert all(r[-3] == 3 for r in rows)  # the rule's steps
+    assert [c.get("presmooth") for c in stub.calls[:3]] == [None, 0, 2]
+    header = cal.learn_header((0, 2))
+    assert all(len(r) == len(header) for r in rows)
+    from benchmarks.common import write_csv
+
+    write_csv(tmp_path / "rows.csv", header, rows)
+    back = cal.read_learn_csv(tmp_path / "rows.csv", (0, 2))
+    assert [r[0] for r in back] == [r[0] for r in rows]
+    np.testing.assert_allclose([r[4:] for r in back], [r[4:] for r in rows], rtol=1e-12)
+    with pytest.raises(ValueError, match="expected the columns"):
+        cal.read_learn_csv(tmp_path / "rows.csv", (0, 2, 4))

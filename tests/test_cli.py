@@ -236,6 +236,13 @@ def test_presmooth_flag(files, capsys, tmp_path, weights):
     bad = ("denoise", files / "noisy.obj", "-o", tmp_path / "bad.obj", "--weights", weights)
     code, _, err = run(capsys, *bad, "--presmooth", "-1")
     assert_one_line_error(code, err, "presmooth")
+    code, _, err = run(capsys, *bad, "--presmooth", "lots")
+    assert_one_line_error(code, err, "or 'rule'")
+    # 'rule': the roughness rule the weights keep beside a learned choice.
+    code, out, err = run(capsys, *args, "--presmooth", "rule", "--overwrite")
+    assert code == 0, err
+    expected = inference.denoise(noisy_v, f, weights, presmooth="rule")
+    np.testing.assert_allclose(load_mesh(out_path)[0], expected, rtol=1e-15, atol=1e-16)
     code, _, err = run(
         capsys,
         "denoise",

@@ -235,3 +235,64 @@ def test_a_run_trained_for_k_passes_is_run_for_k_passes():
     v, f = icosphere(2)
     _, info = dmd_jax.denoise(v, f, bundle, return_info=True)
     assert info.passes == 3
+
+
+def _learned_fields(n_example=6, grid=(0, 1, 3)):
+    from dmd_jax.presmooth import FEATURE_NAMES
+
+    n = len(FEATURE_NAMES)
+    return {
+        "presmooth_grid": grid,
+        "presmooth_center": (0.0,) * n,
+        "presmooth_scale": (1.0,) * n,
+        "presmooth_examples": tuple(float(i % 7) for i in range(n_example * n)),
+        "presmooth_regrets": (0.1,) * (n_example * len(grid)),
+        "presmooth_neighbours": 3,
+    }
+
+
+@pytest.mark.parametrize(
+    "edits, message",
+    [
+        ({"presmooth_grid": (0, 3, 1)}, "presmooth_grid must be ascending distinct"),
+        ({"presmooth_grid": (0, 1, 99)}, "presmooth_grid must be ascending distinct"),
+        ({"presmooth_grid": ()}, "presmooth_grid must be ascending distinct"),
+        ({"presmooth_center": (0.0,)}, "presmooth_center must hold 11 finite numbers"),
+        ({"presmooth_scale": (0.0,) * 11}, "presmooth_scale must be positive"),
+        ({"presmooth_examples": ()}, "presmooth_examples must hold 1 to 20000 examples"),
+        ({"presmooth_examples": (0.0,) * 11 * 20_001}, "must hold 1 to 20000 examples"),
+        ({"presmooth_regrets": (0.1,) * 5}, "presmooth_regrets must hold 18 finite numbers"),
+        ({"presmooth_regrets": (float("nan"),) * 18}, "presmooth_regrets: expected a finite"),
+        ({"presmooth_neighbours": 0}, "presmooth_neighbours must be an integer >= 1"),
+        ({"presmooth_neighbours": 7}, "presmooth_neighbours must be at most the 6 examples"),
+    ],
+)
+def test_learned_presmoothing_fields_are_checked_before_use(edits, message):
+    policy = DenoisePolicy().with_edits(_learned_fields())
+    assert policy.learns_presmoothing
+    with pytest.raises(ValueError, match=message):
+        policy.with_edits(edits)
+
+
+def test_denoise_follows_a_learned_choice_and_reports_it(reference, bundled):
+    # Every example says: two steps would have been best (the others' regret is 1).
+    fields = _learned_fields(grid=(0, 2, 4))
+    fields["presmooth_regrets"] = (1.0, 0.0, 1.0) * 6
+    policy = bundled.policy.replace(**fields)
+    out, info = denoise(reference["vertices"], reference["faces"], policy=policy, return_info=True)
+    assert info.presmooth_steps == 2 and info.roughness > 0
+    fixed = denoise(reference["vertices"], reference["faces"], presmooth=2, policy=bundled.policy)
+    np.testing.assert_allclose(out, fixed, atol=1e-6)
+    # presmooth="rule": the roughness rule the policy keeps beside the learned choice.
+    from dmd_jax.presmooth import roughness, steps_for
+
+    _, info = denoise(
+        reference["vertices"], reference["faces"], policy=policy, presmooth="rule", return_info=True
+    )
+    rough = roughness(reference["vertices"], reference["faces"])
+    assert info.presmooth_steps == steps_for(
+        rough, policy.presmooth_start, policy.presmooth_per_step
+    )
+    assert info.roughness == pytest.approx(rough)
+    with pytest.raises(ValueError, match="presmooth must be a whole number"):
+        denoise(reference["vertices"], reference["faces"], presmooth="rules")

@@ -1,0 +1,292 @@
+"""A learned pre-smoothing choice in place of the roughness rule (issue 29).
+
+The roughness rule (`dmd_jax.presmooth.steps_for`) reads one number of the noisy mesh, its
+median angle between adjacent face normals, and cannot tell noise from the curvature of a
+coarse mesh: on the validation split it smooths coarse meshes at light noise (a knot and
+a decimated knight end worse than their noisy input) and under-smooths heavy noise. The
+learned choice reads eleven scale-free numbers (`presmooth.noise_features`: the angle
+quartiles, how fast a few Laplacian steps lower them, how far they move the vertices) and
+picks, from `calibrate.LEARN_GRID`, the count whose predicted regret is least
+(`calibrate.fit_learned_presmooth`: the mean regret over its nearest training examples).
+
+What this script does:
+
+1. **measures** on the *training* split of `shared/meshes/train` (crops of
+   `LEARN_MAX_FACES` faces; Gaussian noise along the normals at 0.05-0.6 edges, impulsive
+   noise at 0.3 and 0.6 edges, and the clean mesh) the network's error after every count
+   of the grid, with the weights' own pass rule (`presmooth_learn_train.csv`; about 40 min
+   on one core for the 93 meshes);
+2. **fits** the choice there, the number of neighbours by cross-validation over whole
+   meshes;
+3. **scores** it on the validation split from the rows of `policy_headroom.py` (the same
+   grid, crops, conditions and seeds as `make sota-lite`, made with the same weights),
+   beside the rule and the per-case oracle: mean normal error / per-shape geometric mean
+   over the best other library method (`sota_lite.csv`) / share within 5 %; and counts
+   the clean validation meshes it would smooth;
+4. with `--out`, writes the weights with the learned choice in their policy.
+
+```bash
+python benchmarks/quality/presmooth_learn.py                  # measure, fit, report
+python benchmarks/quality/presmooth_learn.py --reuse          # refit from the CSV
+python benchmarks/quality/presmooth_learn.py --reuse --out dmd_jax/weights/dmd_small.msgpack
+```
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import sys
+import time
+from pathlib import Path
+
+if __package__ in (None, ""):  # run as a script: make `benchmarks` importable
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+import numpy as np  # noqa: E402
+
+from benchmarks.common import (  # noqa: E402
+    BUNDLED,
+    RESULTS_DIR,
+    environment,
+    markdown_table,
+    write_csv,
+    write_report,
+)
+from dmd_jax import calibrate, comparison, protocol  # noqa: E402
+
+
+def validation_rows(headroom_csv, grid):
+    """`{case: (rule error, {count: error})}` from `policy_headroom.py`'s CSV, where a
+    case is `(mesh, noise, level, seed)`; counts with the weights' pass rule."""
+    cases: dict[tuple, dict] = {}
+    with open(headroom_csv, newline="") as fh:
+        for r in csv.DictReader(fh):
+            key = (r["mesh"], r["noise"], float(r["level"]), int(r["seed"]))
+            case = cases.setdefault(key, {"counts": {}})
+            if r["passes"] != "rule":
+                continue
+            if r["presmooth"] == "rule":
+                case["rule"] = float(r["normal_deg"])
+            else:
+                case["counts"][int(r["presmooth"])] = float(r["normal_deg"])
+    missing = [k for k, c in cases.items() if "rule" not in c or set(grid) - set(c["counts"])]
+    if missing:
+        raise ValueError(
+            f"{headroom_csv}: {len(missing)} case(s) lack the rule or a count of {list(grid)}, "
+            f"e.g. {missing[0]}: run policy_headroom.py with these pre-smoothing counts"
+        )
+    return cases
+
+
+def validation_choices(cases, policy) -> dict[tuple, int]:
+    """The steps `policy` gives each noisy validation mesh (`policy.presmooth_plan`, as
+    `denoise` runs it), the noise remade from each case's seed."""
+    from dmd_jax.policy import presmooth_plan
+
+    crops = {c.name: c for c in calibrate.validation_cases()}
+    out = {}
+    for mesh, kind, level, seed in cases:
+        case = crops[mesh]
+        noisy = protocol.condition_noise(
+            case.clean, case.faces, protocol.NoiseCondition(kind, level), seed
+        )
+        out[(mesh, kind, level, seed)] = presmooth_plan(policy, noisy, case.faces, None).steps
+    return out
+
+
+def best_others(reference_csv, mesh_set: str = "val") -> dict[tuple, float]:
+    """`{(mesh, noise, level, seed): lowest error of the other library denoisers}`."""
+    best: dict[tuple, float] = {}
+    with open(reference_csv, newline="") as fh:
+        for r in csv.DictReader(fh):
+            if r["set"] != mesh_set or not protocol.is_rival(r["method"]):
+                continue
+            key = (r["mesh"], r.get("noise", "gaussian"), float(r["level"]), int(r["seed"]))
+            best[key] = min(best.get(key, float("inf")), float(r["normal_deg"]))
+    return best
+
+
+def score_table(strategies: dict[str, dict], best: dict[tuple, float]) -> str:
+    """Per strategy and condition: mean error / geometric-mean ratio / share within 5 %."""
+    cases = sorted(next(iter(strategies.values())))
+    conds = list(dict.fromkeys((c[1], c[2]) for c in cases))
+    headers = ["choice", *(protocol.NoiseCondition(*c).label for c in conds), "all"]
+    rows = []
+    for name, errs in strategies.items():
+        row = [name]
+        for group in [*([c] for c in conds), conds]:
+            chosen = [c for c in cases if (c[1], c[2]) in group]
+            ratios = np.array([errs[c] / best[c] for c in chosen])
+            row.append(
+                f"{np.mean([errs[c] for c in chosen]):.2f} / "
+                f"{np.exp(np.mean(np.log(ratios))):.3f} / "
+                f"{np.mean(ratios <= comparison.WITHIN):.0%}".replace("%", " %")
+            )
+        rows.append(row)
+    return markdown_table(headers, rows)
+
+
+def counts_table(chosen: dict[tuple, int], rule_best: dict[tuple, tuple[int, int]]) -> str:
+    conds = list(dict.fromkeys((c[1], c[2]) for c in sorted(chosen)))
+    rows = []
+    for cond in conds:
+        keys = [c for c in sorted(chosen) if (c[1], c[2]) == cond]
+        rows.append(
+            [
+                protocol.NoiseCondition(*cond).label,
+                len(keys),
+                f"{np.mean([rule_best[c][0] for c in keys]):.1f}",
+                f"{np.mean([chosen[c] for c in keys]):.1f}",
+                f"{np.mean([rule_best[c][1] for c in keys]):.1f}",
+                f"{sum(chosen[c] == rule_best[c][1] for c in keys)} / {len(keys)}",
+            ]
+        )
+    return markdown_table(
+        ["condition", "meshes", "rule steps", "learned steps", "oracle steps", "learned = oracle"],
+        rows,
+    )
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--weights", type=Path, help="weights file (default: bundled)")
+    parser.add_argument("--reuse", action="store_true", help="refit from the training CSV")
+    parser.add_argument("--limit", type=int, help="measure only the first N training meshes")
+    parser.add_argument(
+        "--headroom",
+        type=Path,
+        default=RESULTS_DIR / "policy_headroom.csv",
+        help="policy_headroom.py's validation rows, made with the same weights",
+    )
+    parser.add_argument("--reference", type=Path, default=RESULTS_DIR / "sota_lite.csv")
+    parser.add_argument("--out-dir", type=Path, default=RESULTS_DIR)
+    parser.add_argument("--name", default="presmooth_learn")
+    parser.add_argument("--out", type=Path, help="write the weights with the learned choice")
+    parser.add_argument("--force", action="store_true", help="let --out replace a file")
+    args = parser.parse_args(argv)
+
+    import dmd_jax
+    from dmd_jax.checkpoints import save_weights
+
+    grid = calibrate.LEARN_GRID
+    train_csv = args.out_dir / f"{args.name}_train.csv"
+    bundle = dmd_jax.load_weights(args.weights) if args.weights else dmd_jax.load_pretrained()
+    # The rows are measured, and the choice written, over the roughness rule the weights
+    # keep as their fallback (`--out` on weights that already learn it replaces the fit).
+    bundle = bundle._replace(policy=bundle.policy.with_presmooth_rule())
+    start = time.perf_counter()
+    try:
+        if args.reuse:
+            rows = calibrate.read_learn_csv(train_csv, grid)
+        else:
+            cases = calibrate.training_cases()[: args.limit]
+            rows = calibrate.learn_rows(cases, bundle, grid=grid, echo=print)
+            write_csv(train_csv, calibrate.learn_header(grid), rows)
+        fit = calibrate.fit_learned_presmooth(rows, grid)
+        val = validation_rows(args.headroom, grid)
+        best = best_others(args.reference)
+        missing = [c for c in val if c not in best]
+        if missing:
+            raise ValueError(f"{args.reference} has no rival row for {missing[0]}")
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"presmooth_learn: error: {exc}", file=sys.stderr)
+        return 2
+    keys = sorted(val)
+    learned = bundle.policy.replace(**fit.policy_fields())
+    picked = validation_choices(keys, learned)
+    unmeasured = [k for k in keys if picked[k] not in val[k]["counts"]]
+    if unmeasured:
+        print(
+            f"presmooth_learn: error: {len(unmeasured)} validation case(s) get a count "
+            f"outside {list(grid)}, e.g. {unmeasured[0]}: {picked[unmeasured[0]]}",
+            file=sys.stderr,
+        )
+        return 2
+    oracle = {k: min(val[k]["counts"], key=val[k]["counts"].get) for k in keys}
+    rule_steps = {}
+    with open(args.headroom, newline="") as fh:
+        for r in csv.DictReader(fh):
+            key = (r["mesh"], r["noise"], float(r["level"]), int(r["seed"]))
+            rule_steps[key] = int(r["rule_presmooth"])
+    strategies = {
+        "roughness rule (the weights' policy)": {k: val[k]["rule"] for k in keys},
+        "learned choice": {k: val[k]["counts"][picked[k]] for k in keys},
+        "oracle (ground truth, per case)": {k: val[k]["counts"][oracle[k]] for k in keys},
+    }
+    # Do no harm: the steps each clean validation crop would get.
+
+    from dmd_jax.policy import presmooth_plan
+
+    clean_steps = {
+        c.name: presmooth_plan(learned, c.clean, c.faces, None).steps
+        for c in calibrate.validation_cases()
+    }
+    smoothed = {n: s for n, s in clean_steps.items() if s}
+    train_features, train_errors = calibrate._split_rows(rows, grid)
+    rule_index = [
+        min(range(len(grid)), key=lambda i: abs(grid[i] - r[-len(grid) - 1])) for r in rows
+    ]
+    fit_table = markdown_table(
+        ["neighbours", "cross-validated regret"],
+        [
+            [f"{a:g}" + (" (chosen)" if a == fit.neighbours else ""), f"{v:.4f}"]
+            for a, v in fit.cv_regret.items()
+        ],
+    )
+    train_note = (
+        f"{len(rows)} training cases ({len({r[0] for r in rows})} meshes). Regret: the "
+        "geometric mean over cases of the chosen count's error over the best count's. "
+        "The rule's own regret on these cases (its steps rounded to the grid): "
+        f"{calibrate.regret_of(train_errors, np.array(rule_index)):.4f}; the oracle's: 1."
+    )
+    weights = args.weights or BUNDLED
+    write_report(
+        args.out_dir / f"{args.name}.md",
+        title="A learned pre-smoothing choice against the roughness rule",
+        env=environment() | {"weights": str(weights)},
+        intro=(
+            f"Fitted on the training split, counts {list(grid)}, "
+            f"{len(calibrate.LEARN_CONDITIONS)} conditions per mesh "
+            f"(`dmd_jax.calibrate.LEARN_CONDITIONS`); scored on the validation split "
+            f"({len({k[0] for k in keys})} meshes) from `{args.headroom.name}` and "
+            f"`{args.reference.name}`. A cell is the mean normal error (°) / the geometric "
+            "mean over meshes of DMD-Net's error over the best other library denoiser's / "
+            "meshes where DMD-Net is best or within 5 %."
+            + ("" if args.reuse else f" {time.perf_counter() - start:.0f} s.")
+        ),
+        sections=[
+            ("Validation split", score_table(strategies, best)),
+            (
+                "Steps chosen on the validation split",
+                counts_table(picked, {k: (rule_steps[k], oracle[k]) for k in keys}),
+            ),
+            (
+                "Clean validation meshes",
+                (
+                    f"{len(smoothed)} of {len(clean_steps)} clean crops would get steps"
+                    + (
+                        ": " + ", ".join(f"{n} ({s})" for n, s in sorted(smoothed.items()))
+                        if smoothed
+                        else ""
+                    )
+                    + "."
+                ),
+            ),
+            ("Fit (training split)", train_note + "\n\n" + fit_table),
+        ],
+        weights=weights,
+    )
+    print(f"wrote {args.out_dir / (args.name + '.md')}")
+    if args.out:
+        policy = learned
+        meta = {**bundle.meta, "presmooth_learned_by": "benchmarks/quality/presmooth_learn.py"}
+        save_weights(
+            args.out, bundle.params, bundle.config, meta, policy=policy, overwrite=args.force
+        )
+        print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
