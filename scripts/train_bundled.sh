@@ -41,4 +41,12 @@ BENCH='noise.edge_levels=[0.05,0.1,0.1,0.15,0.2,0.2,0.25,0.3,0.3,0.4,0.5,0.6,0.8
 "$BIN/dmd-jax" export-weights "$OUT/fi120/checkpoints/best" -o "$OUT/net.msgpack" --overwrite
 "$BIN/python" benchmarks/quality/calibrate.py --weights "$OUT/net.msgpack" \
   --out "$OUT/dmd_small.msgpack" --results "$OUT/calibration"
+# The learned pre-smoothing choice (benchmarks/quality/presmooth_learn.py): the
+# validation rows it is scored on (policy_headroom.py, ~60 min), then its training rows
+# on the training split (~40 min on one core), the fit, and the weights carrying it.
+"$BIN/python" benchmarks/quality/policy_headroom.py --weights "$OUT/dmd_small.msgpack" \
+  --out-dir "$OUT/calibration"
+"$BIN/python" benchmarks/quality/presmooth_learn.py --weights "$OUT/dmd_small.msgpack" \
+  --headroom "$OUT/calibration/policy_headroom.csv" --out-dir "$OUT/calibration" \
+  --out "$OUT/dmd_small.msgpack" --force
 echo "wrote $OUT/dmd_small.msgpack (compare: python benchmarks/quality/sota_lite.py --weights $OUT/dmd_small.msgpack)"

@@ -655,6 +655,17 @@ def test_export_weights_says_which_step(capsys, tmp_path):
     assert after.meta["step"] == 7 and after.meta["exported_from"] == str(tmp_path / "t.msgpack")
     for a, b in zip(jax.tree.leaves(before.params), jax.tree.leaves(after.params), strict=True):
         np.testing.assert_array_equal(a, b)
+    # The bundled weights learn their pre-smoothing: `info` says so in one line, and an
+    # explicit --presmooth rule replaces the learned choice.
+    code, out, err = run(capsys, "info", "--weights", "bundled")
+    assert code == 0, err
+    (line,) = [x for x in out.splitlines() if x.strip().startswith("policy:")]
+    assert "855 training examples" in line and len(line) < 1000
+    args = ("export-weights", checkpoints.pretrained_path(), "-o", tmp_path / "b.msgpack")
+    code, _, err = run(capsys, *args, "--presmooth", "30", "4")
+    assert code == 0, err
+    policy = checkpoints.load_weights(tmp_path / "b.msgpack").policy
+    assert not policy.learns_presmoothing and policy.presmooth_start == 30
 
 
 @pytest.mark.slow  # measured 18-26 s on 2 idle cores; `make test-slow` runs it

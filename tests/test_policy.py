@@ -45,7 +45,8 @@ def test_bundled_weights_carry_their_policy_in_format_2(bundled):
     )
     stored = DenoisePolicy.from_dict(json.loads(payload["policy"]))
     assert stored == bundled.policy
-    assert bundled.policy.pass_tolerance > 0 and bundled.policy.presmooths
+    assert bundled.policy.pass_tolerance > 0 and bundled.policy.learns_presmoothing
+    assert bundled.policy.presmooth_start > 0  # the rule kept beside the learned choice
 
 
 def _write_v1(path, model_extra: dict):

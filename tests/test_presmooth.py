@@ -89,17 +89,34 @@ def bundle():
     return load_pretrained()
 
 
-def test_denoise_follows_the_bundled_rule(bundle):
-    rule = bundle.policy
-    assert rule.presmooth_start > 0  # the bundled weights carry a fitted rule
+def test_denoise_follows_the_bundled_policy(bundle):
+    from dmd_jax.presmooth import learned_steps, noise_features
+
+    policy = bundle.policy
+    # The bundled weights carry a learned choice, and the fitted rule beside it.
+    assert policy.learns_presmoothing and policy.presmooth_start > 0
     clean, heavy, f = _noisy_sphere(2.0)
     _, info = denoise(clean, f, bundle, return_info=True)
     assert info.presmooth_steps == 0  # a clean mesh is left to the network
+    # Light noise: the learned choice.
+    _, light, _ = _noisy_sphere(0.3)
+    _, info = denoise(light, f, bundle, return_info=True)
+    fields = (
+        policy.presmooth_grid,
+        policy.presmooth_center,
+        policy.presmooth_scale,
+        policy.presmooth_examples,
+        policy.presmooth_regrets,
+        policy.presmooth_neighbours,
+    )
+    assert info.presmooth_steps == learned_steps(noise_features(light, f), *fields)
+    # Noise of two edges per coordinate, heavier than any training example: the rule.
     _, info = denoise(heavy, f, bundle, return_info=True)
-    expected = steps_for(roughness(heavy, f), rule.presmooth_start, rule.presmooth_per_step)
-    assert info.presmooth_steps == expected > 0
+    expected = steps_for(roughness(heavy, f), policy.presmooth_start, policy.presmooth_per_step)
+    assert expected > max(policy.presmooth_grid)
+    assert info.presmooth_steps == expected
     assert info.roughness == pytest.approx(roughness(heavy, f))
-    # The rule's steps are the explicit argument's.
+    # The policy's steps are the explicit argument's.
     np.testing.assert_allclose(
         denoise(heavy, f, bundle), denoise(heavy, f, bundle, presmooth=expected), atol=1e-6
     )

@@ -258,6 +258,13 @@ def test_bundled_model_figures_come_from_code():
     said(f"range σ {sigmas} after {', '.join(map(str, p[:-1]))} and {p[-1]} passes")
     said(f"vertex update ({model.vertex_iterations} iterations)")
 
+    from dmd_jax.presmooth import FEATURE_NAMES
+
+    policy = bundle.policy
+    said(f"{words[len(FEATURE_NAMES)]} scale-free measures of the noisy mesh")
+    grid = policy.presmooth_grid
+    n_examples = len(policy.presmooth_examples) // len(FEATURE_NAMES)
+    said(f"pick {min(grid)} to {max(grid)} Laplacian steps from the most similar of {n_examples}")
     rules = bundle_rules(bundle)
     said(f"exceeds {fmt(rules['presmooth_start'])}°, one per {fmt(rules['presmooth_per_step'])}°")
     said(f"at most {rules['max_passes']}, while the last one moved the vertices by more than")
