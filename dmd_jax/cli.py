@@ -150,7 +150,7 @@ def _cmd_info(args: argparse.Namespace) -> int:
             f"weights {args.weights}: preset {bundle.config.name}, width {model.width}, "
             f"{param_count(model):,d} parameters, encoding {model.encoding}, head {model.head}"
         )
-        print("  policy: " + _policy_line(bundle.policy))
+        print("  policy: " + bundle.policy.describe())
     return 0
 
 
@@ -781,20 +781,6 @@ def _cmd_export_weights(args: argparse.Namespace) -> int:
         + f" of {args.checkpoint}, preset {cfg.name}"
     )
     return 0
-
-
-def _policy_line(policy) -> str:
-    """The policy's fields on one line, a learned choice's tables as their sizes."""
-    from dmd_jax.presmooth import FEATURE_NAMES
-
-    items = []
-    for key, value in policy.to_dict().items():
-        if key in ("presmooth_center", "presmooth_scale", "presmooth_regrets"):
-            continue
-        if key == "presmooth_examples":
-            value = f"{len(value) // len(FEATURE_NAMES)} training examples" if value else "none"
-        items.append(f"{key} {value}")
-    return ", ".join(items)
 
 
 def _edited_policy(policy, args: argparse.Namespace):

@@ -54,9 +54,9 @@ class DenoisePolicy(_ConfigMixin):
         stay: `denoise(..., presmooth="rule")` runs them): `presmooth.learned_steps` reads
         the noisy mesh's `presmooth.noise_features` and runs the count of
         `presmooth_grid` of least mean regret (log error over the best count's) over the
-        `presmooth_neighbours` nearest training examples; where the rule asks for more
-        steps than the grid's largest count (noise heavier than any training example),
-        the rule's count. Fitted for one set of weights
+        `presmooth_neighbours` nearest training examples; where that is the grid's
+        largest count and the rule asks for more (noise heavier than any training
+        example), the rule's count. Fitted for one set of weights
         on the training split of `shared/meshes/train`
         (`benchmarks/quality/presmooth_learn.py`); empty: off.
       relax_steps: steps of feature-preserving tangential relaxation after the network
@@ -151,6 +151,21 @@ class DenoisePolicy(_ConfigMixin):
     def presmooths(self) -> bool:
         """Whether `denoise` chooses pre-smoothing steps (the rule or the learned choice)."""
         return self.presmooth_start > 0 or self.learns_presmoothing
+
+    def describe(self, sep: str = " ") -> str:
+        """The fields on one line, `name{sep}value`, a learned choice's tables as their
+        size (what `dmd-jax info` and the reports print)."""
+        from dmd_jax.presmooth import FEATURE_NAMES
+
+        items = []
+        for key, value in self.to_dict().items():
+            if key in ("presmooth_center", "presmooth_scale", "presmooth_regrets"):
+                continue
+            if key == "presmooth_examples":
+                n = len(value) // len(FEATURE_NAMES)
+                value = f"{n} training examples" if value else "none"
+            items.append(f"{key}{sep}{value}")
+        return ", ".join(items)
 
     def with_presmooth_rule(self) -> DenoisePolicy:
         """This policy with its roughness rule in place of the learned choice."""
@@ -300,11 +315,13 @@ def presmooth_plan(
         )
         # The median angle the features read (of a mesh's first faces, for a large one).
         rough = float(np.exp(features[1]) - 0.5)
-        # Noise rougher than any training example asked for (the rule wants more steps
-        # than the largest count learned, as for the paper's per-coordinate noise of
-        # several edges): a nearest-neighbour choice cannot extrapolate; the rule can.
-        beyond = presmooth.steps_for(rough, policy.presmooth_start, policy.presmooth_per_step)
-        return PresmoothPlan(beyond if beyond > max(policy.presmooth_grid) else steps, rough)
+        # The choice at its largest count, and the rule asking for more (the paper's
+        # per-coordinate noise of several edges, beyond every training example): a
+        # nearest-neighbour choice cannot extrapolate past its grid; the rule can.
+        if steps == max(policy.presmooth_grid):
+            rule = presmooth.steps_for(rough, policy.presmooth_start, policy.presmooth_per_step)
+            steps = max(steps, rule)
+        return PresmoothPlan(steps, rough)
     rough = presmooth.roughness(vertices, faces)
     return PresmoothPlan(
         presmooth.steps_for(rough, policy.presmooth_start, policy.presmooth_per_step), rough

@@ -297,3 +297,21 @@ def test_denoise_follows_a_learned_choice_and_reports_it(reference, bundled):
     assert info.roughness == pytest.approx(rough)
     with pytest.raises(ValueError, match="presmooth must be a whole number"):
         denoise(reference["vertices"], reference["faces"], presmooth="rules")
+
+
+def test_the_rule_takes_over_only_beyond_the_largest_learned_count():
+    from dmd_jax.policy import presmooth_plan
+
+    v, f = icosphere(2)
+    noisy = v + 0.05 * np.random.default_rng(0).standard_normal(v.shape)
+    # A rule that asks for many steps on any mesh (roughness above 1 degree).
+    rule = {"presmooth_start": 1.0, "presmooth_per_step": 1.0}
+    fields = _learned_fields(grid=(0, 2, 4))
+    top = DenoisePolicy(**rule).with_edits({**fields, "presmooth_regrets": (1.0, 1.0, 0.0) * 6})
+    assert (
+        presmooth_plan(top, noisy, f, None).steps
+        == presmooth_plan(top.with_presmooth_rule(), noisy, f, None).steps
+        > 4
+    )
+    middle = top.replace(presmooth_regrets=(1.0, 0.0, 1.0) * 6)
+    assert presmooth_plan(middle, noisy, f, None).steps == 2

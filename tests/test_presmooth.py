@@ -110,8 +110,10 @@ def test_denoise_follows_the_bundled_policy(bundle):
         policy.presmooth_neighbours,
     )
     assert info.presmooth_steps == learned_steps(noise_features(light, f), *fields)
-    # Noise of two edges per coordinate, heavier than any training example: the rule.
+    # Noise of two edges per coordinate, heavier than any training example: the choice
+    # is its largest count, and the rule asks for more.
     _, info = denoise(heavy, f, bundle, return_info=True)
+    assert learned_steps(noise_features(heavy, f), *fields) == max(policy.presmooth_grid)
     expected = steps_for(roughness(heavy, f), policy.presmooth_start, policy.presmooth_per_step)
     assert expected > max(policy.presmooth_grid)
     assert info.presmooth_steps == expected

@@ -264,7 +264,8 @@ def test_bundled_model_figures_come_from_code():
     said(f"{words[len(FEATURE_NAMES)]} scale-free measures of the noisy mesh")
     grid = policy.presmooth_grid
     n_examples = len(policy.presmooth_examples) // len(FEATURE_NAMES)
-    said(f"pick {min(grid)} to {max(grid)} Laplacian steps from the most similar of {n_examples}")
+    said(f"a learned choice of {min(grid)} to {max(grid)} Laplacian pre-smoothing steps")
+    said(f"served the most similar of {n_examples} noisy and clean training crops best")
     rules = bundle_rules(bundle)
     said(f"exceeds {fmt(rules['presmooth_start'])}°, one per {fmt(rules['presmooth_per_step'])}°")
     said(f"at most {rules['max_passes']}, while the last one moved the vertices by more than")
@@ -363,7 +364,7 @@ def test_where_it_loses_matches_results():
                 lost[mesh] = (best, errs[best], errs["dmd"], errs["n_face"])
     coarse = {m: v for m, v in lost.items() if v[3] <= 2000}
     fine = {m: v for m, v in lost.items() if v[3] > 2000}
-    match = re.search(r"at 0\.1 edges ([\w ]+?) beat it on (.*?) \(by ([\d.]+)–([\d.]+)°\)", PROSE)
+    match = re.search(r"at 0\.1 edges ([\w, ]+?) beat it on (.*?) \(by ([\d.]+)–([\d.]+)°\)", PROSE)
     assert match, "README lacks the light-noise bullet"
     winners = set(re.split(r",? or |, ", match.group(1)))
     assert winners == {LIBRARY[v[0]] for v in fine.values()}
@@ -385,12 +386,16 @@ def test_where_it_loses_matches_results():
         (row,) = [r for r in table if r["Mesh"] == mesh and r["Metric"] == "Normal (°)"]
         return row[method]
 
-    for mesh in ("Bunny", "Camel"):
+    lap, dmd = normal(ours, "Camel", "Laplacian"), normal(ours, "Camel", "DMD-Net")
+    assert number(lap) < number(dmd)
+    said(f"Laplacian smoothing beats it on Camel ({lap}° against {dmd}°)")
+    # The other meshes it wins (the bold figure of its row is DMD-Net's).
+    for mesh in ("Block", "Bunny", "Fertility", "Lion", "Fandisk"):
         lap, dmd = normal(ours, mesh, "Laplacian"), normal(ours, mesh, "DMD-Net")
-        assert number(lap) < number(dmd)
-        said(f"{mesh} ({lap}° against {dmd}°)" if mesh == "Bunny" else f"({lap}° against {dmd}°)")
+        assert number(dmd) < number(lap), mesh
     bunny, camel = (f"{number(normal(paper, m, 'DMD-Net')):.2f}" for m in ("Bunny", "Camel"))
-    said(f"for its own DMD-Net ({bunny}° and {camel}°)")
+    ours_b, ours_c = (number(normal(ours, m, "DMD-Net")) for m in ("Bunny", "Camel"))
+    said(f"on Bunny and Camel ({bunny}° and {camel}° against our {ours_b:.2f}° and {ours_c:.2f}°)")
     said(f"on Bunny for CNR ({number(normal(paper, 'Bunny', 'CNR')):.2f}°)")
 
     # Clean meshes.

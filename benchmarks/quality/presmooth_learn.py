@@ -95,6 +95,41 @@ def validation_choices(cases, policy) -> dict[tuple, int]:
     return out
 
 
+# Every count the rule may run: the per-coordinate validation rows are measured at each.
+ISOTROPIC_GRID = tuple(range(21))
+
+
+def isotropic_table(rows, learned, grid=ISOTROPIC_GRID) -> str:
+    """Per-coordinate noise on the validation split (`learn_rows` of its crops at every
+    count of `grid`, which `make sota-lite` does not have): mean error and regret of the
+    rule, the learned choice (`policy.presmooth_plan`) and the oracle over `grid`."""
+    from dmd_jax.policy import presmooth_plan
+
+    crops = {c.name: c for c in calibrate.validation_cases(max_faces=calibrate.LEARN_MAX_FACES)}
+    _, errors = calibrate._split_rows(rows, grid)
+    chosen_rule, chosen_learned = [], []
+    for r in rows:
+        case = crops[r[0]]
+        noisy = protocol.benchmark_noise(case.clean, case.faces, r[2], r[3], "isotropic")
+        steps = presmooth_plan(learned, noisy, case.faces, None).steps
+        rule = presmooth_plan(learned.with_presmooth_rule(), noisy, case.faces, None).steps
+        if steps not in grid or rule not in grid:
+            raise ValueError(f"{r[0]} isotropic {r[2]:g}: a count outside {grid}")
+        chosen_learned.append(grid.index(steps))
+        chosen_rule.append(grid.index(rule))
+    out = []
+    for level in sorted({r[2] for r in rows}):
+        sel = np.array([r[2] == level for r in rows])
+        cells = [f"isotropic {level:g}", int(sel.sum())]
+        for idx in (chosen_rule, chosen_learned, errors.argmin(axis=1)):
+            idx = np.asarray(idx)[sel]
+            e = errors[sel]
+            picked = e[np.arange(len(e)), idx]
+            cells.append(f"{picked.mean():.2f} / {calibrate.regret_of(e, idx):.3f}")
+        out.append(cells)
+    return markdown_table(["condition", "meshes", "rule", "learned choice", "oracle"], out)
+
+
 def best_others(reference_csv, mesh_set: str = "val") -> dict[tuple, float]:
     """`{(mesh, noise, level, seed): lowest error of the other library denoisers}`."""
     best: dict[tuple, float] = {}
@@ -184,6 +219,20 @@ def main(argv=None) -> int:
             rows = calibrate.learn_rows(cases, bundle, grid=grid, echo=print)
             write_csv(train_csv, calibrate.learn_header(grid), rows)
         fit = calibrate.fit_learned_presmooth(rows, grid)
+        iso_csv = args.out_dir / f"{args.name}_val_isotropic.csv"
+        if args.reuse:
+            iso_rows = calibrate.read_learn_csv(iso_csv, ISOTROPIC_GRID)
+        else:
+            iso_cases = calibrate.validation_cases(max_faces=calibrate.LEARN_MAX_FACES)
+            iso_conds = [
+                c
+                for c in calibrate.LEARN_CONDITIONS
+                if c is not None and c.kind == calibrate.ISOTROPIC
+            ]
+            iso_rows = calibrate.learn_rows(
+                iso_cases, bundle, iso_conds, grid=ISOTROPIC_GRID, echo=print
+            )
+            write_csv(iso_csv, calibrate.learn_header(ISOTROPIC_GRID), iso_rows)
         val = validation_rows(args.headroom, grid)
         best = best_others(args.reference)
         missing = [c for c in val if c not in best]
@@ -260,6 +309,13 @@ def main(argv=None) -> int:
             (
                 "Steps chosen on the validation split",
                 counts_table(picked, {k: (rule_steps[k], oracle[k]) for k in keys}),
+            ),
+            (
+                "Per-coordinate noise on the validation split",
+                "Gaussian noise per coordinate, crops of "
+                f"{calibrate.LEARN_MAX_FACES:,} faces (`{args.name}_val_isotropic.csv`); a "
+                "cell is the mean normal error (°) / the regret (the chosen count's error "
+                "over the best count's, geometric mean):\n\n" + isotropic_table(iso_rows, learned),
             ),
             (
                 "Clean validation meshes",

@@ -404,7 +404,7 @@ def _weights_description(bundle, weights) -> dict[str, str]:
     info = {
         "weights": ("bundled " if weights is None else "") + str(path),
         "model": f"preset {bundle.config.name}, {param_count(bundle.config.model):,} parameters",
-        "policy": ", ".join(f"{k}={v}" for k, v in bundle.policy.to_dict().items()),
+        "policy": bundle.policy.describe("="),
     }
     if path.is_file():
         info["weights sha256"] = file_sha256(path, 16)
