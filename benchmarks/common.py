@@ -326,6 +326,21 @@ def write_report(
     return write_text(path, "\n".join(parts))
 
 
+def best_others(reference_csv, mesh_set: str) -> dict[tuple, float]:
+    """`{(mesh, noise, level, seed): lowest error of the other library denoisers}` of one
+    set of a `sota_lite` CSV (`dmd_jax.protocol.is_rival`: MeshLab's filters excluded)."""
+    from dmd_jax import protocol
+
+    best: dict[tuple, float] = {}
+    with open(reference_csv, newline="") as fh:
+        for r in csv.DictReader(fh):
+            if r["set"] != mesh_set or not protocol.is_rival(r["method"]):
+                continue
+            key = (r["mesh"], r.get("noise", "gaussian"), float(r["level"]), int(r["seed"]))
+            best[key] = min(best.get(key, float("inf")), float(r["normal_deg"]))
+    return best
+
+
 def write_csv(path: Path, headers: Sequence[str], rows: Sequence[Sequence[object]]) -> Path:
     """Writes raw results as CSV next to the report, for re-plotting without re-running."""
     from dmd_jax.io import atomic_write

@@ -106,10 +106,15 @@ def _normal_error(out, clean, faces) -> float:
 def validation_cases(val_dir=None, max_faces: int = protocol.MAX_FACES) -> list[Case]:
     """The validation meshes of `val_dir` (default `protocol.validation_dir()`), each
     cropped to at most `max_faces` faces (`protocol.crop`), in float64."""
+    return _cases(protocol.validation_files(val_dir), max_faces)
+
+
+def _cases(paths, max_faces: int) -> list[Case]:
+    """The meshes of `paths`, each cropped to at most `max_faces` faces, in float64."""
     from dmd_jax.io import load_mesh
 
     cases = []
-    for path in protocol.validation_files(val_dir):
+    for path in paths:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # "polygons triangulated" and the like
             clean, faces = load_mesh(path)
@@ -440,17 +445,9 @@ def training_cases(train_dir=None, max_faces: int = LEARN_MAX_FACES) -> list[Cas
     """The training-split meshes of `train_dir` (default `protocol.validation_dir()`, the
     folder both splits live in), cropped as `validation_cases` crops."""
     from dmd_jax.data.real import mesh_files
-    from dmd_jax.io import load_mesh
 
     folder = protocol.validation_dir() if train_dir is None else train_dir
-    cases = []
-    for path in mesh_files(folder, "train"):
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            clean, faces = load_mesh(path)
-        clean, faces = protocol.crop(np.asarray(clean, np.float64), faces, max_faces)
-        cases.append(Case(path.name, np.asarray(clean, np.float64), faces))
-    return cases
+    return _cases(mesh_files(folder, "train"), max_faces)
 
 
 def learn_rows(

@@ -43,6 +43,7 @@ if __package__ in (None, ""):  # run as a script: make `benchmarks` importable
 from benchmarks.common import (  # noqa: E402
     BUNDLED,
     RESULTS_DIR,
+    best_others,
     environment,
     markdown_table,
     write_csv,
@@ -131,18 +132,6 @@ def read_rows(path) -> list[list]:
             ]
             for r in csv.DictReader(fh)
         ]
-
-
-def best_others(reference_csv, mesh_set: str) -> dict[tuple, float]:
-    """`{(mesh, noise, level, seed): lowest error of the other library denoisers}`."""
-    best: dict[tuple, float] = {}
-    with open(reference_csv) as fh:
-        for r in csv.DictReader(fh):
-            if r["set"] != mesh_set or not protocol.is_rival(r["method"]):
-                continue
-            key = (r["mesh"], r.get("noise", "gaussian"), float(r["level"]), int(r["seed"]))
-            best[key] = min(best.get(key, float("inf")), float(r["normal_deg"]))
-    return best
 
 
 def _label(kind: str, level: float) -> str:

@@ -48,6 +48,7 @@ import numpy as np  # noqa: E402
 from benchmarks.common import (  # noqa: E402
     BUNDLED,
     RESULTS_DIR,
+    best_others,
     environment,
     markdown_table,
     write_csv,
@@ -128,18 +129,6 @@ def isotropic_table(rows, learned, grid=ISOTROPIC_GRID) -> str:
             cells.append(f"{picked.mean():.2f} / {calibrate.regret_of(e, idx):.3f}")
         out.append(cells)
     return markdown_table(["condition", "meshes", "rule", "learned choice", "oracle"], out)
-
-
-def best_others(reference_csv, mesh_set: str = "val") -> dict[tuple, float]:
-    """`{(mesh, noise, level, seed): lowest error of the other library denoisers}`."""
-    best: dict[tuple, float] = {}
-    with open(reference_csv, newline="") as fh:
-        for r in csv.DictReader(fh):
-            if r["set"] != mesh_set or not protocol.is_rival(r["method"]):
-                continue
-            key = (r["mesh"], r.get("noise", "gaussian"), float(r["level"]), int(r["seed"]))
-            best[key] = min(best.get(key, float("inf")), float(r["normal_deg"]))
-    return best
 
 
 def score_table(strategies: dict[str, dict], best: dict[tuple, float]) -> str:
@@ -234,7 +223,7 @@ def main(argv=None) -> int:
             )
             write_csv(iso_csv, calibrate.learn_header(ISOTROPIC_GRID), iso_rows)
         val = validation_rows(args.headroom, grid)
-        best = best_others(args.reference)
+        best = best_others(args.reference, "val")
         missing = [c for c in val if c not in best]
         if missing:
             raise ValueError(f"{args.reference} has no rival row for {missing[0]}")
