@@ -277,8 +277,23 @@ def make_train_step(cfg: ExperimentConfig, phase: str, mesh: Mesh) -> Callable:
 
 # ------------------------------------------------------------ shared step programs
 # Train settings the host reads, not the step: which phase runs at which step (scheme,
-# alter_period, two_phase_split) and the init / dropout key (seed, an input).
-_HOST_TRAIN_FIELDS = ("seed", "scheme", "alter_period", "two_phase_split")
+# alter_period, two_phase_split), the init / dropout key (seed, an input), the starting
+# params (init_from), the batch's augmentation (rotate: `pipeline.training_batch` rotates
+# on the host) and when to log, evaluate or checkpoint.
+_HOST_TRAIN_FIELDS = (
+    "seed",
+    "scheme",
+    "alter_period",
+    "two_phase_split",
+    "init_from",
+    "rotate",
+    "eval_every",
+    "ckpt_every",
+    "ckpt_keep",
+    "log_every",
+)
+# Config sections only the host reads: the noise drawn into each batch, the dataset.
+_HOST_SECTIONS = ("noise", "data")
 
 
 def step_program_key(cfg: ExperimentConfig, phase: str) -> str:
@@ -290,11 +305,15 @@ def step_program_key(cfg: ExperimentConfig, phase: str) -> str:
     the program as traced arguments (`step_values`). Whether a term is on stays static:
     `losses.loss_terms` skips a term of weight 0 entirely, so switching one off changes
     the program, and the shared program computes exactly the terms the config's own does.
-    Everything else (model, optimiser, loss settings, noise, data) stays in the key, so
-    a setting added later separates programs until it is known not to matter.
+    What only the host reads (`_HOST_TRAIN_FIELDS`, `_HOST_SECTIONS`: the noise and
+    rotation of the batches, logging and checkpoint intervals) is left out; everything
+    else (model, optimiser, loss settings, schedule) stays in the key, so a setting added
+    later separates programs until it is known not to matter.
     """
     d = cfg.to_dict()
     d.pop("name", None)
+    for section in _HOST_SECTIONS:
+        d.pop(section, None)
     for name in _HOST_TRAIN_FIELDS:
         d["train"].pop(name, None)
     loss = phase_loss(cfg, phase).to_dict()

@@ -131,6 +131,9 @@ def test_the_program_key_keeps_what_changes_the_program():
         {"loss": {"vertex": 1.0, "normal": 0.9}},
         {"model": {"dropout": 0.5}},
         {"train": {"seed": 3, "scheme": "joint"}},
+        # The batches' rotation and noise are drawn on the host (`training_batch`).
+        {"train": {"rotate": not cfg.train.rotate, "log_every": 7, "ckpt_keep": 9}},
+        {"noise": {"p_clean": 0.5}},
     ):
         assert step_program_key(cfg.with_edits(edits), "all") == key, edits
     # A term switched off, dropout switched off, another model or optimiser: new program.

@@ -702,6 +702,51 @@ def test_seeds_together_splits_a_row_into_groups_trained_one_after_the_other(
         ]
 
 
+def test_references_are_computed_beside_the_jobs_and_their_errors_surface(
+    tmp_path, monkeypatch, test_preset
+):
+    """The reference rows run in a thread while the jobs train: the jobs start without
+    waiting for them, and a failure computing them still fails the sweep."""
+    import threading
+
+    class Counts:
+        def counts(self):
+            return {}
+
+    started = threading.Event()
+    release = threading.Event()
+    order = []
+
+    def references(out_dir, cfg, evals):
+        started.set()
+        assert release.wait(10)
+        order.append("references")
+        raise ValueError("no references")
+
+    def execute(jobs, workers, log, progress):
+        assert started.wait(10)
+        order.append("jobs")  # the references are still running
+        release.set()
+        return []
+
+    monkeypatch.setattr(runner, "ensure_dataset", lambda p, data_dir, progress=True: Counts())
+    monkeypatch.setattr(runner, "load_examples", lambda data_dir, eval_meshes: ([], {}))
+    monkeypatch.setattr(runner, "ensure_calibration", lambda data_dir, train_ex: None)
+    monkeypatch.setattr(runner, "ensure_references", references)
+    monkeypatch.setattr(runner, "_execute", execute)
+    with pytest.raises(ValueError, match="no references"):
+        runner.run_sweep(
+            test_preset,
+            tmp_path / "out",
+            tmp_path,
+            studies=["stn"],
+            progress=False,
+            aggregate=False,
+            echo=False,
+        )
+    assert order == ["jobs", "references"]
+
+
 def test_seeds_run_now_leave_the_plan_with_every_seed(tmp_path, monkeypatch, test_preset):
     """`run --seeds 2 3` trains only seeds 2 and 3, but plan.json (what the tables are
     made of) keeps the preset's seeds too, so a sweep run seed by seed aggregates all."""
