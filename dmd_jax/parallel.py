@@ -23,7 +23,7 @@ Usage::
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import jax
 import numpy as np
@@ -117,3 +117,28 @@ def shard_batch(mesh: Mesh, batch):
             jax.make_array_from_single_device_arrays((mesh.size,) + x.shape[1:], sharding, parts)
         )
     return jax.tree.unflatten(treedef, out)
+
+
+def sum_over_groups(group_fn: Callable, mesh: Mesh, in_specs: tuple) -> Callable:
+    """`group_fn(index, *blocks)` on every device's block of the batch, summed over devices.
+
+    Each device calls `group_fn` with its position on the batch axis and its blocks of
+    the arguments (`in_specs`: `P('batch')` for stacked groups, `P()` for replicated
+    ones); the results are summed (`jax.lax.psum`) and come back replicated.
+
+    On a one-device mesh the block is the whole argument and the sum is the one result,
+    so `group_fn(0, *args)` is called directly rather than through `jax.shard_map`: the
+    same values, and about 20 % less tracing (every transformation above a shard_map
+    traces its body again; ~1 s of the ~5 s a test-preset train step takes to trace).
+
+    Returns:
+      `f(*args)`, a pytree like `group_fn`'s result.
+    """
+    _check_mesh(mesh)
+    if mesh.size == 1:
+        return lambda *args: group_fn(0, *args)
+
+    def body(*args):
+        return jax.lax.psum(group_fn(jax.lax.axis_index(BATCH_AXIS), *args), BATCH_AXIS)
+
+    return jax.shard_map(body, mesh=mesh, in_specs=in_specs, out_specs=P())

@@ -14,8 +14,8 @@ one half really freezes it (no momentum drift). Each (bucket, phase) compiles on
 
 One engine: `make_train_step` builds the step of a phase for a device mesh
 (`parallel.batch_mesh`). A batch is one group of meshes per device, stacked on a leading
-axis (`pipeline.training_batch`); `jax.shard_map` gives every device its group, the
-groups' loss terms (`losses.Term`: sums and counts) are added across devices, and
+axis (`pipeline.training_batch`); `parallel.sum_over_groups` (a `jax.shard_map` on
+several devices) gives every device its group, the groups' loss terms (`losses.Term`: sums and counts) are added across devices, and
 `losses.reduce_terms` divides once, so k steps on n devices are k steps on the whole
 batch, up to the order of float sums. Training on one device is the same code on a
 one-device mesh, with a batch of one group.
@@ -242,18 +242,14 @@ def make_train_step(cfg: ExperimentConfig, phase: str, mesh: Mesh) -> Callable:
     use_dropout = cfg.model.dropout > 0
     axis = parallel.BATCH_AXIS
 
-    def group_terms(params, noisy, clean, graph, rng):
+    def group_terms(index, params, noisy, clean, graph, rng):
         # One device's block: its group, with a leading axis of 1.
         noisy, clean, graph = jax.tree.map(lambda x: x[0], (noisy, clean, graph))
-        group_rng = jax.random.fold_in(rng, jax.lax.axis_index(axis)) if use_dropout else None
-        terms = loss_terms(model, cfg, params, noisy, clean, graph, loss=loss, rng=group_rng)
-        return jax.lax.psum(terms, axis)
+        group_rng = jax.random.fold_in(rng, index) if use_dropout else None
+        return loss_terms(model, cfg, params, noisy, clean, graph, loss=loss, rng=group_rng)
 
-    batch_terms = jax.shard_map(
-        group_terms,
-        mesh=mesh,
-        in_specs=(P(), P(axis), P(axis), P(axis), P()),
-        out_specs=P(),
+    batch_terms = parallel.sum_over_groups(
+        group_terms, mesh, in_specs=(P(), P(axis), P(axis), P(axis), P())
     )
 
     def step(state: TrainState, noisy, clean, graph, rng):
@@ -401,18 +397,14 @@ def shared_train_step(cfg: ExperimentConfig, phase: str, mesh: Mesh) -> Callable
     use_dropout = cfg.model.dropout > 0
     axis = parallel.BATCH_AXIS
 
-    def group_terms(params, noisy, clean, graph, rng, keep_prob):
+    def group_terms(index, params, noisy, clean, graph, rng, keep_prob):
         noisy, clean, graph = jax.tree.map(lambda x: x[0], (noisy, clean, graph))
-        group_rng = jax.random.fold_in(rng, jax.lax.axis_index(axis)) if use_dropout else None
+        group_rng = jax.random.fold_in(rng, index) if use_dropout else None
         with nn.intercept_methods(_dropout_at(keep_prob)):
-            terms = loss_terms(model, cfg, params, noisy, clean, graph, loss=loss, rng=group_rng)
-        return jax.lax.psum(terms, axis)
+            return loss_terms(model, cfg, params, noisy, clean, graph, loss=loss, rng=group_rng)
 
-    batch_terms = jax.shard_map(
-        group_terms,
-        mesh=mesh,
-        in_specs=(P(), P(axis), P(axis), P(axis), P(), P()),
-        out_specs=P(),
+    batch_terms = parallel.sum_over_groups(
+        group_terms, mesh, in_specs=(P(), P(axis), P(axis), P(axis), P(), P())
     )
 
     def step(state: TrainState, noisy, clean, graph, rng, values):

@@ -136,6 +136,43 @@ def test_shard_batch_on_one_device(examples):
         parallel.local_groups(jax.sharding.Mesh(np.asarray(jax.devices()[:1]), ("data",)))
 
 
+def test_sum_over_groups_on_one_device_is_the_shard_map_it_replaces():
+    """One device: `group_fn` called directly, at index 0, with the whole blocks; the same
+    values, and under `grad` and `vmap`, as the `shard_map` + `psum` it stands for (the
+    several-device path is `test_two_devices_equal_one_device`)."""
+    from jax.sharding import PartitionSpec as P
+
+    mesh = parallel.batch_mesh(jax.devices()[:1])
+    axis = parallel.BATCH_AXIS
+    specs = (P(), P(axis))
+
+    def group_fn(index, w, x):
+        key = jax.random.fold_in(jax.random.PRNGKey(3), index)
+        return {"s": (w * x[0]).sum() + jax.random.normal(key), "n": x.shape[0] * 1.0}
+
+    def reference(w, x):
+        def body(w, x):
+            return jax.lax.psum(group_fn(jax.lax.axis_index(axis), w, x), axis)
+
+        return jax.shard_map(body, mesh=mesh, in_specs=specs, out_specs=P())(w, x)
+
+    f = parallel.sum_over_groups(group_fn, mesh, specs)
+    w, x = np.linspace(-1, 1, 5), np.arange(10.0).reshape(1, 2, 5)
+
+    def grad_s(fn):
+        return jax.jit(jax.vmap(jax.grad(lambda w, x: fn(w, x)["s"]), in_axes=(0, None)))
+
+    ws = np.stack([w, 2 * w])
+    np.testing.assert_allclose(grad_s(f)(ws, x), grad_s(reference)(ws, x), rtol=1e-6)
+    got, want = jax.jit(f)(w, x), jax.jit(reference)(w, x)
+    for k in want:
+        np.testing.assert_allclose(got[k], want[k], rtol=1e-6)
+    with pytest.raises(ValueError, match="one-axis mesh"):
+        parallel.sum_over_groups(
+            group_fn, jax.sharding.Mesh(np.asarray(jax.devices()[:1]), ("d",)), specs
+        )
+
+
 def test_replicate_copies_values(examples):
     mesh = parallel.batch_mesh(jax.devices()[:1])
     tree = {"a": np.arange(6.0).reshape(2, 3), "b": np.int32(3)}
