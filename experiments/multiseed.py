@@ -40,6 +40,7 @@ from dmd_jax.pipeline import (
     batch_indices,
     common_sizes,
     evaluation_batches,
+    largest_sizes,
     split_slots,
     training_batch,
     unpadded_mesh,
@@ -331,6 +332,11 @@ def train_seeds(
             fh.close()
     results = []
     params = unstack_tree(merge_params(state.params), n)
+    # Every evaluation mesh padded to the largest (`train.train`'s `pad_to="largest"`):
+    # the one evaluation after the last step then compiles one predictor per model
+    # instead of one per vertex bucket, which costs more than the padding.
+    every_eval = [ex for split in (eval_sets or {}).values() for ex in split]
+    eval_sizes = largest_sizes(every_eval, 1) if every_eval else None
     for i, cfg in enumerate(cfgs):
         res: dict[str, Any] = {
             "status": "ok" if alive[i] else "diverged",
@@ -352,6 +358,7 @@ def train_seeds(
                     noise=cfg.noise,
                     rotate=t.rotate,
                     encoding=cfg.model.encoding,
+                    sizes=eval_sizes,
                 )
                 rows = evaluate_per_mesh(eval_trainer(cfg), params[i], batches)
                 for k in rows[0]:
