@@ -107,7 +107,24 @@ class SeedsStep:
         return self.program._cache_size()
 
 
-def seeds_step(cfg: ExperimentConfig, phase: str) -> SeedsStep:
+def _one_seed(step: Callable) -> Callable:
+    """`jax.vmap(step)` for a seeds axis of size 1: the slice, the step, a new axis.
+
+    Same values as the vmap; tracing it skips the batching of every primitive, a third
+    of a train step's trace time, which is most of a smoke run's work.
+    """
+
+    def squeeze(tree):
+        return jax.tree.map(lambda x: x[0], tree)
+
+    def one(states, noisy, clean, graph, rngs, values):
+        out = step(*(squeeze(a) for a in (states, noisy, clean, graph, rngs)), values)
+        return jax.tree.map(lambda x: x[None], out)
+
+    return one
+
+
+def seeds_step(cfg: ExperimentConfig, phase: str, n_seeds: int | None = None) -> SeedsStep:
     """The train step of one phase, vmapped over a leading seeds axis of every input.
 
     The program is shared by every config of this process with the same
@@ -119,12 +136,15 @@ def seeds_step(cfg: ExperimentConfig, phase: str) -> SeedsStep:
       per-seed argument of `make_train_step`'s step stacked on axis 0 (states from
       `stack_trees`; `noisy` `[n_seeds, n_group, n_vertex, 3]`); every metric comes back
       as `[n_seeds]`. One device (a one-device mesh): seeds replace data parallelism.
+      With `n_seeds=1` the program is `_one_seed`'s (no vmap), which only takes a
+      seeds axis of size 1; any other `n_seeds` (or `None`) gets the vmap.
     """
-    key = step_program_key(cfg, phase)
+    key = json.dumps([step_program_key(cfg, phase), n_seeds == 1])
     if key not in _SEEDS_PROGRAMS:
         step = shared_train_step(cfg, phase, parallel.batch_mesh(jax.devices()[:1]))
         # The values are the same for every seed: not vmapped.
-        _SEEDS_PROGRAMS[key] = jax.jit(jax.vmap(step, in_axes=(0, 0, 0, 0, 0, None)))
+        seeds = _one_seed(step) if n_seeds == 1 else jax.vmap(step, in_axes=(0, 0, 0, 0, 0, None))
+        _SEEDS_PROGRAMS[key] = jax.jit(seeds)
     return SeedsStep(_SEEDS_PROGRAMS[key], step_values(cfg, phase))
 
 
@@ -280,7 +300,7 @@ def train_seeds(
         for step in range(start, end):
             phase = phase_of(t.scheme, step, t.two_phase_fe_steps, t.alter_period)
             if phase not in fns:
-                fns[phase] = seeds_step(cfgs[0], phase)
+                fns[phase] = seeds_step(cfgs[0], phase, n)
             programs = fns[phase]._cache_size()
             batch = seeds_batch(train_examples, cfgs, step)
             for hook in hooks:

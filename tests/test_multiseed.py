@@ -59,6 +59,27 @@ def test_one_vmapped_step_is_each_seeds_own_step(tiny):
 
 
 @pytest.mark.slow
+def test_the_one_seed_program_is_the_vmap_of_one_seed(tiny):
+    """`seeds_step(..., n_seeds=1)` (no vmap, traced faster) steps like the vmap."""
+    import jax
+
+    from dmd_jax.train import Trainer
+
+    train_ex, _, cfg = tiny
+    cfgs = _cfgs(cfg, (2,))
+    batch = multiseed.seeds_batch(train_ex, cfgs, 0)
+    state = multiseed.stack_trees([Trainer(cfg).init(jax.tree.map(lambda x: x[0], batch))])
+    args = (batch.noisy, batch.clean, batch.graph, multiseed.step_rngs(cfgs, 0))
+    one, m1 = multiseed.seeds_step(cfg, "all", n_seeds=1)(state, *args)
+    vm, mv = multiseed.seeds_step(cfg, "all")(state, *args)
+    assert m1["loss"].shape == mv["loss"].shape == (1,)
+    np.testing.assert_allclose(m1["loss"], mv["loss"], rtol=1e-6)
+    for a, b in zip(jax.tree.leaves(one.params), jax.tree.leaves(vm.params), strict=True):
+        assert a.shape == b.shape
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.slow
 def test_vmapped_seeds_follow_the_steps_of_separate_runs(tiny, tmp_path):
     train_ex, evals, cfg = tiny
     cfgs = _cfgs(cfg, (0, 3))
