@@ -771,6 +771,11 @@ def _cmd_export_weights(args: argparse.Namespace) -> int:
         meta = {"source": str(args.checkpoint), "platform": platform.platform()}
         if step is not None:
             meta["step"] = step
+    if args.policy_from is not None:
+        # A fine-tune keeps the policy fitted for the weights it started from; the
+        # edits below still apply on top of it.
+        policy = load_weights(args.policy_from).policy
+        meta["policy_from"] = str(args.policy_from)
     policy = _edited_policy(policy, args)
     if args.meta:
         meta.update(json.loads(args.meta))
@@ -1133,6 +1138,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="store this pre-smoothing rule in the weights' policy (degrees of roughness: "
         "round((roughness - START) / PER_STEP) steps; fit it with `make calibrate`; "
         "START 0 turns it off), in place of a learned pre-smoothing choice",
+    )
+    p.add_argument(
+        "--policy-from",
+        default=None,
+        metavar="WEIGHTS",
+        help="take the inference policy (learned pre-smoothing, rules) from this weights "
+        "file instead of the checkpoint's trained policy, e.g. the weights a fine-tune "
+        "started from; the options above still edit it",
     )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.set_defaults(func=_cmd_export_weights)

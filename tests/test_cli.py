@@ -668,6 +668,20 @@ def test_export_weights_says_which_step(capsys, tmp_path):
     assert code == 0, err
     policy = checkpoints.load_weights(tmp_path / "b.msgpack").policy
     assert not policy.learns_presmoothing and policy.presmooth_start == 30
+    # --policy-from: a fine-tune's checkpoint with the policy of the weights it started
+    # from (here the bundled learned choice), its own params and config.
+    args = ("export-weights", ckpt, "-o", tmp_path / "f.msgpack", "--policy-from", "bundled")
+    code, _, err = run(capsys, *args)
+    assert code != 0 and "bundled" in err  # a path, not the `--weights` alias
+    args = ("export-weights", ckpt, "-o", tmp_path / "f.msgpack")
+    code, _, err = run(capsys, *args, "--policy-from", checkpoints.pretrained_path())
+    assert code == 0, err
+    tuned = checkpoints.load_weights(tmp_path / "f.msgpack")
+    assert tuned.policy == bundled and tuned.config == TINY_CONFIG
+    assert tuned.meta["policy_from"] == str(checkpoints.pretrained_path())
+    code, _, err = run(capsys, *args, "--overwrite", "--policy-from", tmp_path / "r.msgpack")
+    assert code == 0, err
+    assert checkpoints.load_weights(tmp_path / "f.msgpack").policy.max_passes == 3
 
 
 @pytest.mark.slow  # measured 18-26 s on 2 idle cores; `make test-slow` runs it
