@@ -25,11 +25,9 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
+from dmd_jax.constants import CREASE_ANGLE
 from dmd_jax.mesh import edge_dihedral_angles
 
-# A crease: an edge whose faces' normals differ by at least this (degrees). The paper's
-# CAD parts have creases of 60-90°; 30° keeps the gentle chamfers of fandisk as well.
-CREASE_ANGLE = 30.0
 # A flat edge: its faces' normals differ by at most this (degrees).
 FLAT_ANGLE = 1.0
 # `is_cad`: a mesh is a CAD part when at least this share of its interior edges is flat

@@ -544,6 +544,11 @@ class LossConfig(_ConfigMixin):
         `asinh(κ_H)`, `asinh(κ_G)` instead of the raw curvatures.
       face_normal: weight of the normal-first head's own face-normal error (radians,
         `losses.predicted_normal_loss`); read only by models with `head="normal"`.
+      crease_weight: how much a crease face (an edge of dihedral angle at least
+        `constants.CREASE_ANGLE` on the clean mesh, `losses.crease_face_mask`) counts in
+        the normal and face-normal terms against any other face: feature-balanced
+        training for CAD parts, whose few crease faces a plain mean drowns in their
+        flats. 1: every face alike (the terms' plain means).
     """
 
     vertex: float = _static(1.0)
@@ -556,9 +561,14 @@ class LossConfig(_ConfigMixin):
     chamfer_block: int = _static(1024)
     feature_curvature: str = _static("raw")
     face_normal: float = _static(0.0)
+    crease_weight: float = _static(1.0)
 
     def __post_init__(self):
         _check_choice("feature_curvature", self.feature_curvature, FEATURE_CURVATURES)
+        _check(
+            isinstance(self.crease_weight, int | float) and 0.0 < self.crease_weight < 1e3,
+            f"crease_weight must be a number in (0, 1000), got {self.crease_weight!r}",
+        )
         for name in ("vertex", "normal", "curvature", "chamfer", "feature", "face_normal"):
             value = getattr(self, name)
             _check(

@@ -17,6 +17,16 @@ from __future__ import annotations
 NOISE_KINDS = ("gaussian", "uniform", "gamma", "impulse")
 
 # --------------------------------------------------------------------------------------
+# Surface regions
+# --------------------------------------------------------------------------------------
+
+# A crease: an edge whose faces' normals differ by at least this (degrees). The paper's
+# CAD parts have creases of 60-90°; 30° keeps the gentle chamfers of fandisk as well.
+# `comparison.crease_faces` splits benchmark errors by it, `LossConfig.crease_weight`
+# weights training faces by it.
+CREASE_ANGLE = 30.0
+
+# --------------------------------------------------------------------------------------
 # Encodings and the layout of the local features (`encoding.local_features`)
 # --------------------------------------------------------------------------------------
 

@@ -36,6 +36,7 @@ import numpy as np
 
 from dmd_jax import geometry
 from dmd_jax.config import LossConfig
+from dmd_jax.constants import CREASE_ANGLE
 
 # --------------------------------------------------------------------------------------
 # Validation and masked reductions
@@ -86,11 +87,55 @@ class Term(NamedTuple):
         return self.total / jnp.maximum(self.count, 1).astype(self.total.dtype)
 
 
-def _masked_term(values, mask) -> Term:
-    """Sum of `values [n]` over `mask [n]` (all if `None`) and how many were selected."""
+def _masked_term(values, mask, weight=None) -> Term:
+    """Sum of `values [n]` over `mask [n]` (all if `None`) and how many were selected.
+
+    With `weight [n]` (relative, > 0) the sum is weighted, the weights rescaled to
+    average 1 over the selected items: the mean is the weighted mean, and the count
+    stays the item count, so terms of several groups still add.
+    """
     if mask is None:
-        return Term(jnp.sum(values), jnp.asarray(values.shape[0], jnp.int32))
+        mask = jnp.ones(values.shape[0], bool)
+    if weight is not None:
+        weight = jnp.where(mask, weight, 0.0)
+        values = values * weight * (jnp.sum(mask) / jnp.maximum(jnp.sum(weight), 1e-12))
     return Term(jnp.sum(jnp.where(mask, values, 0.0)), jnp.sum(mask, dtype=jnp.int32))
+
+
+def _check_weight(face_weight, n: int):
+    if face_weight is None:
+        return None
+    face_weight = jnp.asarray(face_weight)
+    if face_weight.shape != (n,):
+        raise ValueError(f"face_weight must have shape [{n}], got {tuple(face_weight.shape)}")
+    return face_weight
+
+
+def crease_face_mask(target, faces, face_senders, face_receivers, *, angle=CREASE_ANGLE):
+    """`[n_face]` bool: faces with a neighbour across an edge whose normal differs by at
+    least `angle` degrees (the crease faces of `comparison.crease_faces`, on device).
+
+    Args:
+      target: `[n_vertex, 3]` positions (the clean mesh).
+      faces: `[n_face, 3]` int vertex indices.
+      face_senders, face_receivers: `[n_face_edge]` int dual edges (`MeshGraph`: faces
+        sharing an edge, both ways; self loops and padding edges between degenerate
+        faces add nothing).
+      angle: the crease threshold in degrees.
+
+    Returns:
+      `[n_face]` bool; a zero-area face and its neighbours across it are no crease.
+    """
+    target, faces = jnp.asarray(target), jnp.asarray(faces)
+    _check_points("target", target)
+    _check_faces(faces)
+    n = geometry.face_normals(target, faces)
+    s, r = jnp.asarray(face_senders), jnp.asarray(face_receivers)
+    if s.shape != r.shape or s.ndim != 1:
+        raise ValueError(f"face_senders {s.shape} and face_receivers {r.shape} must be [n_edge]")
+    pair_angle, ok = _unit_normal_angles(n[s], n[r])
+    sharp = ok & (pair_angle >= math.radians(angle))
+    return jax.ops.segment_max(sharp.astype(jnp.int32), r, num_segments=faces.shape[0]) > 0
 
 
 # --------------------------------------------------------------------------------------
@@ -196,13 +241,14 @@ def normal_loss(pred, target, faces, *, face_mask=None, degrees=False):
     return loss * (180.0 / math.pi) if degrees else loss
 
 
-def normal_term(pred, target, faces, *, face_mask=None) -> Term:
-    """`normal_loss` (radians) as a `Term` over the selected faces with a target normal."""
+def normal_term(pred, target, faces, *, face_mask=None, face_weight=None) -> Term:
+    """`normal_loss` (radians) as a `Term` over the selected faces with a target normal;
+    with `face_weight [n_face]` (relative, > 0) their weighted mean (`_masked_term`)."""
     faces = jnp.asarray(faces)
     angles, target_ok = face_normal_angles(pred, target, faces)
     mask = _check_mask("face_mask", face_mask, faces.shape[0])
     mask = target_ok if mask is None else mask & target_ok
-    return _masked_term(angles, mask)
+    return _masked_term(angles, mask, _check_weight(face_weight, faces.shape[0]))
 
 
 def predicted_normal_loss(pred_normals, target, faces, *, face_mask=None):
@@ -213,7 +259,7 @@ def predicted_normal_loss(pred_normals, target, faces, *, face_mask=None):
     return predicted_normal_term(pred_normals, target, faces, face_mask=face_mask).mean()
 
 
-def predicted_normal_term(pred_normals, target, faces, *, face_mask=None) -> Term:
+def predicted_normal_term(pred_normals, target, faces, *, face_mask=None, face_weight=None) -> Term:
     """Angles between predicted unit face normals and the target mesh's, as a `Term`.
 
     The loss of the normal-first head's own output (before its vertex update), in
@@ -224,6 +270,7 @@ def predicted_normal_term(pred_normals, target, faces, *, face_mask=None) -> Ter
       target: `[n_vertex, 3]` ground-truth positions.
       faces: `[n_face, 3]` int vertex indices.
       face_mask: optional `[n_face]` bool, `False` on padding.
+      face_weight: optional `[n_face]` relative weights (> 0): a weighted mean.
 
     Returns:
       `Term` over the selected faces whose target (and prediction) is non-degenerate.
@@ -238,7 +285,7 @@ def predicted_normal_term(pred_normals, target, faces, *, face_mask=None) -> Ter
     angle, ok = _unit_normal_angles(pred_normals, geometry.face_normals(target, faces))
     mask = _check_mask("face_mask", face_mask, faces.shape[0])
     mask = ok if mask is None else mask & ok
-    return _masked_term(angle, mask)
+    return _masked_term(angle, mask, _check_weight(face_weight, faces.shape[0]))
 
 
 # --------------------------------------------------------------------------------------
@@ -571,6 +618,7 @@ def loss_terms(
     pred_face_normals=None,
     vertex_mask=None,
     face_mask=None,
+    face_weight=None,
     vertex_graph=None,
     n_graph=None,
 ) -> dict[str, Term]:
@@ -595,6 +643,8 @@ def loss_terms(
         `face_normal` term is computed when they are given and weighted.
       vertex_mask: optional `[n_vertex]` bool, `False` on padding.
       face_mask: optional `[n_face]` bool, `False` on padding.
+      face_weight: optional `[n_face]` relative weights (> 0) of the faces in the normal
+        and face-normal terms (e.g. `LossConfig.crease_weight` on `crease_face_mask`).
       vertex_graph: optional `[n_vertex]` int graph id per vertex (`MeshGraph.vertex_graph`).
       n_graph: static number of graphs; required with `vertex_graph`.
 
@@ -614,7 +664,9 @@ def loss_terms(
     if w["vertex"]:
         terms["vertex"] = vertex_term(pred, target, vertex_mask=vertex_mask)
     if w["normal"]:
-        terms["normal"] = normal_term(pred, target, faces, face_mask=face_mask)
+        terms["normal"] = normal_term(
+            pred, target, faces, face_mask=face_mask, face_weight=face_weight
+        )
     if w["curvature"]:
         terms["curvature"] = curvature_term(
             pred,
@@ -643,7 +695,7 @@ def loss_terms(
         terms["feature"] = feature_term(pred_features, target_features, vertex_mask=vertex_mask)
     if w["face_normal"] and pred_face_normals is not None:
         terms["face_normal"] = predicted_normal_term(
-            pred_face_normals, target, faces, face_mask=face_mask
+            pred_face_normals, target, faces, face_mask=face_mask, face_weight=face_weight
         )
     return terms
 

@@ -15,10 +15,10 @@ one half really freezes it (no momentum drift). Each (bucket, phase) compiles on
 One engine: `make_train_step` builds the step of a phase for a device mesh
 (`parallel.batch_mesh`). A batch is one group of meshes per device, stacked on a leading
 axis (`pipeline.training_batch`); `parallel.sum_over_groups` (a `jax.shard_map` on
-several devices) gives every device its group, the groups' loss terms (`losses.Term`: sums and counts) are added across devices, and
-`losses.reduce_terms` divides once, so k steps on n devices are k steps on the whole
-batch, up to the order of float sums. Training on one device is the same code on a
-one-device mesh, with a batch of one group.
+several devices) gives every device its group, the groups' loss terms (`losses.Term`:
+sums and counts) are added across devices, and `losses.reduce_terms` divides once, so k
+steps on n devices are k steps on the whole batch, up to the order of float sums.
+Training on one device is the same code on a one-device mesh, with a batch of one group.
 
 The loop: `train_and_evaluate(cfg, workdir)` runs an experiment from its config alone
 (as Flax's `examples/ogbg_molpcba/train.py`): it reads the training and evaluation sets
@@ -184,6 +184,12 @@ def loss_terms(
     """
     deterministic = rng is None
     target_feats = None
+    face_weight = None
+    if loss.crease_weight != 1.0:
+        crease = losses.crease_face_mask(
+            clean, graph.faces, graph.face_senders, graph.face_receivers
+        )
+        face_weight = jnp.where(crease, loss.crease_weight, 1.0)
     total: dict[str, losses.Term] = {}
     x = noisy
     for k in range(cfg.train.passes):
@@ -211,6 +217,7 @@ def loss_terms(
             pred_face_normals=aux.get("face_normals"),
             vertex_mask=graph.vertex_mask,
             face_mask=graph.face_mask,
+            face_weight=face_weight,
             vertex_graph=graph.vertex_graph,
             n_graph=graph.n_graph,
         )

@@ -536,3 +536,78 @@ def test_bad_inputs_raise_value_error():
         total_loss(pred, target, faces, weights=LossConfig(vertex=-1.0, feature=0.0))
     with pytest.raises(ValueError, match="loss weight vertex"):
         jax.jit(lambda w: total_loss(pred, target, faces, weights=LossConfig(vertex=w)))(1.0)
+
+
+# --------------------------------------------------------------------------------------
+# Feature-balanced weights (LossConfig.crease_weight)
+# --------------------------------------------------------------------------------------
+
+
+def _folded_grid(n=7, seed=0):
+    """A grid folded 60° along a line (a crease between two flats), lightly bumped."""
+    rng = np.random.default_rng(seed)
+    _, v, f = _grid(n, seed=seed, sigma=0.0)
+    v[:, 2] = 0.0
+    x = v[:, 0] - 0.5
+    fold = x > 0
+    v[fold, 0] = 0.5 + x[fold] * math.cos(math.radians(60))
+    v[fold, 2] = x[fold] * math.sin(math.radians(60))
+    return v + 1e-3 * rng.normal(size=v.shape), f
+
+
+@pytest.mark.parametrize("mesh", ["folded", "sphere", "tetrahedron"])
+def test_crease_face_mask_matches_the_comparison_reference(mesh):
+    from dmd_jax.comparison import crease_faces
+    from dmd_jax.graph import build_mesh_graph
+
+    if mesh == "folded":
+        v, f = _folded_grid()
+    elif mesh == "sphere":
+        v, f = icosphere(1)
+    else:
+        v, f = tetrahedron()
+    g = build_mesh_graph(f, v.shape[0])
+    got = losses.crease_face_mask(v, f, g.face_senders, g.face_receivers)
+    want = crease_faces(v, f)
+    np.testing.assert_array_equal(np.asarray(got), want)
+    # The fold has creases, the fine sphere none, every tetrahedron face is on one.
+    assert {"folded": 0 < want.sum() < len(f), "sphere": not want.any()}.get(mesh, want.all())
+
+
+def test_face_weight_is_a_weighted_mean_of_the_normal_terms():
+    from dmd_jax.graph import build_mesh_graph
+
+    target, f = _folded_grid()
+    pred = target + 0.01 * np.random.default_rng(3).normal(size=target.shape)
+    angles = np.asarray(face_normal_angles(pred, target, f)[0])
+    w = np.random.default_rng(4).uniform(0.5, 4.0, len(f))
+    term = losses.normal_term(pred, target, f, face_weight=w)
+    assert int(term.count) == len(f)
+    np.testing.assert_allclose(term.mean(), np.sum(w * angles) / np.sum(w), rtol=1e-6)
+    # Weights of 1 are the plain mean; padding faces carry no weight.
+    np.testing.assert_allclose(
+        losses.normal_term(pred, target, f, face_weight=np.ones(len(f))).mean(),
+        normal_loss(pred, target, f),
+        rtol=1e-6,
+    )
+    p2, t2, f2, _, fm = _pad(pred, target, f)
+    w2 = np.concatenate([w, np.full(len(f2) - len(f), 100.0)])
+    padded = losses.normal_term(p2, t2, f2, face_mask=fm, face_weight=w2)
+    np.testing.assert_allclose(padded.mean(), term.mean(), rtol=1e-6)
+    # The face-normal term of a normal-first head takes the same weights.
+    g = build_mesh_graph(f, len(target))
+    crease = np.asarray(losses.crease_face_mask(target, f, g.face_senders, g.face_receivers))
+    n_pred = np.asarray(losses.geometry.face_normals(pred, f))
+    cw = np.where(crease, 5.0, 1.0)
+    pn = losses.predicted_normal_term(n_pred, target, f, face_weight=cw)
+    np.testing.assert_allclose(pn.mean(), np.sum(cw * angles) / np.sum(cw), rtol=1e-5)
+    with pytest.raises(ValueError, match="face_weight must have shape"):
+        losses.normal_term(pred, target, f, face_weight=w[:-1])
+
+
+def test_crease_weight_config_is_checked():
+    assert LossConfig().crease_weight == 1.0
+    assert LossConfig(crease_weight=4).crease_weight == 4
+    for bad in (0.0, -1.0, float("nan"), float("inf"), "4"):
+        with pytest.raises(ValueError, match="crease_weight"):
+            LossConfig(crease_weight=bad)

@@ -375,6 +375,48 @@ def test_passes_add_each_pass_terms_with_the_gradient_stopped_between_them():
         np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-7)
 
 
+def test_crease_weight_weights_the_normal_terms_by_the_clean_creases():
+    """`loss.crease_weight`: the normal and face-normal terms become means weighted by the
+    clean mesh's crease faces (`losses.crease_face_mask`); other terms do not change."""
+    import trimesh
+
+    from dmd_jax import losses
+
+    box = trimesh.creation.box().subdivide().subdivide()
+    cfg = config.preset("test").with_edits(TINY)
+    examples = pipeline.make_examples([(np.asarray(box.vertices), np.asarray(box.faces))])
+    batch = pipeline.training_batch(examples, 0, batch_size=1, seed=0, noise=cfg.noise)
+    noisy, clean, graph = jax.tree.map(
+        lambda x: jnp.asarray(x[0]), (batch.noisy, batch.clean, batch.graph)
+    )
+    model = train.DMDNet(cfg.model)
+    params = train._init_program(cfg.model)(
+        {"params": jax.random.PRNGKey(0), "dropout": jax.random.PRNGKey(0)}, noisy, graph
+    )["params"]
+    plain, weighted = (
+        jax.jit(lambda p, c=c: train.loss_terms(model, c, p, noisy, clean, graph, loss=c.loss))(
+            params
+        )
+        for c in (cfg, cfg.with_edits({"loss": {"crease_weight": 4.0}}))
+    )
+    assert set(plain) == set(weighted) and {"normal", "face_normal"} <= set(plain)
+    crease = np.asarray(
+        losses.crease_face_mask(clean, graph.faces, graph.face_senders, graph.face_receivers)
+    )
+    assert 0 < crease[np.asarray(graph.face_mask)].sum() < np.asarray(graph.face_mask).sum()
+    out = jax.jit(lambda p: model.apply({"params": p}, noisy, graph, deterministic=True)[0])(params)
+    want = losses.normal_term(
+        out, clean, graph.faces, face_mask=graph.face_mask, face_weight=np.where(crease, 4.0, 1.0)
+    )
+    np.testing.assert_allclose(weighted["normal"].total, want.total, rtol=1e-4)
+    for name in plain:
+        assert int(plain[name].count) == int(weighted[name].count)
+        if name in ("normal", "face_normal"):
+            assert abs(float(plain[name].total) - float(weighted[name].total)) > 1e-4
+        else:
+            np.testing.assert_allclose(plain[name].total, weighted[name].total, rtol=1e-6)
+
+
 def test_evaluation_runs_the_trained_passes():
     cfg = config.preset("test").with_edits(TINY).with_edits({"train": {"passes": 3}})
     noisy, _, graph = _one_group(cfg)
