@@ -524,6 +524,7 @@ _LATER_FIELDS = {
         "real_val_patches_per_mesh": 1,
     },
     "train": {"init_from": None},
+    "loss": {"crease_weight": 1.0},
 }
 
 

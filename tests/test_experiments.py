@@ -132,6 +132,26 @@ def test_hash_ignores_the_name_and_sees_every_setting(base):
     assert st.config_hash(base) != st.config_hash(base.with_edits({"loss": {"gamma_g": 2e-6}}))
     ev = {"kind": "test", "eval_meshes": 1}
     assert st.run_hash(base, ev) != st.run_hash(base, {**ev, "eval_meshes": 2})
+    # A field added later hashes only away from the value that leaves a run as it was.
+    assert st.config_hash(base) == st.config_hash(base.with_edits({"loss": {"crease_weight": 1}}))
+    assert st.config_hash(base) != st.config_hash(base.with_edits({"loss": {"crease_weight": 4}}))
+
+
+def test_committed_cpu_offset_runs_keep_their_config_hashes():
+    """Every finished run of the cpu-offset sweep hashes, under today's config fields, to
+    the hash it was recorded with: a new field must not rename finished runs (a fresh
+    checkout would retrain them)."""
+    from pathlib import Path
+
+    from dmd_jax.config import ExperimentConfig
+
+    root = Path(__file__).resolve().parents[1] / "experiments" / "results" / "cpu-offset"
+    paths = sorted(root.glob("*/*/metrics.json"))
+    assert len(paths) >= 250
+    for path in paths:
+        recorded = json.loads(path.read_text())["config_hash"]
+        cfg = ExperimentConfig.from_dict(json.loads((path.parent / "config.json").read_text()))
+        assert st.config_hash(cfg) == recorded, path
 
 
 def test_seeds_multiply_runs_and_ids_name_the_seed(test_preset):
