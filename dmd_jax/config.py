@@ -750,6 +750,9 @@ class DataConfig(_ConfigMixin):
       real_patches_per_mesh: training patches per real mesh at most.
       real_val_patch_faces: faces of a validation patch at most.
       real_val_patches_per_mesh: validation patches per real mesh at most.
+      real_coarse_faces: face counts each real training mesh is also decimated to, whole
+        (`data.real.coarse_copies`: coarse tessellations, whose clean faces meet at large
+        angles); `()`: none.
     """
 
     source: str = _static("procedural")
@@ -768,6 +771,7 @@ class DataConfig(_ConfigMixin):
     real_patches_per_mesh: int = _static(8)
     real_val_patch_faces: int = _static(4000)
     real_val_patches_per_mesh: int = _static(1)
+    real_coarse_faces: tuple[int, ...] = _static(())
 
     def __post_init__(self):
         _check_choice("data source", self.source, DATA_SOURCES)
@@ -790,6 +794,8 @@ class DataConfig(_ConfigMixin):
             "real_val_patches_per_mesh",
         ):
             _check_positive_int(name, getattr(self, name))
+        for n in self.real_coarse_faces:
+            _check_positive_int("real_coarse_faces", n, minimum=4)
 
 
 @struct.dataclass

@@ -522,6 +522,7 @@ _LATER_FIELDS = {
         "real_patches_per_mesh": 8,
         "real_val_patch_faces": 4000,
         "real_val_patches_per_mesh": 1,
+        "real_coarse_faces": [],
     },
     "train": {"init_from": None},
     "loss": {"crease_weight": 1.0},

@@ -11,6 +11,12 @@ The validation split is fixed by file name, not by a random draw: a file is held
 when the first 8 hex digits of the SHA-1 of its name, read as a fraction, fall below
 `VALIDATION_FRACTION`. Adding or removing other files never moves a file between
 splits, and anyone can recompute the list (`validation_names`).
+
+Coarse copies (`coarse_copies`, `DataConfig.real_coarse_faces`): patches cut from a fine
+mesh are finely tessellated, so their clean faces meet at a few degrees and a network
+learns that any larger angle is noise; a coarse mesh (a decimated scan, a low-poly part)
+meets at 15-30° everywhere, and such a network flattens it. Each training mesh is also
+decimated whole (quadric edge collapse) to a few face counts.
 """
 
 from __future__ import annotations
@@ -151,6 +157,61 @@ def load_real_patches(
         v, f = load_mesh(path)
         n = int(np.clip(f.shape[0] // faces_per_patch + 1, 1, max_patches))
         out.extend(mesh_patches(v, f, max_faces=max_faces, n_patches=n, rng=rng))
+    return out
+
+
+def decimate(
+    vertices: np.ndarray, faces: np.ndarray, n_faces: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh decimated to about `n_faces` faces (pymeshlab's quadric edge collapse,
+    topology and boundary kept, normals not flipped), cleaned; as it is if it has at most
+    `n_faces` faces.
+
+    Returns:
+      `(vertices [m, 3] float64, faces [k, 3] int32)`.
+    """
+    from dmd_jax.data.shapes import _clean_meshset, _current, _meshset
+
+    f = np.asarray(faces)
+    if f.shape[0] <= n_faces:
+        return np.asarray(vertices, np.float64), f.astype(np.int32)
+    ms = _meshset(np.asarray(vertices, np.float64), f)
+    _clean_meshset(ms)
+    ms.meshing_decimation_quadric_edge_collapse(
+        targetfacenum=int(n_faces),
+        preserveboundary=True,
+        preservenormal=True,
+        preservetopology=True,
+        planarquadric=True,
+    )
+    _clean_meshset(ms)
+    v, f = _current(ms)
+    return v, f.astype(np.int32)
+
+
+def coarse_copies(
+    folder, split: str = "train", *, face_counts: Sequence[int], min_faces: int = 200
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Every mesh of `split` in `folder` decimated whole to each of `face_counts` that it
+    exceeds by at least half (a copy much like the mesh itself adds nothing).
+
+    Args:
+      folder: a folder of mesh files.
+      split: `"train"`, `"val"` or `"all"` (see `is_validation`).
+      face_counts: target face counts, e.g. `(1000, 3000)`.
+      min_faces: a copy with fewer faces (a mesh of many tiny components) is dropped.
+
+    Returns:
+      `[(vertices, faces)]` in the files' own coordinates.
+    """
+    out = []
+    for path in mesh_files(folder, split):
+        v, f = load_mesh(path)
+        for n in sorted(set(int(c) for c in face_counts)):
+            if f.shape[0] >= 1.5 * n:
+                cv, cf = decimate(v, f, n)
+                if cf.shape[0] >= min_faces:
+                    out.append((cv, cf))
     return out
 
 

@@ -85,6 +85,8 @@ def training_sets(d: DataConfig, *, seed: int) -> TrainingSets:
             max_patches=d.real_patches_per_mesh,
             seed=seed,
         )
+        if d.real_coarse_faces:
+            train += real.coarse_copies(d.real_root, "train", face_counts=d.real_coarse_faces)
         evals[REAL_VAL] = real.load_real_patches(
             d.real_root,
             "val",
