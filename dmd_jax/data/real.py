@@ -13,10 +13,13 @@ when the first 8 hex digits of the SHA-1 of its name, read as a fraction, fall b
 splits, and anyone can recompute the list (`validation_names`).
 
 Coarse copies (`coarse_copies`, `DataConfig.real_coarse_faces`): patches cut from a fine
-mesh are finely tessellated, so their clean faces meet at a few degrees and a network
-learns that any larger angle is noise; a coarse mesh (a decimated scan, a low-poly part)
-meets at 15-30° everywhere, and such a network flattens it. Each training mesh is also
-decimated whole (quadric edge collapse) to a few face counts.
+mesh are finely tessellated, so their clean faces meet at small angles, and a network
+learns that larger ones are noise and flattens a coarse mesh (a decimated scan, a low-poly
+part). Each training mesh can also be decimated whole (quadric edge collapse) to a few
+face counts. Measured (median angle between neighbouring clean faces, quartiles): the
+real training patches 1.0 / 2.7 / 4.7°, the procedural training meshes 0 / 1.7 / 3.5°,
+the 175 copies at 1,000 and 3,000 faces 3.5 / 7.8 / 13°; benchmark meshes reach 11°
+(`cgal_knot2`), 13° (`camel_b`) and 27° (the decimated knight).
 """
 
 from __future__ import annotations
