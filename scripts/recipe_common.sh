@@ -12,3 +12,19 @@ if [ ! -f "$DATA/manifest.json" ]; then
 fi
 
 TRAIN=("$BIN/dmd-jax" train --data "$DATA" --preset small --eval-meshes 8 --real-meshes "$REAL")
+
+# score_run OUT RUN [export-weights options...]: exports OUT/RUN/checkpoints/best to
+# OUT/RUN.msgpack with those options (the policy to run it with), then scores it on the
+# validation split (sota-lite, DMD-Net rows only; the other methods' rows reused from
+# benchmarks/results/sota_lite.csv) into OUT/val_RUN.md and on clean meshes into
+# OUT/no_harm_RUN.md.
+score_run() {
+  local out=$1 run=$2
+  shift 2
+  "$BIN/dmd-jax" export-weights "$out/$run/checkpoints/best" -o "$out/$run.msgpack" "$@" \
+    --overwrite
+  "$BIN/python" benchmarks/quality/sota_lite.py --sets val --weights "$out/$run.msgpack" \
+    --reuse-from benchmarks/results/sota_lite.csv --name "val_$run" --out-dir "$out"
+  "$BIN/python" benchmarks/quality/no_harm.py --weights "$out/$run.msgpack" \
+    --out "$out/no_harm_$run.md"
+}

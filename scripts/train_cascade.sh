@@ -14,7 +14,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${1:-runs/cascade}
 mkdir -p "$OUT"
-source scripts/recipe_common.sh  # BIN, REAL, DATA (made if missing), TRAIN
+source scripts/recipe_common.sh  # BIN, REAL, DATA (made if missing), TRAIN, score_run
 COMMON=(train.passes=2 train.warmup_steps=50 train.seed=5 loss.normal=3.0 loss.face_normal=3.0
   noise.p_normal=0.8 model.filter_iterations=120)
 BENCH='noise.edge_levels=[0.05,0.1,0.1,0.15,0.2,0.2,0.25,0.3,0.3,0.4,0.5,0.6,0.8,1.0]'
@@ -29,11 +29,6 @@ LIGHT='noise.edge_levels=[0.05,0.05,0.1,0.1,0.1,0.15,0.2,0.2,0.25,0.3,0.3,0.4,0.
 
 for run in cascade2 cascade2_light; do
   # The trained policy (two passes, no tolerance) plus the bundled pre-smoothing rule.
-  "$BIN/dmd-jax" export-weights "$OUT/$run/checkpoints/best" -o "$OUT/$run.msgpack" \
-    --presmooth 27 4.5 --overwrite
-  "$BIN/python" benchmarks/quality/sota_lite.py --sets val --weights "$OUT/$run.msgpack" \
-    --reuse-from benchmarks/results/sota_lite.csv --name "val_$run" --out-dir "$OUT"
-  "$BIN/python" benchmarks/quality/no_harm.py --weights "$OUT/$run.msgpack" \
-    --out "$OUT/no_harm_$run.md"
+  score_run "$OUT" "$run" --presmooth 27 4.5
 done
 echo "reports in $OUT: val_*.md (compare with benchmarks/results/sota_lite.md, set val), no_harm_*.md"

@@ -13,7 +13,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${1:-runs/heavy}
 mkdir -p "$OUT"
-source scripts/recipe_common.sh  # BIN, REAL, DATA (made if missing), TRAIN
+source scripts/recipe_common.sh  # BIN, REAL, DATA (made if missing), TRAIN, score_run
 # The bundled weights' last fine-tune (losses, filter passes, normal share, clean draws) ...
 COMMON=(train.warmup_steps=50 train.seed=7 loss.normal=3.0 loss.face_normal=3.0
   noise.p_normal=0.8 noise.p_clean=0.1 model.filter_iterations=120)
@@ -29,13 +29,6 @@ HEAVY=('noise.kinds=["gaussian","gaussian","impulse","impulse","uniform","gamma"
 "${TRAIN[@]}" --workdir "$OUT/heavy" --init-from dmd_jax/weights/dmd_small.msgpack \
   --set train.steps=2500 train.lr=1.5e-4 "${COMMON[@]}" "${HEAVY[@]}" ${EXTRA:-}
 
-for run in heavy; do
-  # The checkpoint with the bundled weights' policy (learned pre-smoothing, tolerance).
-  "$BIN/dmd-jax" export-weights "$OUT/$run/checkpoints/best" -o "$OUT/$run.msgpack" \
-    --policy-from dmd_jax/weights/dmd_small.msgpack --overwrite
-  "$BIN/python" benchmarks/quality/sota_lite.py --sets val --weights "$OUT/$run.msgpack" \
-    --reuse-from benchmarks/results/sota_lite.csv --name "val_$run" --out-dir "$OUT"
-  "$BIN/python" benchmarks/quality/no_harm.py --weights "$OUT/$run.msgpack" \
-    --out "$OUT/no_harm_$run.md"
-done
+# The checkpoint with the bundled weights' policy (learned pre-smoothing, tolerance).
+score_run "$OUT" heavy --policy-from dmd_jax/weights/dmd_small.msgpack
 echo "reports in $OUT: val_*.md (compare with benchmarks/results/sota_lite.md, set val), no_harm_*.md"
