@@ -63,13 +63,19 @@ def _check_faces(faces):
         raise ValueError(f"faces must hold integer vertex indices, got dtype {faces.dtype}")
 
 
-def _check_mask(name: str, mask, n: int):
-    if mask is None:
+def _check_per_item(name: str, x, n: int):
+    """`x` as an array of shape `[n]` (None stays None), or a `ValueError` naming it."""
+    if x is None:
         return None
-    mask = jnp.asarray(mask)
-    if mask.shape != (n,):
-        raise ValueError(f"{name} must have shape [{n}], got {tuple(mask.shape)}")
-    return mask.astype(bool)
+    x = jnp.asarray(x)
+    if x.shape != (n,):
+        raise ValueError(f"{name} must have shape [{n}], got {tuple(x.shape)}")
+    return x
+
+
+def _check_mask(name: str, mask, n: int):
+    mask = _check_per_item(name, mask, n)
+    return None if mask is None else mask.astype(bool)
 
 
 class Term(NamedTuple):
@@ -94,21 +100,14 @@ def _masked_term(values, mask, weight=None) -> Term:
     average 1 over the selected items: the mean is the weighted mean, and the count
     stays the item count, so terms of several groups still add.
     """
+    if mask is None and weight is None:
+        return Term(jnp.sum(values), jnp.asarray(values.shape[0], jnp.int32))
     if mask is None:
         mask = jnp.ones(values.shape[0], bool)
     if weight is not None:
         weight = jnp.where(mask, weight, 0.0)
         values = values * weight * (jnp.sum(mask) / jnp.maximum(jnp.sum(weight), 1e-12))
     return Term(jnp.sum(jnp.where(mask, values, 0.0)), jnp.sum(mask, dtype=jnp.int32))
-
-
-def _check_weight(face_weight, n: int):
-    if face_weight is None:
-        return None
-    face_weight = jnp.asarray(face_weight)
-    if face_weight.shape != (n,):
-        raise ValueError(f"face_weight must have shape [{n}], got {tuple(face_weight.shape)}")
-    return face_weight
 
 
 def crease_face_mask(target, faces, face_senders, face_receivers, *, angle=CREASE_ANGLE):
@@ -248,7 +247,7 @@ def normal_term(pred, target, faces, *, face_mask=None, face_weight=None) -> Ter
     angles, target_ok = face_normal_angles(pred, target, faces)
     mask = _check_mask("face_mask", face_mask, faces.shape[0])
     mask = target_ok if mask is None else mask & target_ok
-    return _masked_term(angles, mask, _check_weight(face_weight, faces.shape[0]))
+    return _masked_term(angles, mask, _check_per_item("face_weight", face_weight, faces.shape[0]))
 
 
 def predicted_normal_loss(pred_normals, target, faces, *, face_mask=None):
@@ -285,7 +284,7 @@ def predicted_normal_term(pred_normals, target, faces, *, face_mask=None, face_w
     angle, ok = _unit_normal_angles(pred_normals, geometry.face_normals(target, faces))
     mask = _check_mask("face_mask", face_mask, faces.shape[0])
     mask = ok if mask is None else mask & ok
-    return _masked_term(angle, mask, _check_weight(face_weight, faces.shape[0]))
+    return _masked_term(angle, mask, _check_per_item("face_weight", face_weight, faces.shape[0]))
 
 
 # --------------------------------------------------------------------------------------

@@ -207,10 +207,11 @@ def coarse_copies(
     Returns:
       `[(vertices, faces)]` in the files' own coordinates.
     """
+    counts = sorted({int(c) for c in face_counts})
     out = []
     for path in mesh_files(folder, split):
         v, f = load_mesh(path)
-        for n in sorted(set(int(c) for c in face_counts)):
+        for n in counts:
             if f.shape[0] >= 1.5 * n:
                 cv, cf = decimate(v, f, n)
                 if cf.shape[0] >= min_faces:
