@@ -119,7 +119,7 @@ def main(argv=None) -> int:
         if p.calibrate_curvature and gammas is None:
             print(f"(no calibration in {data} yet: ids below use the paper's gammas)")
         p = p.with_seeds(args.seeds)
-        runs = st.plan(p, st.base_config(p, gammas), args.studies or p.studies)
+        runs = st.plan(p, st.base_config(p, gammas), args.studies or p.studies, out_dir=out)
         homes = st.training_homes(runs)
         for r in runs:
             if args.seeds and r.seed not in args.seeds:

@@ -919,7 +919,7 @@ def run_sweep(
     # compiling, no longer ahead of the first job).
     references = concurrent.futures.ThreadPoolExecutor(max_workers=1)
     refs_done = references.submit(ensure_references, out_dir, base, evals)
-    all_runs = st.plan(p, base)
+    all_runs = st.plan(p, base, out_dir=out_dir)
     _write_json(
         out_dir / "plan.json",
         {

@@ -49,6 +49,7 @@ import hashlib
 import json
 import re
 from collections.abc import Mapping, Sequence
+from pathlib import Path
 from typing import Any, NamedTuple
 
 from dmd_jax.config import ExperimentConfig, preset
@@ -529,7 +530,14 @@ _LATER_FIELDS = {
 }
 
 
-def _hashed(cfg: ExperimentConfig) -> dict:
+# Fields added without a `_LATER_FIELDS` entry, so that runs recorded before them carry
+# hashes without them: `train.passes` (2026-12-02), absent from every run of the cpu,
+# cpu-quick and cpu-recipe sweeps and present in the cpu-offset sweep's. `plan` with a
+# results directory finds such runs under their recorded ids (`recorded_hashes`).
+_FIELDS_ADDED_UNHASHED = ({"train": {"passes": 1}},)
+
+
+def _hashed(cfg: ExperimentConfig, drop: Mapping[str, Mapping[str, Any]] | None = None) -> dict:
     data = cfg.to_dict()
     data.pop("name", None)
     model = data["model"]
@@ -540,7 +548,23 @@ def _hashed(cfg: ExperimentConfig) -> dict:
         for key, value in fields.items():
             if data[section].get(key, value) == value:
                 data[section].pop(key, None)
+    for section, fields in (drop or {}).items():
+        for key, value in fields.items():
+            if data[section].get(key, value) == value:
+                data[section].pop(key, None)
     return data
+
+
+def _older_hashed(cfg: ExperimentConfig) -> list[dict]:
+    """`_hashed` as it was before each field of `_FIELDS_ADDED_UNHASHED`, newest first."""
+    out, drop = [], {}
+    for fields in reversed(_FIELDS_ADDED_UNHASHED):
+        for section, values in fields.items():
+            drop[section] = {**drop.get(section, {}), **values}
+        older = _hashed(cfg, drop)
+        if older != _hashed(cfg) and older not in out:
+            out.append(older)
+    return out
 
 
 def config_hash(cfg: ExperimentConfig) -> str:
@@ -597,9 +621,17 @@ def _evaluation(p: AblatePreset, kind: str, **extra) -> dict[str, Any]:
 
 
 def plan(
-    p: AblatePreset, base: ExperimentConfig, studies: Sequence[str] | None = None
+    p: AblatePreset,
+    base: ExperimentConfig,
+    studies: Sequence[str] | None = None,
+    out_dir: Path | str | None = None,
 ) -> list[RunSpec]:
-    """Every run of the chosen studies (default: all), in study, row, seed order."""
+    """Every run of the chosen studies (default: all), in study, row, seed order.
+
+    With `out_dir` (the sweep's results directory), a run recorded there before a field
+    of `_FIELDS_ADDED_UNHASHED` existed keeps its recorded id and training hash
+    (`recorded_hashes`), so a rerun finds it finished instead of retraining it.
+    """
     keys = STUDY_KEYS if studies is None else tuple(studies)
     for key in keys:
         get_study(key)
@@ -619,10 +651,48 @@ def plan(
                 else:
                     evals = [(row, _evaluation(p, "test"))]
                 for name, ev in evals:
-                    h = run_hash(c, ev)
-                    rid = f"{slug(name)}-{h}" if len(p.seeds) == 1 else f"{slug(name)}-s{seed}-{h}"
-                    runs.append(RunSpec(key, name, int(seed), c, ev, config_hash(c), rid))
-    return runs
+                    runs.append(RunSpec(key, name, int(seed), c, ev, *_ids(p, name, seed, c, ev)))
+    return runs if out_dir is None else recorded_hashes(p, runs, Path(out_dir))
+
+
+def _ids(p: AblatePreset, name: str, seed: int, c: ExperimentConfig, ev: dict, hashed=None):
+    """`(train_hash, run_id)` of a run, from `hashed` (default: `_hashed(c)`)."""
+    hashed = _hashed(c) if hashed is None else hashed
+    h = _digest({"config": hashed, "evaluation": dict(ev)})
+    rid = f"{slug(name)}-{h}" if len(p.seeds) == 1 else f"{slug(name)}-s{seed}-{h}"
+    return _digest(hashed), rid
+
+
+def recorded_hashes(p: AblatePreset, runs: Sequence[RunSpec], out_dir: Path) -> list[RunSpec]:
+    """`runs` with the ids they were recorded under in `out_dir`.
+
+    A training whose run directory exists only under an older hash (`_older_hashed`)
+    takes that training hash for all its runs, and each run its older id where that
+    directory exists, so the recorded checkpoints and metrics are found; every other
+    run keeps today's ids.
+    """
+    older: dict[str, list[tuple[dict, str, str]]] = {}  # today's train hash -> its older ids
+    for r in runs:
+        if (out_dir / r.study / r.run_id).is_dir():
+            continue
+        for hashed in _older_hashed(r.config):
+            train_hash, rid = _ids(p, r.row, r.seed, r.config, r.evaluation, hashed)
+            if (out_dir / r.study / rid).is_dir():
+                older.setdefault(r.train_hash, []).append((hashed, train_hash, rid))
+                break
+    if not older:
+        return list(runs)
+    out = []
+    for r in runs:
+        if r.train_hash not in older:
+            out.append(r)
+            continue
+        hashed, train_hash, _ = older[r.train_hash][0]
+        _, rid = _ids(p, r.row, r.seed, r.config, r.evaluation, hashed)
+        if not (out_dir / r.study / rid).is_dir() and (out_dir / r.study / r.run_id).is_dir():
+            rid = r.run_id
+        out.append(r._replace(train_hash=train_hash, run_id=rid))
+    return out
 
 
 def training_homes(runs: Sequence[RunSpec]) -> dict[str, RunSpec]:

@@ -154,6 +154,43 @@ def test_committed_cpu_offset_runs_keep_their_config_hashes():
         assert st.config_hash(cfg) == recorded, path
 
 
+@pytest.mark.parametrize("sweep", ["cpu", "cpu-offset"])
+def test_committed_sweeps_plan_to_their_finished_runs(sweep):
+    """Planned against its results directory, every run of a committed sweep is found
+    finished: the cpu sweep's runs were recorded before `train.passes` entered the hash
+    (`recorded_hashes` finds them under those ids), the cpu-offset sweep's after."""
+    from pathlib import Path
+
+    from dmd_jax.config import ExperimentConfig
+
+    root = Path(__file__).resolve().parents[1] / "experiments" / "results" / sweep
+    plan = json.loads((root / "plan.json").read_text())
+    p = st.AblatePreset.from_dict(plan["preset"])
+    base = ExperimentConfig.from_dict(plan["base_config"])
+    runs = st.plan(p, base, out_dir=root)
+    assert {(r.study, r.run_id) for r in runs} == {(r["study"], r["run_id"]) for r in plan["runs"]}
+    assert all((root / r.study / r.run_id / "metrics.json").is_file() for r in runs)
+    # Without the directory, today's ids: the cpu sweep's differ, the cpu-offset's do not.
+    fresh = {r.run_id for r in st.plan(p, base)}
+    assert (fresh == {r.run_id for r in runs}) == (sweep == "cpu-offset")
+
+
+def test_plan_keeps_todays_ids_where_nothing_older_is_recorded(test_preset, tmp_path):
+    base = st.base_config(test_preset)
+    runs = st.plan(test_preset, base, ["depth"])
+    # Record one run under the id it had before `train.passes` was hashed.
+    r = runs[0]
+    older = st._older_hashed(r.config)[0]
+    train_hash, rid = st._ids(test_preset, r.row, r.seed, r.config, r.evaluation, older)
+    (tmp_path / r.study / rid).mkdir(parents=True)
+    found = st.plan(test_preset, base, ["depth"], out_dir=tmp_path)
+    assert found[0].run_id == rid and found[0].train_hash == train_hash
+    # The same training's other runs share its older hash; other trainings keep today's.
+    for old, new in zip(runs[1:], found[1:], strict=True):
+        same = old.train_hash == r.train_hash
+        assert (new.train_hash == train_hash) if same else (new == old)
+
+
 def test_seeds_multiply_runs_and_ids_name_the_seed(test_preset):
     p = test_preset.with_changes(seeds=(0, 1))
     runs = st.plan(p, st.base_config(p, None), ["depth"])
