@@ -124,8 +124,10 @@ ablate-quick: $(STAMP)
 # Every study at the test preset (2 steps per run), into out/ (also run by the test suite).
 # Nearly all of it is compiling: rows that differ only in loss weights, dropout rate or
 # scheme share one train-step program, rows of one model one init and predictor, and rows
-# sharing programs run in one worker (56 programs for 29 rows, was 91). 2026-12-02 on 2
-# cores at load 5-10: 23 min with a cold JAX cache (was 30), 7 min warm (a rerun).
+# sharing programs run in one worker (56 programs for 29 rows, was 91). 2026-12-05 on 2
+# idle cores (load 0.1 at start): 6.2 min with a cold JAX cache (684 CPU-s, ~470 of them
+# XLA compiling), 2.1 min warm (out/ removed, cache kept). 2026-12-02 at load 5-10: 23 min
+# cold, 7 min warm.
 ablate-smoke: $(STAMP)
 	$(BIN)/python -m experiments run --preset test --out out/ablate-smoke \
 		--data-dir out/ablate-smoke-data

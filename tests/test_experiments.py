@@ -175,6 +175,18 @@ def test_committed_sweeps_plan_to_their_finished_runs(sweep):
     assert (fresh == {r.run_id for r in runs}) == (sweep == "cpu-offset")
 
 
+def test_list_in_a_fresh_clone_finds_the_committed_runs(tmp_path, capsys):
+    """Without the dataset (and so its curvature calibration) `experiments list` takes the
+    gammas from the results' plan.json: the committed cpu-offset runs are listed done."""
+    from experiments.__main__ import main
+
+    assert main(["list", "--preset", "cpu-offset", "--data-dir", str(tmp_path)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert "plan.json" in lines[0]
+    status = [line.split()[0] for line in lines[1:-1]]
+    assert len(status) >= 250 and set(status) == {"done"}
+
+
 def test_plan_keeps_todays_ids_where_nothing_older_is_recorded(test_preset, tmp_path):
     base = st.base_config(test_preset)
     runs = st.plan(test_preset, base, ["depth"])
