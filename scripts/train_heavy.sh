@@ -23,9 +23,11 @@ HEAVY=('noise.kinds=["gaussian","gaussian","impulse","impulse","uniform","gamma"
   'noise.edge_levels=[0.05,0.1,0.1,0.15,0.2,0.2,0.3,0.3,0.4,0.5,0.6,0.6,0.7,0.8,0.8]'
   noise.p_edge=0.9)
 
-# 1. 2,500 steps from the bundled weights (35 min on 2 cores, 2026-12-04). Not tried
-#    yet: the same with loss.crease_weight=4.0 or 'data.real_coarse_faces=[1000,3000]'
-#    (EXTRA='loss.crease_weight=4.0' scripts/train_heavy.sh runs/heavy_crease).
+# 1. 2,500 steps from the bundled weights (35 min on 2 cores, 2026-12-04). EXTRA adds
+#    settings; 2026-12-05 (docs/history.md), 1,500 steps each, 25 min with scoring on 2 cores:
+#    EXTRA='loss.crease_weight=4.0 train.steps=1500' scripts/train_heavy.sh runs/heavy_crease
+#    EXTRA='data.real_coarse_faces=[1000,3000] train.steps=1500' \
+#      scripts/train_heavy.sh runs/heavy_coarse
 "${TRAIN[@]}" --workdir "$OUT/heavy" --init-from dmd_jax/weights/dmd_small.msgpack \
   --set train.steps=2500 train.lr=1.5e-4 "${COMMON[@]}" "${HEAVY[@]}" ${EXTRA:-}
 
