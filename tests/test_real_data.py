@@ -8,6 +8,7 @@ from conftest import icosphere
 from scipy.sparse.csgraph import connected_components
 
 from dmd_jax.data import real
+from dmd_jax.data.shapes import decimate
 from dmd_jax.io import save_mesh
 
 
@@ -85,7 +86,7 @@ def test_coarse_copies_are_whole_decimated_meshes_of_the_training_split(tmp_path
         assert angle > (1.1 if cf.shape[0] == 3000 else 2.5) * fine_angle
         assert np.abs(np.linalg.norm(cv, axis=1) - 1.0).max() < 0.05  # on the sphere
     # A mesh at or under the count comes back as it is.
-    same_v, same_f = real.decimate(v, f, 6000)
+    same_v, same_f = decimate(v, f, 6000)
     np.testing.assert_array_equal(same_f, f)
     np.testing.assert_array_equal(same_v, v)
 

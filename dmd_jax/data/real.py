@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 from scipy.sparse.csgraph import breadth_first_order
 
+from dmd_jax.data.shapes import decimate
 from dmd_jax.io import SUPPORTED_EXTENSIONS as MESH_SUFFIXES
 from dmd_jax.io import load_mesh
 from dmd_jax.topology import face_adjacency_matrix
@@ -161,35 +162,6 @@ def load_real_patches(
         n = int(np.clip(f.shape[0] // faces_per_patch + 1, 1, max_patches))
         out.extend(mesh_patches(v, f, max_faces=max_faces, n_patches=n, rng=rng))
     return out
-
-
-def decimate(
-    vertices: np.ndarray, faces: np.ndarray, n_faces: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """The mesh decimated to about `n_faces` faces (pymeshlab's quadric edge collapse,
-    topology and boundary kept, normals not flipped), cleaned; as it is if it has at most
-    `n_faces` faces.
-
-    Returns:
-      `(vertices [m, 3] float64, faces [k, 3] int32)`.
-    """
-    from dmd_jax.data.shapes import _clean_meshset, _current, _meshset
-
-    f = np.asarray(faces)
-    if f.shape[0] <= n_faces:
-        return np.asarray(vertices, np.float64), f.astype(np.int32)
-    ms = _meshset(np.asarray(vertices, np.float64), f)
-    _clean_meshset(ms)
-    ms.meshing_decimation_quadric_edge_collapse(
-        targetfacenum=int(n_faces),
-        preserveboundary=True,
-        preservenormal=True,
-        preservetopology=True,
-        planarquadric=True,
-    )
-    _clean_meshset(ms)
-    v, f = _current(ms)
-    return v, f.astype(np.int32)
 
 
 def coarse_copies(

@@ -1261,6 +1261,33 @@ def mesh_area(vertices: np.ndarray, faces: np.ndarray) -> float:
     )
 
 
+def decimate(
+    vertices: np.ndarray, faces: np.ndarray, n_faces: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh decimated to about `n_faces` faces (pymeshlab's quadric edge collapse,
+    topology and boundary kept, normals not flipped), cleaned; as it is if it has at most
+    `n_faces` faces.
+
+    Returns:
+      `(vertices [m, 3] float64, faces [k, 3] int32)`.
+    """
+    f = np.asarray(faces)
+    if f.shape[0] <= n_faces:
+        return np.asarray(vertices, np.float64), f.astype(np.int32)
+    ms = _meshset(np.asarray(vertices, np.float64), f)
+    _clean_meshset(ms)
+    ms.meshing_decimation_quadric_edge_collapse(
+        targetfacenum=int(n_faces),
+        preserveboundary=True,
+        preservenormal=True,
+        preservetopology=True,
+        planarquadric=True,
+    )
+    _clean_meshset(ms)
+    v, f = _current(ms)
+    return v, f.astype(np.int32)
+
+
 def remesh(
     vertices,
     faces,
