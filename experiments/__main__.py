@@ -116,18 +116,16 @@ def main(argv=None) -> int:
             if p.calibrate_curvature and ds_ready
             else None
         )
-        base = st.base_config(p, gammas)
         recorded = out / "plan.json"
         if p.calibrate_curvature and gammas is None:
+            # A fresh clone has the results but not the dataset: the recorded plan holds
+            # the calibration the run ids were made with.
             if recorded.is_file():
-                # A fresh clone has the results but not the dataset: the recorded plan's
-                # base config holds the calibrated gammas the run ids were made with.
-                from dmd_jax.config import ExperimentConfig
-
-                base = ExperimentConfig.from_dict(runner._read_json(recorded)["base_config"])
-                print(f"(no calibration in {data} yet: ids below use {recorded}'s base config)")
+                gammas = runner._read_json(recorded)["calibration"]
+                print(f"(no calibration in {data} yet: ids below use {recorded}'s)")
             else:
                 print(f"(no calibration in {data} yet: ids below use the paper's gammas)")
+        base = st.base_config(p, gammas)
         p = p.with_seeds(args.seeds)
         runs = st.plan(p, base, args.studies or p.studies, out_dir=out)
         homes = st.training_homes(runs)
