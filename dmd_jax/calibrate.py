@@ -418,6 +418,8 @@ LEARN_CONDITIONS = (
     *(protocol.NoiseCondition(ISOTROPIC, s) for s in (0.3, 0.6, 1.0)),
 )
 LEARN_GRID = (0, 1, 2, 3, 4, 6, 8, 11)
+# The network-free routes (`routes.run_route`: range σ, passes) the choice may also take.
+LEARN_ROUTES = ((0.2, 60), (0.35, 60))
 # The training noise draws differ from the benchmark's of the same mesh and condition.
 LEARN_SEED_OFFSET = 7
 # Neighbour counts tried, chosen by cross-validation over whole training meshes.
@@ -450,6 +452,40 @@ def training_cases(train_dir=None, max_faces: int = LEARN_MAX_FACES) -> list[Cas
     return _cases(mesh_files(folder, "train"), max_faces)
 
 
+def learn_draw(name: str, clean, faces, cond) -> tuple[str, float, int, np.ndarray]:
+    """`(kind, level, seed, noisy)` of one training case under one of `LEARN_CONDITIONS`
+    (None: the clean mesh); the seeds differ from the benchmark's by `LEARN_SEED_OFFSET`."""
+    if cond is None:
+        return "clean", 0.0, 0, clean
+    kind, level = cond.kind, float(cond.level)
+    if kind == ISOTROPIC:
+        seed = zlib.crc32(f"{name}|{kind}|{level:g}".encode()) + LEARN_SEED_OFFSET
+        return kind, level, seed, protocol.benchmark_noise(clean, faces, level, seed, "isotropic")
+    seed = protocol.condition_seed(name, cond) + LEARN_SEED_OFFSET
+    return kind, level, seed, protocol.condition_noise(clean, faces, cond, seed)
+
+
+def route_errors(noisy, clean, faces, routes) -> list[float]:
+    """The normal error of each network-free route (`routes.field_route`; `(sigma_r,
+    passes)` pairs) on one noisy mesh, run in its mean-edge frame as `denoise` runs it."""
+    from dmd_jax.routes import run_route
+
+    return [_normal_error(run_route(noisy, faces, s, p), clean, faces) for s, p in routes]
+
+
+def route_rows(cases: Sequence[Case], routes, conditions=LEARN_CONDITIONS, echo=None):
+    """Per training case and condition (the draws of `learn_rows`): `[mesh, noise, level,
+    seed, *route errors]`."""
+    rows = []
+    for name, clean, faces in cases:
+        for cond in conditions:
+            kind, level, seed, noisy = learn_draw(name, clean, faces, cond)
+            rows.append([name, kind, level, seed, *route_errors(noisy, clean, faces, routes)])
+        if echo:
+            echo(f"{name}: {rows[-len(conditions)][4:]}")
+    return rows
+
+
 def learn_rows(
     cases: Sequence[Case],
     bundle,
@@ -470,16 +506,7 @@ def learn_rows(
     rows = []
     for name, clean, faces in cases:
         for cond in conditions:
-            if cond is None:
-                kind, level, seed, noisy = "clean", 0.0, 0, clean
-            elif cond.kind == ISOTROPIC:
-                kind, level = cond.kind, float(cond.level)
-                seed = zlib.crc32(f"{name}|{kind}|{level:g}".encode()) + LEARN_SEED_OFFSET
-                noisy = protocol.benchmark_noise(clean, faces, level, seed, "isotropic")
-            else:
-                kind, level = cond.kind, float(cond.level)
-                seed = protocol.condition_seed(name, cond) + LEARN_SEED_OFFSET
-                noisy = protocol.condition_noise(clean, faces, cond, seed)
+            kind, level, seed, noisy = learn_draw(name, clean, faces, cond)
             _, info = denoise(noisy, faces, bundle, return_info=True)
             errs = [
                 _normal_error(denoise(noisy, faces, bundle, presmooth=k), clean, faces)
@@ -542,6 +569,7 @@ class LearnedPresmooth(NamedTuple):
     regrets: tuple[float, ...]
     neighbours: int
     cv_regret: dict[int, float]  # neighbours -> cross-validated geometric-mean regret
+    routes: tuple[tuple[float, int], ...] = ()  # network-free routes, after the counts
 
     def policy_fields(self) -> dict:
         return {
@@ -551,12 +579,15 @@ class LearnedPresmooth(NamedTuple):
             "presmooth_examples": self.examples,
             "presmooth_regrets": self.regrets,
             "presmooth_neighbours": self.neighbours,
+            "route_sigmas": tuple(float(s) for s, _ in self.routes),
+            "route_passes": tuple(int(p) for _, p in self.routes),
         }
 
-    def choose(self, features) -> np.ndarray:
-        """`[n]` chosen counts for `[n, n_features]` features."""
+    def choose_options(self, features) -> np.ndarray:
+        """`[n]` chosen option indices (the grid's counts, then the routes) for
+        `[n, n_features]` features."""
         return _choose(
-            self.grid,
+            len(self.grid) + len(self.routes),
             self.center,
             self.scale,
             self.examples,
@@ -565,12 +596,22 @@ class LearnedPresmooth(NamedTuple):
             features,
         )
 
+    def choose(self, features) -> np.ndarray:
+        """`[n]` chosen counts for `[n, n_features]` features (a fit without routes)."""
+        if self.routes:
+            raise ValueError("a fit with routes chooses options: use choose_options")
+        return np.asarray(self.grid)[self.choose_options(features)]
 
-def _choose(grid, center, scale, examples, regrets, neighbours, features) -> np.ndarray:
-    from dmd_jax.presmooth import learned_steps
+
+def _choose(n_options, center, scale, examples, regrets, neighbours, features) -> np.ndarray:
+    from dmd_jax.presmooth import learned_option
 
     return np.array(
-        [learned_steps(f, grid, center, scale, examples, regrets, neighbours) for f in features]
+        [
+            learned_option(f, n_options, center, scale, examples, regrets, neighbours)
+            for f in features
+        ],
+        int,
     )
 
 
@@ -592,21 +633,41 @@ def fit_learned_presmooth(
     *,
     neighbours: Sequence[int] = LEARN_NEIGHBOURS,
     folds: int = LEARN_FOLDS,
+    routes: Sequence[tuple[float, int]] = (),
+    route_errors=None,
 ) -> LearnedPresmooth:
     """Fits the learned choice on `learn_rows` (the training split).
 
     Every row becomes an example: its standardised features and the regret of each
-    count, `log(error / best error of the case)` (`presmooth.learned_steps`). The
-    number of neighbours is the one of `neighbours` with the lowest regret of the
-    choice in `folds`-fold cross-validation that holds out whole meshes (a mesh's
-    conditions are never split between the examples and the cases scored).
+    option (each count of `grid`, then each route), `log(error / best error of the
+    case)` (`presmooth.learned_option`). The number of neighbours is the one of
+    `neighbours` with the lowest regret of the choice in `folds`-fold cross-validation
+    that holds out whole meshes (a mesh's conditions are never split between the
+    examples and the cases scored).
+
+    Args:
+      rows: `learn_rows`.
+      grid: the counts of the rows' error columns.
+      neighbours, folds: the neighbour counts tried and the cross-validation folds.
+      routes: network-free routes (`(sigma_r, passes)`, `routes.run_route`) the choice
+        may also take.
+      route_errors: `[len(rows), len(routes)]` their errors on the same cases
+        (`route_rows`, in the same order).
 
     Raises:
-      ValueError: fewer meshes than folds, fewer rows than a neighbour count, or an
-        error that is not positive and finite.
+      ValueError: fewer meshes than folds, fewer rows than a neighbour count, route
+        errors of the wrong shape, or an error that is not positive and finite.
     """
     grid = tuple(int(k) for k in grid)
+    routes = tuple((float(s), int(p)) for s, p in routes)
     features, errors = _split_rows(rows, grid)
+    if routes:
+        extra = np.asarray(route_errors, np.float64)
+        if extra.shape != (len(rows), len(routes)):
+            raise ValueError(
+                f"route_errors must have shape {(len(rows), len(routes))}, got {extra.shape}"
+            )
+        errors = np.concatenate([errors, extra], axis=1)
     if not (np.all(np.isfinite(errors)) and np.all(errors > 0)):
         raise ValueError("the errors must be positive and finite")
     meshes = sorted({r[0] for r in rows})
@@ -623,8 +684,8 @@ def fit_learned_presmooth(
         for f in range(folds):
             train, test = fold != f, fold == f
             center, scale = _standardise(features[train])
-            picked = _choose(
-                grid,
+            chosen[test] = _choose(
+                errors.shape[1],
                 center,
                 scale,
                 ((features[train] - center) / scale).ravel(),
@@ -632,7 +693,6 @@ def fit_learned_presmooth(
                 k,
                 features[test],
             )
-            chosen[test] = [grid.index(int(p)) for p in picked]
         cv[int(k)] = regret_of(errors, chosen)
     best = min(cv, key=cv.get)
     center, scale = _standardise(features)
@@ -650,4 +710,5 @@ def fit_learned_presmooth(
         stored(regrets),
         best,
         cv,
+        routes,
     )

@@ -35,6 +35,8 @@ ENCODINGS = ("xyz", "local")
 # each (`ModelConfig.filter_sigmas`): from edge preserving (0.2: neighbours more than ~25°
 # apart barely mix) to smoothing.
 FILTER_RANGE_SIGMAS = (0.2, 0.35, 0.6)
+# Spatial σ of the pre-filters, in mean edge lengths (the `"local"` frame's unit).
+FILTER_SPATIAL_SIGMA = 1.0
 # Each filter's normals are kept after these fractions of `filter_iterations` passes.
 # The dual graph gives a face only 3 neighbours (BNF's vertex ring ~12), so it takes
 # ~60 passes to smooth a flat region as much as BNF's 20; measured on fandisk and block

@@ -42,13 +42,13 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from dmd_jax import geometry, ops
 from dmd_jax.constants import (  # noqa: F401  (the layout is re-exported from here)
     ENCODINGS,
     FILTER_RANGE_SIGMAS,
     FILTER_SNAPSHOTS,
+    FILTER_SPATIAL_SIGMA,
     TAUBIN_SNAPSHOTS,
     candidate_labels,
     local_dims,
@@ -56,10 +56,8 @@ from dmd_jax.constants import (  # noqa: F401  (the layout is re-exported from h
     snapshot_passes,
     taubin_snapshots,
 )
-from dmd_jax.mesh import CanonicalFrame, canonical_frame, mean_edge_length
+from dmd_jax.mesh import CanonicalFrame, canonical_frame, edge_unit_frame
 
-# Spatial σ of the pre-filters, in mean edge lengths (the frame's unit).
-FILTER_SPATIAL_SIGMA = 1.0
 # Taubin smoothing of the optional smoothed-mesh candidates: pymeshlab's λ and μ (kept
 # after `TAUBIN_SNAPSHOTS` of `ModelConfig.taubin_iterations` λ|μ pairs).
 TAUBIN_LAMBDA_MU = (0.5, -0.53)
@@ -85,13 +83,9 @@ def mesh_frame(encoding: str, vertices, faces, *, edges=None) -> CanonicalFrame:
     """
     if encoding not in ENCODINGS:
         raise ValueError(f"unknown encoding {encoding!r}; choose one of {ENCODINGS}")
-    box = canonical_frame(vertices)  # validates finiteness and extent
     if encoding == "xyz":
-        return box
-    h = mean_edge_length(vertices, faces, edges=edges)
-    if not (np.isfinite(h) and h > 0):
-        raise ValueError("the mesh's mean edge length is zero: no edge-unit frame exists")
-    return CanonicalFrame(centre=box.centre, scale=h)
+        return canonical_frame(vertices)  # validates finiteness and extent
+    return edge_unit_frame(vertices, faces, edges=edges)
 
 
 def laplacian_coordinates(x, graph):

@@ -56,13 +56,16 @@ class DenoiseInfo:
     """How a `denoise` call ran (`return_info=True`).
 
     Attributes:
-      path: `"whole"` (the mesh at once) or `"patches"`.
+      path: `"whole"` (the network on the mesh at once), `"patches"`, or `"route"` (the
+        policy's learned choice ran a network-free route instead: `route`).
       budget_bytes: the memory budget planned with; None for a small mesh run whole.
       passes: network passes run.
       presmooth_steps: uniform Laplacian steps run before the network.
       roughness: the noisy mesh's roughness in degrees when the policy's rule chose the
         steps, else None.
       relax_steps: tangential relaxation steps run after the network.
+      route: the network-free route run in place of the network
+        (`DenoisePolicy.route_label`), or None.
       unused_vertices: vertices no face references (returned exactly as given).
       policy: the policy the call ran (the weights' with the caller's overrides).
       patch_size, patches, largest_padded_vertices, halo_rings, devices: for the patch
@@ -76,6 +79,7 @@ class DenoiseInfo:
     presmooth_steps: int
     roughness: float | None
     relax_steps: int
+    route: str | None
     unused_vertices: int
     policy: DenoisePolicy
     patch_size: int | None = None
@@ -195,7 +199,9 @@ def denoise(
       presmooth: a fixed number of uniform Laplacian steps before the network
         (`dmd_jax.presmooth`) instead of the policy's choice; 0 gives the network the
         mesh as it is; `"rule"` runs the policy's roughness rule where the policy
-        learns its pre-smoothing (`policy.PRESMOOTH_RULE`).
+        learns its pre-smoothing (`policy.PRESMOOTH_RULE`). Either way the network runs
+        (the learned choice's network-free routes, `DenoisePolicy.route_sigmas`, are
+        the policy's alone).
       relax: steps of feature-preserving tangential relaxation of the result
         (`dmd_jax.relax.relax_tangential`) instead of the policy's; for noise with a
         tangential part (per-coordinate noise): the network moves vertices along normals
@@ -236,6 +242,7 @@ def denoise(
         )
     from dmd_jax.presmooth import MAX_STEPS, laplacian_steps
     from dmd_jax.relax import relax_tangential
+    from dmd_jax.routes import run_route
 
     # Every count is checked before any work.
     if iterations is not None:
@@ -265,7 +272,11 @@ def denoise(
         x = laplacian_steps(x, f, pre.steps)
     memory = plan(bundle.config.model, x.shape[0], f.shape[0], max_memory, patch_size)
     extra = {}
-    if memory.whole:
+    if pre.route is not None:
+        # The learned choice's network-free route (host side, memory linear in the mesh).
+        x = run_route(x, f, run.route_sigmas[pre.route], run.route_passes[pre.route])
+        passes = 0
+    elif memory.whole:
         x, passes = _denoise_whole(x, f, bundle, run, aggregation)
     else:
         x, stats = denoise_patches(
@@ -286,12 +297,13 @@ def denoise(
     if not return_info:
         return out
     info = DenoiseInfo(
-        path="whole" if memory.whole else "patches",
+        path="route" if pre.route is not None else "whole" if memory.whole else "patches",
         budget_bytes=memory.budget,
         passes=passes,
         presmooth_steps=pre.steps,
         roughness=pre.roughness,
         relax_steps=run.relax_steps,
+        route=None if pre.route is None else run.route_label(pre.route),
         unused_vertices=0 if referenced is None else int((~used).sum()),
         policy=run,
         **extra,

@@ -126,6 +126,20 @@ def canonical_frame(vertices) -> CanonicalFrame:
     return CanonicalFrame(centre=(lo + hi) / 2.0, scale=scale)
 
 
+def edge_unit_frame(vertices, faces, *, edges=None) -> CanonicalFrame:
+    """The `"local"` encoding's frame: centred on the bounding box, the mean edge length
+    as unit (`encoding.mesh_frame`).
+
+    Raises:
+      ValueError: non-finite coordinates, or a mesh whose edges all have zero length.
+    """
+    box = canonical_frame(vertices)  # validates finiteness and extent
+    h = mean_edge_length(vertices, faces, edges=edges)
+    if not (np.isfinite(h) and h > 0):
+        raise ValueError("the mesh's mean edge length is zero: no edge-unit frame exists")
+    return CanonicalFrame(centre=box.centre, scale=h)
+
+
 def mean_edge_length(vertices, faces, *, edges=None) -> float:
     """Mean length of the unique undirected edges of a mesh.
 

@@ -27,6 +27,10 @@ from dmd_jax.config import _check, _check_finite, _check_positive_int, _ConfigMi
 # input, and each pass or step costs a whole network run or a sweep over the mesh.
 MAX_PASSES_LIMIT = 64
 MAX_RELAX_STEPS = 1000
+# Network-free routes (`dmd_jax.routes`): each pass is a sweep over the mesh.
+MAX_ROUTES = 8
+MAX_ROUTE_PASSES = 500
+MIN_ROUTE_SIGMA, MAX_ROUTE_SIGMA = 0.01, 10.0
 # A roughness rule reads degrees between face normals: 0-180.
 _MAX_DEGREES = 180.0
 
@@ -61,6 +65,12 @@ class DenoisePolicy(_ConfigMixin):
         (`benchmarks/quality/presmooth_learn.py`); empty: off.
       relax_steps: steps of feature-preserving tangential relaxation after the network
         (`dmd_jax.relax.relax_tangential`); 0 leaves the result as the network made it.
+      route_sigmas, route_passes: network-free routes the learned choice may take in
+        place of the network (`dmd_jax.routes.run_route`: one of the network's own
+        candidate normal fields alone, range σ `route_sigmas[i]` after
+        `route_passes[i]` passes, then the head's vertex update). Their regrets follow
+        the grid's in each row of `presmooth_regrets`. Empty: the choice picks only
+        pre-smoothing counts for the network.
     """
 
     max_passes: int = _static(1)
@@ -74,6 +84,8 @@ class DenoisePolicy(_ConfigMixin):
     presmooth_examples: tuple[float, ...] = _static(())
     presmooth_regrets: tuple[float, ...] = _static(())
     presmooth_neighbours: int = _static(0)
+    route_sigmas: tuple[float, ...] = _static(())
+    route_passes: tuple[int, ...] = _static(())
 
     def __post_init__(self):
         _check_positive_int("max_passes", self.max_passes)
@@ -105,6 +117,24 @@ class DenoisePolicy(_ConfigMixin):
         from dmd_jax import presmooth
 
         grid, n_features = self.presmooth_grid, len(presmooth.FEATURE_NAMES)
+        n_route = len(self.route_sigmas)
+        _check(
+            len(self.route_passes) == n_route and n_route <= MAX_ROUTES,
+            f"route_sigmas and route_passes must pair up, at most {MAX_ROUTES}, got "
+            f"{len(self.route_sigmas)} and {len(self.route_passes)}",
+        )
+        for sigma, passes in zip(self.route_sigmas, self.route_passes, strict=True):
+            _check(
+                isinstance(sigma, float | int)
+                and math.isfinite(sigma)
+                and MIN_ROUTE_SIGMA <= sigma <= MAX_ROUTE_SIGMA,
+                f"route_sigmas must be range sigmas from {MIN_ROUTE_SIGMA} to "
+                f"{MAX_ROUTE_SIGMA}, got {sigma!r}",
+            )
+            _check(
+                isinstance(passes, int) and 1 <= passes <= MAX_ROUTE_PASSES,
+                f"route_passes must be whole numbers from 1 to {MAX_ROUTE_PASSES}, got {passes!r}",
+            )
         fields = (
             self.presmooth_center,
             self.presmooth_scale,
@@ -112,6 +142,7 @@ class DenoisePolicy(_ConfigMixin):
             self.presmooth_regrets,
         )
         if not grid and not any(fields) and not self.presmooth_neighbours:
+            _check(not n_route, "routes need a learned choice (presmooth_grid) to pick them")
             return
         _check(
             0 < len(grid) <= presmooth.MAX_STEPS + 1
@@ -130,14 +161,14 @@ class DenoisePolicy(_ConfigMixin):
             "presmooth_center": n_features,
             "presmooth_scale": n_features,
             "presmooth_examples": n_example * n_features,
-            "presmooth_regrets": n_example * len(grid),
+            "presmooth_regrets": n_example * (len(grid) + n_route),
         }
         for name, size in want.items():
             values = getattr(self, name)
             _check(
                 len(values) == size and all(math.isfinite(x) for x in values),
                 f"{name} must hold {size} finite numbers ({n_example} examples, "
-                f"{len(grid)} counts), got {len(values)}",
+                f"{len(grid)} counts, {n_route} routes), got {len(values)}",
             )
         _check(all(x > 0 for x in self.presmooth_scale), "presmooth_scale must be positive")
         _check_positive_int("presmooth_neighbours", self.presmooth_neighbours)
@@ -176,7 +207,13 @@ class DenoisePolicy(_ConfigMixin):
             presmooth_examples=(),
             presmooth_regrets=(),
             presmooth_neighbours=0,
+            route_sigmas=(),
+            route_passes=(),
         )
+
+    def route_label(self, index: int) -> str:
+        """How reports name route `index`: `"field σ0.2 ×60"`."""
+        return f"field σ{self.route_sigmas[index]:g} ×{self.route_passes[index]}"
 
     @property
     def learns_presmoothing(self) -> bool:
@@ -271,11 +308,14 @@ LEGACY_AUTO_MAX_PASSES = 8
 
 
 class PresmoothPlan(NamedTuple):
-    """The Laplacian steps run before the network, and the roughness that chose them
-    (None when the caller fixed the steps or the rule is off)."""
+    """The Laplacian steps run before the network, the roughness that chose them
+    (None when the caller fixed the steps or the rule is off), and the route the learned
+    choice took in place of the network (an index into `DenoisePolicy.route_sigmas`;
+    None: the network runs)."""
 
     steps: int
     roughness: float | None
+    route: int | None = None
 
 
 # `denoise(..., presmooth=PRESMOOTH_RULE)`: the roughness rule, not the learned choice.
@@ -304,9 +344,10 @@ def presmooth_plan(
         return PresmoothPlan(0, None)
     if policy.learns_presmoothing:
         features = presmooth.noise_features(vertices, faces)
-        steps = presmooth.learned_steps(
+        grid = policy.presmooth_grid
+        option = presmooth.learned_option(
             features,
-            policy.presmooth_grid,
+            len(grid) + len(policy.route_sigmas),
             policy.presmooth_center,
             policy.presmooth_scale,
             policy.presmooth_examples,
@@ -315,6 +356,9 @@ def presmooth_plan(
         )
         # The median angle the features read (of a mesh's first faces, for a large one).
         rough = float(np.exp(features[1]) - 0.5)
+        if option >= len(grid):
+            return PresmoothPlan(0, rough, option - len(grid))
+        steps = grid[option]
         # The choice at its largest count, and the rule asking for more (the paper's
         # per-coordinate noise of several edges, beyond every training example): a
         # nearest-neighbour choice cannot extrapolate past its grid; the rule can.

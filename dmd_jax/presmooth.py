@@ -216,12 +216,20 @@ def learned_steps(features, grid, center, scale, examples, regrets, neighbours: 
       regrets: `[n_example * n_grid]`, row-major.
       neighbours: how many nearest examples to average.
     """
+    option = learned_option(features, len(grid), center, scale, examples, regrets, neighbours)
+    return int(np.asarray(grid)[option])
+
+
+def learned_option(features, n_options, center, scale, examples, regrets, neighbours) -> int:
+    """`learned_steps`'s choice as an index into `n_options` options (the grid's counts,
+    then any network-free routes of `policy.DenoisePolicy.route_sigmas`), the first
+    among equals."""
     z = (np.asarray(features, np.float64) - np.asarray(center)) / np.asarray(scale)
     x = np.asarray(examples, np.float64).reshape(-1, z.size)
-    r = np.asarray(regrets, np.float64).reshape(x.shape[0], len(grid))
+    r = np.asarray(regrets, np.float64).reshape(x.shape[0], n_options)
     distance = ((x - z) ** 2).sum(axis=1)
     nearest = np.argsort(distance, kind="stable")[:neighbours]
-    return int(np.asarray(grid)[int(np.argmin(r[nearest].mean(axis=0)))])
+    return int(np.argmin(r[nearest].mean(axis=0)))
 
 
 def _laplacian_operator(faces: np.ndarray, n: int):

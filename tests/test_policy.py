@@ -279,7 +279,8 @@ def test_denoise_follows_a_learned_choice_and_reports_it(reference, bundled):
     # Every example says: two steps would have been best (the others' regret is 1).
     fields = _learned_fields(grid=(0, 2, 4))
     fields["presmooth_regrets"] = (1.0, 0.0, 1.0) * 6
-    policy = bundled.policy.replace(**fields)
+    # The bundled rule and pass tolerance, this choice of counts (no routes).
+    policy = bundled.policy.with_presmooth_rule().replace(**fields)
     out, info = denoise(reference["vertices"], reference["faces"], policy=policy, return_info=True)
     assert info.presmooth_steps == 2 and info.roughness > 0
     fixed = denoise(reference["vertices"], reference["faces"], presmooth=2, policy=bundled.policy)

@@ -90,7 +90,7 @@ def bundle():
 
 
 def test_denoise_follows_the_bundled_policy(bundle):
-    from dmd_jax.presmooth import learned_steps, noise_features
+    from dmd_jax.presmooth import learned_option, noise_features
 
     policy = bundle.policy
     # The bundled weights carry a learned choice, and the fitted rule beside it.
@@ -101,19 +101,22 @@ def test_denoise_follows_the_bundled_policy(bundle):
     # Light noise: the learned choice.
     _, light, _ = _noisy_sphere(0.3)
     _, info = denoise(light, f, bundle, return_info=True)
+    grid = policy.presmooth_grid
     fields = (
-        policy.presmooth_grid,
+        len(grid) + len(policy.route_sigmas),  # the counts, then the routes
         policy.presmooth_center,
         policy.presmooth_scale,
         policy.presmooth_examples,
         policy.presmooth_regrets,
         policy.presmooth_neighbours,
     )
-    assert info.presmooth_steps == learned_steps(noise_features(light, f), *fields)
+    option = learned_option(noise_features(light, f), *fields)
+    assert option < len(grid)  # a noisy sphere is no case for a route
+    assert info.presmooth_steps == grid[option] and info.route is None
     # Noise of two edges per coordinate, heavier than any training example: the choice
     # is its largest count, and the rule asks for more.
     _, info = denoise(heavy, f, bundle, return_info=True)
-    assert learned_steps(noise_features(heavy, f), *fields) == max(policy.presmooth_grid)
+    assert grid[learned_option(noise_features(heavy, f), *fields)] == max(grid)
     expected = steps_for(roughness(heavy, f), policy.presmooth_start, policy.presmooth_per_step)
     assert expected > max(policy.presmooth_grid)
     assert info.presmooth_steps == expected
