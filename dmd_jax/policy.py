@@ -2,11 +2,12 @@
 
 A `ModelConfig` says what the network is (its layers, its inputs, the parameters it
 has). A `DenoisePolicy` says how `denoise` uses it: how much to pre-smooth a noisy mesh
-before the network, how many network passes to run, how much tangential relaxation to
-apply after. Its numbers are fitted on the validation split for one set of trained
-weights (`dmd_jax.calibrate`), and travel in the weights file's own `policy` section
-(`dmd_jax.checkpoints`, format version 2): changing a rule is an edit of the weights
-file (`dmd-jax export-weights --pass-tolerance ... --presmooth ...`), never of code.
+before the network (or whether to take a network-free route past it), how many network
+passes to run, how much tangential relaxation to apply after. Its numbers are fitted for
+one set of trained weights (`dmd_jax.calibrate`), and travel in the weights file's own
+`policy` section (`dmd_jax.checkpoints`, format version 2): changing a rule is an edit of
+the weights file (`dmd-jax export-weights --pass-tolerance ... --presmooth ...`), never
+of code.
 
 The pass loop (`run_passes`) and the pre-smoothing choice (`presmooth_plan`) live here
 too, so every path of `denoise` (whole mesh, patch by patch) runs the same rules.
@@ -326,7 +327,8 @@ def presmooth_plan(
     policy: DenoisePolicy, vertices: np.ndarray, faces: np.ndarray, steps: int | str | None
 ) -> PresmoothPlan:
     """How many pre-smoothing steps to run: `steps` if given, else the policy's choice
-    (learned, or its roughness rule; `steps=PRESMOOTH_RULE`: the rule).
+    (learned, or its roughness rule; `steps=PRESMOOTH_RULE`: the rule). Only the learned
+    choice, with no `steps` given, may take a network-free route instead (`route`).
 
     Args:
       policy: the policy.
