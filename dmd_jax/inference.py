@@ -272,9 +272,13 @@ def denoise(
         x = laplacian_steps(x, f, pre.steps)
     memory = plan(bundle.config.model, x.shape[0], f.shape[0], max_memory, patch_size)
     extra = {}
-    if pre.route is not None:
-        # The learned choice's network-free route (host side, memory linear in the mesh).
-        x = run_route(x, f, run.route_sigmas[pre.route], run.route_passes[pre.route])
+    # The learned choice's network-free route (host side, about 560 bytes a face at peak,
+    # measured at 200k faces) runs where the whole-mesh network fits the budget, whose
+    # host arrays alone take more (memory_plan.WHOLE_HOST_BYTES_PER_PADDED_VERTEX); a
+    # mesh that must go patch by patch gets the network.
+    route = pre.route if memory.whole else None
+    if route is not None:
+        x = run_route(x, f, run.route_sigmas[route], run.route_passes[route])
         passes = 0
     elif memory.whole:
         x, passes = _denoise_whole(x, f, bundle, run, aggregation)
@@ -297,13 +301,13 @@ def denoise(
     if not return_info:
         return out
     info = DenoiseInfo(
-        path="route" if pre.route is not None else "whole" if memory.whole else "patches",
+        path="route" if route is not None else "whole" if memory.whole else "patches",
         budget_bytes=memory.budget,
         passes=passes,
         presmooth_steps=pre.steps,
         roughness=pre.roughness,
         relax_steps=run.relax_steps,
-        route=None if pre.route is None else run.route_label(pre.route),
+        route=None if route is None else run.route_label(route),
         unused_vertices=0 if referenced is None else int((~used).sum()),
         policy=run,
         **extra,

@@ -121,6 +121,9 @@ def test_the_learned_choice_takes_a_route_and_denoise_runs_it():
     out, info = denoise(noisy, f, bundle, policy=policy, return_info=True)
     assert info.path == "route" and info.route == "field σ0.2 ×60" and info.passes == 0
     np.testing.assert_allclose(out, routes.run_route(noisy, f, 0.2, 60), atol=1e-12)
+    # A mesh that must go patch by patch gets the network.
+    _, info = denoise(noisy, f, bundle, policy=policy, patch_size=300, return_info=True)
+    assert info.path == "patches" and info.route is None
     # A caller's fixed count always runs the network.
     _, info = denoise(noisy, f, bundle, policy=policy, presmooth=0, return_info=True)
     assert info.path == "whole" and info.route is None and info.passes >= 1
