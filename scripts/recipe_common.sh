@@ -12,6 +12,10 @@ if [ ! -f "$DATA/manifest.json" ]; then
 fi
 
 TRAIN=("$BIN/dmd-jax" train --data "$DATA" --preset small --eval-meshes 8 --real-meshes "$REAL")
+# The bundled weights' last fine-tune (losses, filter passes, normal share, clean draws),
+# the settings the fine-tunes of them (train_heavy.sh, train_light.sh) start from.
+LAST_FINETUNE=(train.warmup_steps=50 train.seed=7 loss.normal=3.0 loss.face_normal=3.0
+  noise.p_normal=0.8 noise.p_clean=0.1 model.filter_iterations=120)
 
 # score_run OUT RUN [export-weights options...]: exports OUT/RUN/checkpoints/best to
 # OUT/RUN.msgpack with those options (the policy to run it with), then scores it on the

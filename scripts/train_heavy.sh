@@ -13,11 +13,9 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${1:-runs/heavy}
 mkdir -p "$OUT"
-source scripts/recipe_common.sh  # BIN, REAL, DATA (made if missing), TRAIN, score_run
-# The bundled weights' last fine-tune (losses, filter passes, normal share, clean draws) ...
-COMMON=(train.warmup_steps=50 train.seed=7 loss.normal=3.0 loss.face_normal=3.0
-  noise.p_normal=0.8 noise.p_clean=0.1 model.filter_iterations=120)
-# ... with Gaussian and impulsive noise a third of the draws each (was a quarter) and
+# BIN, REAL, DATA (made if missing), TRAIN, LAST_FINETUNE, score_run
+source scripts/recipe_common.sh
+# The bundled weights' last fine-tune (LAST_FINETUNE) with Gaussian and impulsive noise a third of the draws each (was a quarter) and
 # the edge-relative levels reaching 0.8 edges three times as often.
 HEAVY=('noise.kinds=["gaussian","gaussian","impulse","impulse","uniform","gamma"]'
   'noise.edge_levels=[0.05,0.1,0.1,0.15,0.2,0.2,0.3,0.3,0.4,0.5,0.6,0.6,0.7,0.8,0.8]'
@@ -29,7 +27,7 @@ HEAVY=('noise.kinds=["gaussian","gaussian","impulse","impulse","uniform","gamma"
 #    EXTRA='data.real_coarse_faces=[1000,3000] train.steps=1500' \
 #      scripts/train_heavy.sh runs/heavy_coarse
 "${TRAIN[@]}" --workdir "$OUT/heavy" --init-from dmd_jax/weights/dmd_small.msgpack \
-  --set train.steps=2500 train.lr=1.5e-4 "${COMMON[@]}" "${HEAVY[@]}" ${EXTRA:-}
+  --set train.steps=2500 train.lr=1.5e-4 "${LAST_FINETUNE[@]}" "${HEAVY[@]}" ${EXTRA:-}
 
 # The checkpoint with the bundled weights' policy (learned pre-smoothing, tolerance).
 score_run "$OUT" heavy --policy-from dmd_jax/weights/dmd_small.msgpack

@@ -15,17 +15,15 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${1:-runs/light}
 mkdir -p "$OUT"
-source scripts/recipe_common.sh  # BIN, REAL, DATA (made if missing), TRAIN, score_run
-# The bundled weights' last fine-tune (losses, filter passes, normal share, clean draws) ...
-COMMON=(train.warmup_steps=50 train.seed=7 loss.normal=3.0 loss.face_normal=3.0
-  noise.p_normal=0.8 noise.p_clean=0.1 model.filter_iterations=120)
-# ... with edge-relative levels of 0.05-0.2 edges drawn three times in four, and the
+# BIN, REAL, DATA (made if missing), TRAIN, LAST_FINETUNE, score_run
+source scripts/recipe_common.sh
+# The bundled weights' last fine-tune (LAST_FINETUNE) with edge-relative levels of 0.05-0.2 edges drawn three times in four, and the
 # normal terms of faces next to a crease counted four times.
 LIGHT=('noise.edge_levels=[0.05,0.05,0.1,0.1,0.1,0.15,0.15,0.2,0.2,0.3,0.4,0.6]'
   noise.p_edge=0.9 loss.crease_weight=4.0)
 
 "${TRAIN[@]}" --workdir "$OUT/light" --init-from dmd_jax/weights/dmd_small.msgpack \
-  --set train.steps=1500 train.lr=1.5e-4 "${COMMON[@]}" "${LIGHT[@]}" ${EXTRA:-}
+  --set train.steps=1500 train.lr=1.5e-4 "${LAST_FINETUNE[@]}" "${LIGHT[@]}" ${EXTRA:-}
 
 score_run "$OUT" light --policy-from dmd_jax/weights/dmd_small.msgpack
 echo "reports in $OUT: val_*.md (compare with benchmarks/results/sota_lite.md, set val), no_harm_*.md"
