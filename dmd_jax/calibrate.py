@@ -473,19 +473,6 @@ def route_errors(noisy, clean, faces, routes) -> list[float]:
     return [_normal_error(run_route(noisy, faces, s, p), clean, faces) for s, p in routes]
 
 
-def route_rows(cases: Sequence[Case], routes, conditions=LEARN_CONDITIONS, echo=None):
-    """Per training case and condition (the draws of `learn_rows`): `[mesh, noise, level,
-    seed, *route errors]`."""
-    rows = []
-    for name, clean, faces in cases:
-        for cond in conditions:
-            kind, level, seed, noisy = learn_draw(name, clean, faces, cond)
-            rows.append([name, kind, level, seed, *route_errors(noisy, clean, faces, routes)])
-        if echo:
-            echo(f"{name}: {rows[-len(conditions)][4:]}")
-    return rows
-
-
 def learn_rows(
     cases: Sequence[Case],
     bundle,
@@ -651,8 +638,8 @@ def fit_learned_presmooth(
       neighbours, folds: the neighbour counts tried and the cross-validation folds.
       routes: network-free routes (`(sigma_r, passes)`, `routes.run_route`) the choice
         may also take.
-      route_errors: `[len(rows), len(routes)]` their errors on the same cases
-        (`route_rows`, in the same order).
+      route_errors: `[len(rows), len(routes)]` their errors on the same cases, in the
+        same order (`route_errors` of each case's `learn_draw`).
 
     Raises:
       ValueError: fewer meshes than folds, fewer rows than a neighbour count, route

@@ -272,7 +272,7 @@ def denoise(
         x = laplacian_steps(x, f, pre.steps)
     memory = plan(bundle.config.model, x.shape[0], f.shape[0], max_memory, patch_size)
     extra = {}
-    # The learned choice's network-free route (host side, about 560 bytes a face at peak,
+    # The learned choice's network-free route (host side, about 740 bytes a face at peak,
     # measured at 200k faces) runs where the whole-mesh network fits the budget, whose
     # host arrays alone take more (memory_plan.WHOLE_HOST_BYTES_PER_PADDED_VERTEX); a
     # mesh that must go patch by patch gets the network.

@@ -11,8 +11,9 @@ creases the bundled network's mix ends two to three times above its own sharpest
 passes), and the learned choice of `dmd_jax.presmooth` may then run the field alone
 (`policy.DenoisePolicy.route_fields`).
 
-Host side (NumPy: no JAX import, no compilation): each pass is a gather over a padded table of
-each face's edge neighbours, in chunks of faces, so memory stays linear in the mesh.
+Host side (NumPy: no JAX import, no compilation): each pass is a gather over the padded
+table of each face's edge neighbours that the encoding's ELL path reads, in chunks of
+faces, so memory stays linear in the mesh.
 `tests/test_routes.py` checks the result against the encoding's JAX field and the JAX
 vertex update.
 """
@@ -22,8 +23,9 @@ from __future__ import annotations
 import numpy as np
 
 from dmd_jax.constants import FILTER_SPATIAL_SIGMA
+from dmd_jax.graph import ell_layout
 from dmd_jax.mesh import edge_unit_frame
-from dmd_jax.topology import edge_keys
+from dmd_jax.topology import face_adjacency, vertex_corner_arrays
 
 # The normal-first head's vertex update count of the bundled configuration.
 VERTEX_ITERATIONS = 10
@@ -31,30 +33,21 @@ VERTEX_ITERATIONS = 10
 _CHUNK = 1 << 20
 
 
-def _neighbour_table(faces: np.ndarray) -> np.ndarray:
-    """`[n_face, 1 + slots]`: each face, then the faces sharing an edge with it (the face
-    itself fills unused slots, with weight 0 from `_slot_mask`)."""
-    m = faces.shape[0]
-    keys = edge_keys(faces, int(faces.max()) + 1 if m else 0)
-    owner = np.tile(np.arange(m), 3)  # entry k of the keys belongs to face k % m
-    # Faces in sorted key order pair up (around a non-manifold edge, consecutive ones).
-    order = np.argsort(keys, kind="stable")
-    k, o = keys[order], owner[order]
-    same = k[1:] == k[:-1]
-    a, b = o[:-1][same], o[1:][same]
-    senders = np.concatenate([a, b])
-    receivers = np.concatenate([b, a])
-    keep = senders != receivers
-    senders, receivers = senders[keep], receivers[keep]
-    order = np.argsort(receivers, kind="stable")
-    senders, receivers = senders[order], receivers[order]
-    count = np.bincount(receivers, minlength=m)
-    slots = int(count.max()) if count.size else 0
-    table = np.repeat(np.arange(m)[:, None], 1 + slots, axis=1)
-    start = np.concatenate([[0], np.cumsum(count)[:-1]])
-    rank = np.arange(receivers.size) - start[receivers]
-    table[receivers, 1 + rank] = senders
-    return table
+def _neighbour_table(faces: np.ndarray, n_vertex: int) -> tuple[np.ndarray, np.ndarray]:
+    """`(neighbours, real)` `[n_face, slots]`: the padded table of the faces sharing an
+    edge with each face and the face itself, as the encoding's `MeshGraph.face_ell`
+    (`topology.face_adjacency` plus self loops, through `graph.ell_layout`); `real` is
+    False on the unused slots, which point at the face itself."""
+    n_face = faces.shape[0]
+    a, b = face_adjacency(faces, n_vertex)
+    loops = np.arange(n_face)
+    layout = ell_layout(
+        np.concatenate([a, b, loops]),
+        np.concatenate([b, a, loops]),
+        np.ones(2 * a.size + n_face, np.float32),
+        n_face,
+    )
+    return layout.neighbours, layout.weights > 0
 
 
 def field_normals(x, faces, sigma_r: float, passes: int) -> np.ndarray:
@@ -75,11 +68,7 @@ def field_normals(x, faces, sigma_r: float, passes: int) -> np.ndarray:
     area = 0.5 * np.linalg.norm(cross, axis=1)
     n = _unit(cross)
     c = p.mean(axis=1)
-    table = _neighbour_table(f)
-    self_slot = np.zeros(table.shape[1], bool)
-    self_slot[0] = True
-    # A padded slot repeats the face itself; only slot 0 counts it.
-    real = (table != np.arange(f.shape[0])[:, None]) | self_slot
+    table, real = _neighbour_table(f, x.shape[0])
     spatial = np.empty(table.shape)
     for lo in range(0, f.shape[0], _CHUNK):
         t = table[lo : lo + _CHUNK]
@@ -106,8 +95,7 @@ def fit_vertices(x, faces, normals, iterations: int = VERTEX_ITERATIONS) -> np.n
     `geometry.fit_vertices_to_normals` with every vertex free, on the host."""
     f = np.asarray(faces, np.int64)
     x = np.array(x, np.float64)
-    corner_vertex = f.ravel()
-    corner_face = np.repeat(np.arange(f.shape[0]), 3)
+    corner_vertex, corner_face = vertex_corner_arrays(f)
     degree = np.maximum(np.bincount(corner_vertex, minlength=x.shape[0]), 1)[:, None]
     nc = np.asarray(normals, np.float64)[corner_face]
     for _ in range(int(iterations)):
