@@ -655,19 +655,36 @@ def fit_learned_presmooth(
                 f"route_errors must have shape {(len(rows), len(routes))}, got {extra.shape}"
             )
         errors = np.concatenate([errors, extra], axis=1)
+    table = _fit_nearest(features, errors, [r[0] for r in rows], neighbours, folds)
+    return LearnedPresmooth(grid, *table, routes)
+
+
+class _NearestTable(NamedTuple):
+    center: tuple[float, ...]
+    scale: tuple[float, ...]
+    examples: tuple[float, ...]
+    regrets: tuple[float, ...]
+    neighbours: int
+    cv_regret: dict[int, float]
+
+
+def _fit_nearest(features, errors, meshes, neighbours, folds) -> _NearestTable:
+    """A nearest-neighbour choice among the columns of `errors` `[n_case, n_option]`
+    from `features` `[n_case, n_feature]`, its neighbour count chosen among `neighbours`
+    by `folds`-fold cross-validation holding out whole meshes (`meshes`: each case's)."""
     if not (np.all(np.isfinite(errors)) and np.all(errors > 0)):
         raise ValueError("the errors must be positive and finite")
-    meshes = sorted({r[0] for r in rows})
-    if len(meshes) < folds:
-        raise ValueError(f"{len(meshes)} meshes: cross-validation needs at least {folds}")
+    names = sorted(set(meshes))
+    if len(names) < folds:
+        raise ValueError(f"{len(names)} meshes: cross-validation needs at least {folds}")
     regrets = np.log(errors / errors.min(axis=1, keepdims=True))
-    fold_of = {m: i % folds for i, m in enumerate(meshes)}
-    fold = np.array([fold_of[r[0]] for r in rows])
+    fold_of = {m: i % folds for i, m in enumerate(names)}
+    fold = np.array([fold_of[m] for m in meshes])
     cv = {}
     for k in neighbours:
         if k > int((fold != 0).sum()):
-            raise ValueError(f"{len(rows)} rows are too few for {k} neighbours")
-        chosen = np.zeros(len(rows), int)
+            raise ValueError(f"{len(meshes)} rows are too few for {k} neighbours")
+        chosen = np.zeros(len(meshes), int)
         for f in range(folds):
             train, test = fold != f, fold == f
             center, scale = _standardise(features[train])
@@ -689,13 +706,175 @@ def fit_learned_presmooth(
         # file small; 1e-4 of a standard deviation is far below the features' own noise.
         return tuple(round(float(v), LEARN_DECIMALS) for v in np.ravel(x))
 
-    return LearnedPresmooth(
-        grid,
+    return _NearestTable(
         tuple(map(float, center)),
         tuple(map(float, scale)),
         stored((features - center) / scale),
         stored(regrets),
         best,
         cv,
-        routes,
     )
+
+
+# The review (`dmd_jax.review`): fitted on the same training cases as the learned choice,
+# those where the choice runs the network.
+REVIEW_ROUTE = 0  # the route of `LEARN_ROUTES` whose result the review compares
+
+
+def review_header(routes: Sequence[tuple[float, int]] = LEARN_ROUTES) -> tuple[str, ...]:
+    """The columns of `review_rows`: the case, the noisy mesh's features (for study: the
+    review does not read them), the output features, the network's error and each
+    route's."""
+    from dmd_jax.presmooth import FEATURE_NAMES
+    from dmd_jax.review import OUTPUT_FEATURE_NAMES
+
+    return (
+        "mesh",
+        "noise",
+        "level",
+        "seed",
+        *FEATURE_NAMES,
+        *OUTPUT_FEATURE_NAMES,
+        "error_network",
+        *(f"error_route_{s:g}_{p}" for s, p in routes),
+    )
+
+
+def review_rows(
+    cases: Sequence[Case],
+    bundle,
+    conditions=LEARN_CONDITIONS,
+    *,
+    draw: Callable | None = None,
+    review_route: int = REVIEW_ROUTE,
+    denoise: Denoiser | None = None,
+    echo: Callable[[str], None] | None = None,
+) -> list[list]:
+    """Per case and condition where the weights' policy runs the network (its learned
+    choice takes no route): what the review reads and each option's normal error
+    (`review_header`).
+
+    Args:
+      cases: the crops.
+      bundle: weights whose policy has the learned choice and routes (its review, if
+        any, is switched off here).
+      conditions: noise conditions (None: the clean mesh).
+      draw: `(name, clean, faces, cond) -> (kind, level, seed, noisy)`; default
+        `learn_draw` (the training draws).
+      review_route: the route whose result the features compare.
+      denoise, echo: the denoiser and a progress printer.
+    """
+    from dmd_jax.presmooth import noise_features
+    from dmd_jax.review import review_features
+    from dmd_jax.routes import run_route
+
+    policy = bundle.policy.without_review()
+    routes = list(zip(policy.route_sigmas, policy.route_passes, strict=True))
+    if not routes:
+        raise ValueError("the weights' policy has no routes to review against")
+    bundle = bundle._replace(policy=policy)
+    denoise = denoise or _default_denoiser()
+    draw = draw or learn_draw
+    sigma, passes = routes[review_route]
+    rows = []
+    for name, clean, faces in cases:
+        for cond in conditions:
+            kind, level, seed, noisy = draw(name, clean, faces, cond)
+            out, info = denoise(noisy, faces, bundle, return_info=True)
+            if info.path == "route":
+                continue
+            errors = [_normal_error(out, clean, faces)] + [
+                _normal_error(run_route(noisy, faces, s, p), clean, faces) for s, p in routes
+            ]
+            rows.append(
+                [
+                    name,
+                    kind,
+                    level,
+                    seed,
+                    *noise_features(noisy, faces),
+                    *review_features(noisy, out, faces, sigma, passes),
+                    *errors,
+                ]
+            )
+            if echo:
+                echo(f"{name} {kind} {level:g}: " + " ".join(f"{e:.2f}" for e in errors))
+    return rows
+
+
+def read_review_csv(path, routes: Sequence[tuple[float, int]] = LEARN_ROUTES) -> list[list]:
+    """`review_rows`' output back from its CSV (numbers parsed)."""
+    header = review_header(routes)
+    with open(path, newline="") as fh:
+        reader = csv.DictReader(fh)
+        if tuple(reader.fieldnames or ()) != header:
+            raise ValueError(f"{path}: expected the columns {list(header)}")
+        return [
+            [r["mesh"], r["noise"], float(r["level"]), int(r["seed"])]
+            + [float(r[h]) for h in header[4:]]
+            for r in reader
+        ]
+
+
+def review_arrays(rows: Sequence[Sequence], n_routes: int):
+    """`(features, errors)` `[n, len(review.OUTPUT_FEATURE_NAMES)]`, `[n, 1 + n_routes]`
+    of `review_rows`: what the review reads, and each option's error."""
+    from dmd_jax.presmooth import FEATURE_NAMES
+
+    n = 1 + n_routes
+    return (
+        np.array([r[4 + len(FEATURE_NAMES) : -n] for r in rows], np.float64),
+        np.array([r[-n:] for r in rows], np.float64),
+    )
+
+
+class LearnedReview(NamedTuple):
+    """A fitted review: the `DenoisePolicy` fields it sets."""
+
+    route: int
+    center: tuple[float, ...]
+    scale: tuple[float, ...]
+    examples: tuple[float, ...]
+    regrets: tuple[float, ...]
+    neighbours: int
+    cv_regret: dict[int, float]  # neighbours -> cross-validated geometric-mean regret
+
+    def policy_fields(self) -> dict:
+        return {
+            "review_route": self.route,
+            "review_center": self.center,
+            "review_scale": self.scale,
+            "review_examples": self.examples,
+            "review_regrets": self.regrets,
+            "review_neighbours": self.neighbours,
+        }
+
+    def choose_options(self, features) -> np.ndarray:
+        """`[n]` chosen options (0: the network's result, i + 1: route i) for
+        `[n, n_features]` features."""
+        n_options = len(self.regrets) * len(self.center) // len(self.examples)
+        return _choose(
+            n_options,
+            self.center,
+            self.scale,
+            self.examples,
+            self.regrets,
+            self.neighbours,
+            features,
+        )
+
+
+def fit_review(
+    rows: Sequence[Sequence],
+    n_routes: int,
+    *,
+    route: int = REVIEW_ROUTE,
+    neighbours: Sequence[int] = LEARN_NEIGHBOURS,
+    folds: int = LEARN_FOLDS,
+) -> LearnedReview:
+    """Fits the review on `review_rows` of the training split, as
+    `fit_learned_presmooth` fits the choice (regrets over the network's result and each
+    route's, neighbours by cross-validation over whole meshes)."""
+    features, errors = review_arrays(rows, n_routes)
+    table = _fit_nearest(features, errors, [r[0] for r in rows], neighbours, folds)
+    return LearnedReview(route, *table)

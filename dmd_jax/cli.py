@@ -333,7 +333,10 @@ def _denoise_one(args, src, dst, weights, extra, denoise_with, save_mesh) -> int
     if info is not None and info.path == "patches":
         how += f" in {info.patches} patches of {info.patch_size:,} vertices"
     if info is not None and info.route is not None:
-        how += f" (its learned choice ran the network-free route {info.route})"
+        who = (
+            "its review of the network's result took" if info.reviewed else "its learned choice ran"
+        )
+        how += f" ({who} the network-free route {info.route})"
     print(
         f"denoised {src} ({len(vertices)} vertices, {len(faces)} faces) with "
         f"{args.method}{how} in {elapsed:.2f} s -> {dst}"

@@ -1,8 +1,10 @@
 """`denoise`: a noisy mesh in any frame in, denoised vertices in the same frame out.
 
-What runs, in order: the policy's pre-smoothing (`dmd_jax.policy`), the network's passes
-over the whole mesh or patch by patch (`dmd_jax.memory_plan` chooses,
-`dmd_jax.patch_runner` runs the patches), the policy's relaxation. The weights and the
+What runs, in order: the policy's pre-smoothing (`dmd_jax.policy`) or a network-free
+route in place of the network (`dmd_jax.routes`), the network's passes over the whole
+mesh or patch by patch (`dmd_jax.memory_plan` chooses, `dmd_jax.patch_runner` runs the
+patches), the policy's review of a whole-mesh result (`dmd_jax.review`), the policy's
+relaxation. The weights and the
 policy come from `dmd_jax.checkpoints` (`load_pretrained`, `load_weights`,
 `load_model`); the padded graph from `dmd_jax.graph`.
 """
@@ -57,7 +59,8 @@ class DenoiseInfo:
 
     Attributes:
       path: `"whole"` (the network on the mesh at once), `"patches"`, or `"route"` (the
-        policy's learned choice ran a network-free route instead: `route`).
+        result is a network-free route's, `route`: the policy's learned choice took it
+        in place of the network (`passes` 0), or its review after it).
       budget_bytes: the memory budget planned with; None for a small mesh run whole.
       passes: network passes run.
       presmooth_steps: uniform Laplacian steps run before the network.
@@ -68,6 +71,9 @@ class DenoiseInfo:
         (`DenoisePolicy.route_label`), or None.
       unused_vertices: vertices no face references (returned exactly as given).
       policy: the policy the call ran (the weights' with the caller's overrides).
+      reviewed: whether the policy's review (`dmd_jax.review`) looked at the network's
+        result: on the whole-mesh path, where the learned choice chose the
+        pre-smoothing.
       patch_size, patches, largest_padded_vertices, halo_rings, devices: for the patch
         path, the owned vertices per patch, patches run over every pass, the largest
         padded patch, the halo depth in rings and the devices used; else None.
@@ -82,6 +88,7 @@ class DenoiseInfo:
     route: str | None
     unused_vertices: int
     policy: DenoisePolicy
+    reviewed: bool = False
     patch_size: int | None = None
     patches: int | None = None
     largest_padded_vertices: int | None = None
@@ -242,6 +249,7 @@ def denoise(
         )
     from dmd_jax.presmooth import MAX_STEPS, laplacian_steps
     from dmd_jax.relax import relax_tangential
+    from dmd_jax.review import review_choice
     from dmd_jax.routes import run_route
 
     # Every count is checked before any work.
@@ -267,11 +275,13 @@ def denoise(
     if referenced is not None:
         used, v, f = referenced
     x, centre, scale = _prenormalised(v)
+    noisy = x
     pre = presmooth_plan(run, x, f, presmooth)
     if pre.steps:
         x = laplacian_steps(x, f, pre.steps)
     memory = plan(bundle.config.model, x.shape[0], f.shape[0], max_memory, patch_size)
     extra = {}
+    reviewed = False
     # The learned choice's network-free route (host side, about 740 bytes a face at peak,
     # measured at 200k faces) runs where the whole-mesh network fits the budget, whose
     # host arrays alone take more (memory_plan.WHOLE_HOST_BYTES_PER_PADDED_VERTEX); a
@@ -282,6 +292,13 @@ def denoise(
         passes = 0
     elif memory.whole:
         x, passes = _denoise_whole(x, f, bundle, run, aggregation)
+        # Fitted on what the learned choice leaves to the network: not where a caller
+        # fixed the pre-smoothing.
+        reviewed = run.reviews and presmooth is None
+        if reviewed:
+            route = review_choice(run, noisy, x, f)
+            if route is not None:
+                x = run_route(noisy, f, run.route_sigmas[route], run.route_passes[route])
     else:
         x, stats = denoise_patches(
             x, f, bundle, run, aggregation, memory.budget, patch_size, devices, progress
@@ -310,6 +327,7 @@ def denoise(
         route=None if route is None else run.route_label(route),
         unused_vertices=0 if referenced is None else int((~used).sum()),
         policy=run,
+        reviewed=reviewed,
         **extra,
     )
     return out, info

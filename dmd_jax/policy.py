@@ -72,6 +72,14 @@ class DenoisePolicy(_ConfigMixin):
         `route_passes[i]` passes, then the head's vertex update). Their regrets follow
         the grid's in each row of `presmooth_regrets`. Empty: the choice picks only
         pre-smoothing counts for the network.
+      review_route, review_center, review_scale, review_examples, review_regrets,
+        review_neighbours: the review after the network (`dmd_jax.review`), on when
+        `review_examples` is set: where the network ran whole on a mesh after the
+        learned choice, the `review.output_features` of the network's result beside
+        route `review_route`'s (an index into `route_sigmas`) choose, by least mean
+        regret over the `review_neighbours` nearest training examples, between keeping
+        the network's result (the first regret of each row of `review_regrets`) and
+        each route. Needs the learned choice and its routes.
     """
 
     max_passes: int = _static(1)
@@ -87,6 +95,12 @@ class DenoisePolicy(_ConfigMixin):
     presmooth_neighbours: int = _static(0)
     route_sigmas: tuple[float, ...] = _static(())
     route_passes: tuple[int, ...] = _static(())
+    review_route: int = _static(0)
+    review_center: tuple[float, ...] = _static(())
+    review_scale: tuple[float, ...] = _static(())
+    review_examples: tuple[float, ...] = _static(())
+    review_regrets: tuple[float, ...] = _static(())
+    review_neighbours: int = _static(0)
 
     def __post_init__(self):
         _check_positive_int("max_passes", self.max_passes)
@@ -112,6 +126,7 @@ class DenoisePolicy(_ConfigMixin):
         )
 
         self._check_learned_presmoothing()
+        self._check_review()
 
     def _check_learned_presmoothing(self) -> None:
         # A weights file is untrusted: sizes and values are checked before any is used.
@@ -179,6 +194,69 @@ class DenoisePolicy(_ConfigMixin):
             f"{self.presmooth_neighbours}",
         )
 
+    def _check_review(self) -> None:
+        from dmd_jax import presmooth, review
+
+        fields = (self.review_center, self.review_scale, self.review_examples, self.review_regrets)
+        if not any(fields) and not self.review_neighbours:
+            _check(
+                self.review_route == 0,
+                f"review_route needs a review (review_examples), got {self.review_route!r}",
+            )
+            return
+        n_route = len(self.route_sigmas)
+        _check(
+            self.learns_presmoothing and n_route > 0,
+            "a review needs the learned choice and its routes (presmooth_grid, route_sigmas)",
+        )
+        _check(
+            isinstance(self.review_route, int) and 0 <= self.review_route < n_route,
+            f"review_route must index one of the {n_route} routes, got {self.review_route!r}",
+        )
+        n_features = len(review.OUTPUT_FEATURE_NAMES)
+        n_example = len(self.review_examples) // n_features
+        _check(
+            0 < n_example <= presmooth.MAX_EXAMPLES,
+            f"review_examples must hold 1 to {presmooth.MAX_EXAMPLES} examples of "
+            f"{n_features} features, got {len(self.review_examples)} numbers",
+        )
+        want = {
+            "review_center": n_features,
+            "review_scale": n_features,
+            "review_examples": n_example * n_features,
+            "review_regrets": n_example * (1 + n_route),
+        }
+        for name, size in want.items():
+            values = getattr(self, name)
+            _check(
+                len(values) == size and all(math.isfinite(x) for x in values),
+                f"{name} must hold {size} finite numbers ({n_example} examples, the "
+                f"network and {n_route} routes), got {len(values)}",
+            )
+        _check(all(x > 0 for x in self.review_scale), "review_scale must be positive")
+        _check_positive_int("review_neighbours", self.review_neighbours)
+        _check(
+            self.review_neighbours <= n_example,
+            f"review_neighbours must be at most the {n_example} examples, got "
+            f"{self.review_neighbours}",
+        )
+
+    @property
+    def reviews(self) -> bool:
+        """Whether `denoise` reviews the network's result (`dmd_jax.review`)."""
+        return bool(self.review_examples)
+
+    def without_review(self) -> DenoisePolicy:
+        """This policy with no review after the network."""
+        return self.replace(
+            review_route=0,
+            review_center=(),
+            review_scale=(),
+            review_examples=(),
+            review_regrets=(),
+            review_neighbours=0,
+        )
+
     @property
     def presmooths(self) -> bool:
         """Whether `denoise` chooses pre-smoothing steps (the rule or the learned choice)."""
@@ -188,20 +266,26 @@ class DenoisePolicy(_ConfigMixin):
         """The fields on one line, `name{sep}value`, a learned choice's tables as their
         size (what `dmd-jax info` and the reports print)."""
         from dmd_jax.presmooth import FEATURE_NAMES
+        from dmd_jax.review import OUTPUT_FEATURE_NAMES
 
+        tables = ("center", "scale", "regrets")
         items = []
         for key, value in self.to_dict().items():
-            if key in ("presmooth_center", "presmooth_scale", "presmooth_regrets"):
+            if key in {f"{p}_{t}" for p in ("presmooth", "review") for t in tables}:
                 continue
             if key == "presmooth_examples":
                 n = len(value) // len(FEATURE_NAMES)
+                value = f"{n} training examples" if value else "none"
+            if key == "review_examples":
+                n = len(value) // len(OUTPUT_FEATURE_NAMES)
                 value = f"{n} training examples" if value else "none"
             items.append(f"{key}{sep}{value}")
         return ", ".join(items)
 
     def with_presmooth_rule(self) -> DenoisePolicy:
-        """This policy with its roughness rule in place of the learned choice."""
-        return self.replace(
+        """This policy with its roughness rule in place of the learned choice (and no
+        review, which needs the choice's routes)."""
+        return self.without_review().replace(
             presmooth_grid=(),
             presmooth_center=(),
             presmooth_scale=(),

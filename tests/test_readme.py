@@ -158,7 +158,10 @@ def test_module_map_matches_the_tree():
     named = set()
     for line in text.splitlines():
         if line.startswith("- `"):
-            named |= set(re.findall(r"`([\w/]+)` —", line))
+            # `a` — ...; `b`, `c` — ...: the names before each dash.
+            for part in line[2:].split("; "):
+                if " — " in part:
+                    named |= set(re.findall(r"`([\w/]+)`", part.split(" — ")[0]))
     pkg = ROOT / "dmd_jax"
     tree = {p.stem for p in pkg.glob("*.py")}
     tree |= {d.name + "/" for d in pkg.iterdir() if d.is_dir() and not d.name.startswith("_")}
