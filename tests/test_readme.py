@@ -450,7 +450,9 @@ def test_speed_table_matches_results():
         (RESULTS / "inference.md").read_text(),
     )
     said(f"(`bnf`: {bnf.group(2)} ms in the same process)")
-    assert f"| {float(bnf.group(1)):.0f} ms |" in README
+    # The table's 100k time is the one measured beside bnf.
+    ms = float(bnf.group(1))
+    assert (f"| {ms:.0f} ms |" if ms < 1000 else f"| {ms / 1000:.1f} s |") in README
 
 
 def code_figures() -> set[str]:
