@@ -124,7 +124,7 @@ def test_denoise_keeps_the_network_or_takes_the_route_the_review_picks():
 
     clean, noisy, f = _noisy_box(0.1)
     bundle = load_pretrained()
-    base = bundle.policy.replace(**_route_fields(NETWORK_FIRST))
+    base = bundle.policy.without_review().replace(**_route_fields(NETWORK_FIRST))
     plain, info = denoise(noisy, f, bundle, policy=base, return_info=True)
     assert info.path == "whole" and not info.reviewed
     keep = base.replace(**_review_fields((0.0, 1.0, 1.0)))
