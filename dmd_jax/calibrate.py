@@ -521,22 +521,31 @@ def learn_rows(
 def read_learn_csv(path, grid: Sequence[int] = LEARN_GRID) -> list[list]:
     """`learn_rows`' output back from its CSV (numbers parsed)."""
     header = learn_header(grid)
+    return [
+        [
+            r["mesh"],
+            r["noise"],
+            float(r["level"]),
+            int(r["seed"]),
+            *(float(r[h]) for h in header[4 : -len(grid) - 1]),
+            int(r["rule_steps"]),
+            *(float(r[h]) for h in header[-len(grid) :]),
+        ]
+        for r in _csv_records(path, header)
+    ]
+
+
+def _csv_records(path, header: tuple[str, ...]) -> list[dict]:
+    """The records of a CSV whose columns must be `header`, as dicts of strings.
+
+    Raises:
+      ValueError: other columns.
+    """
     with open(path, newline="") as fh:
         reader = csv.DictReader(fh)
         if tuple(reader.fieldnames or ()) != header:
             raise ValueError(f"{path}: expected the columns {list(header)}")
-        return [
-            [
-                r["mesh"],
-                r["noise"],
-                float(r["level"]),
-                int(r["seed"]),
-                *(float(r[h]) for h in header[4 : -len(grid) - 1]),
-                int(r["rule_steps"]),
-                *(float(r[h]) for h in header[-len(grid) :]),
-            ]
-            for r in reader
-        ]
+        return list(reader)
 
 
 def _split_rows(rows: Sequence[Sequence], grid: Sequence[int]):
@@ -805,15 +814,11 @@ def review_rows(
 def read_review_csv(path, routes: Sequence[tuple[float, int]] = LEARN_ROUTES) -> list[list]:
     """`review_rows`' output back from its CSV (numbers parsed)."""
     header = review_header(routes)
-    with open(path, newline="") as fh:
-        reader = csv.DictReader(fh)
-        if tuple(reader.fieldnames or ()) != header:
-            raise ValueError(f"{path}: expected the columns {list(header)}")
-        return [
-            [r["mesh"], r["noise"], float(r["level"]), int(r["seed"])]
-            + [float(r[h]) for h in header[4:]]
-            for r in reader
-        ]
+    return [
+        [r["mesh"], r["noise"], float(r["level"]), int(r["seed"])]
+        + [float(r[h]) for h in header[4:]]
+        for r in _csv_records(path, header)
+    ]
 
 
 def review_arrays(rows: Sequence[Sequence], n_routes: int):

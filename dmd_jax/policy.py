@@ -167,35 +167,49 @@ class DenoisePolicy(_ConfigMixin):
             f"presmooth_grid must be ascending distinct step counts from 0 to "
             f"{presmooth.MAX_STEPS}, got {grid!r}",
         )
-        n_example = len(self.presmooth_examples) // n_features
+        self._check_nearest_table(
+            "presmooth", n_features, len(grid) + n_route, f"{len(grid)} counts, {n_route} routes"
+        )
+
+    def _check_nearest_table(self, prefix: str, n_features: int, n_options: int, options: str):
+        """The checks of one nearest-neighbour table, the fields `{prefix}_center`,
+        `_scale`, `_examples`, `_regrets`, `_neighbours` (`options` names the regret
+        columns in the messages)."""
+        from dmd_jax.presmooth import MAX_EXAMPLES
+
+        examples = getattr(self, f"{prefix}_examples")
+        neighbours = getattr(self, f"{prefix}_neighbours")
+        n_example = len(examples) // n_features
         _check(
-            0 < n_example <= presmooth.MAX_EXAMPLES,
-            f"presmooth_examples must hold 1 to {presmooth.MAX_EXAMPLES} examples of "
-            f"{n_features} features, got {len(self.presmooth_examples)} numbers",
+            0 < n_example <= MAX_EXAMPLES,
+            f"{prefix}_examples must hold 1 to {MAX_EXAMPLES} examples of "
+            f"{n_features} features, got {len(examples)} numbers",
         )
         want = {
-            "presmooth_center": n_features,
-            "presmooth_scale": n_features,
-            "presmooth_examples": n_example * n_features,
-            "presmooth_regrets": n_example * (len(grid) + n_route),
+            f"{prefix}_center": n_features,
+            f"{prefix}_scale": n_features,
+            f"{prefix}_examples": n_example * n_features,
+            f"{prefix}_regrets": n_example * n_options,
         }
         for name, size in want.items():
             values = getattr(self, name)
             _check(
                 len(values) == size and all(math.isfinite(x) for x in values),
                 f"{name} must hold {size} finite numbers ({n_example} examples, "
-                f"{len(grid)} counts, {n_route} routes), got {len(values)}",
+                f"{options}), got {len(values)}",
             )
-        _check(all(x > 0 for x in self.presmooth_scale), "presmooth_scale must be positive")
-        _check_positive_int("presmooth_neighbours", self.presmooth_neighbours)
         _check(
-            self.presmooth_neighbours <= n_example,
-            f"presmooth_neighbours must be at most the {n_example} examples, got "
-            f"{self.presmooth_neighbours}",
+            all(x > 0 for x in getattr(self, f"{prefix}_scale")),
+            f"{prefix}_scale must be positive",
+        )
+        _check_positive_int(f"{prefix}_neighbours", neighbours)
+        _check(
+            neighbours <= n_example,
+            f"{prefix}_neighbours must be at most the {n_example} examples, got {neighbours}",
         )
 
     def _check_review(self) -> None:
-        from dmd_jax import presmooth, review
+        from dmd_jax import review
 
         fields = (self.review_center, self.review_scale, self.review_examples, self.review_regrets)
         if not any(fields) and not self.review_neighbours:
@@ -213,32 +227,11 @@ class DenoisePolicy(_ConfigMixin):
             isinstance(self.review_route, int) and 0 <= self.review_route < n_route,
             f"review_route must index one of the {n_route} routes, got {self.review_route!r}",
         )
-        n_features = len(review.OUTPUT_FEATURE_NAMES)
-        n_example = len(self.review_examples) // n_features
-        _check(
-            0 < n_example <= presmooth.MAX_EXAMPLES,
-            f"review_examples must hold 1 to {presmooth.MAX_EXAMPLES} examples of "
-            f"{n_features} features, got {len(self.review_examples)} numbers",
-        )
-        want = {
-            "review_center": n_features,
-            "review_scale": n_features,
-            "review_examples": n_example * n_features,
-            "review_regrets": n_example * (1 + n_route),
-        }
-        for name, size in want.items():
-            values = getattr(self, name)
-            _check(
-                len(values) == size and all(math.isfinite(x) for x in values),
-                f"{name} must hold {size} finite numbers ({n_example} examples, the "
-                f"network and {n_route} routes), got {len(values)}",
-            )
-        _check(all(x > 0 for x in self.review_scale), "review_scale must be positive")
-        _check_positive_int("review_neighbours", self.review_neighbours)
-        _check(
-            self.review_neighbours <= n_example,
-            f"review_neighbours must be at most the {n_example} examples, got "
-            f"{self.review_neighbours}",
+        self._check_nearest_table(
+            "review",
+            len(review.OUTPUT_FEATURE_NAMES),
+            1 + n_route,
+            f"the network and {n_route} routes",
         )
 
     @property
