@@ -728,12 +728,19 @@ def _fit_nearest(features, errors, meshes, neighbours, folds) -> _NearestTable:
 # The review (`dmd_jax.review`): fitted on the same training cases as the learned choice,
 # those where the choice runs the network.
 REVIEW_ROUTE = 0  # the route of `LEARN_ROUTES` whose result the review compares
+# The cascades the review may take (a route's field and vertex update on the network's
+# result): the lighter fields and counts of the cascade study (docs/history.md,
+# 2026-12-05 evening), measured beside the routes.
+REVIEW_CASCADES = ((0.2, 4), (0.2, 16), (0.2, 60), (0.35, 16), (0.35, 60))
 
 
-def review_header(routes: Sequence[tuple[float, int]] = LEARN_ROUTES) -> tuple[str, ...]:
+def review_header(
+    routes: Sequence[tuple[float, int]] = LEARN_ROUTES,
+    cascades: Sequence[tuple[float, int]] = REVIEW_CASCADES,
+) -> tuple[str, ...]:
     """The columns of `review_rows`: the case, the noisy mesh's features (for study: the
-    review does not read them), the output features, the network's error and each
-    route's."""
+    review does not read them), the output features, the network's error, each route's
+    and each cascade's."""
     from dmd_jax.presmooth import FEATURE_NAMES
     from dmd_jax.review import OUTPUT_FEATURE_NAMES
 
@@ -746,6 +753,7 @@ def review_header(routes: Sequence[tuple[float, int]] = LEARN_ROUTES) -> tuple[s
         *OUTPUT_FEATURE_NAMES,
         "error_network",
         *(f"error_route_{s:g}_{p}" for s, p in routes),
+        *(f"error_cascade_{s:g}_{p}" for s, p in cascades),
     )
 
 
@@ -756,6 +764,7 @@ def review_rows(
     *,
     draw: Callable | None = None,
     review_route: int = REVIEW_ROUTE,
+    cascades: Sequence[tuple[float, int]] = REVIEW_CASCADES,
     denoise: Denoiser | None = None,
     echo: Callable[[str], None] | None = None,
 ) -> list[list]:
@@ -771,6 +780,8 @@ def review_rows(
       draw: `(name, clean, faces, cond) -> (kind, level, seed, noisy)`; default
         `learn_draw` (the training draws).
       review_route: the route whose result the features compare.
+      cascades: `(sigma_r, passes)` of the cascades measured (`routes.run_route` on the
+        network's result).
       denoise, echo: the denoiser and a progress printer.
     """
     from dmd_jax.presmooth import noise_features
@@ -793,7 +804,9 @@ def review_rows(
             if info.path == "route":
                 continue
             errors = [_normal_error(out, clean, faces)] + [
-                _normal_error(run_route(noisy, faces, s, p), clean, faces) for s, p in routes
+                _normal_error(run_route(start, faces, s, p), clean, faces)
+                for start, pairs in ((noisy, routes), (out, cascades))
+                for s, p in pairs
             ]
             rows.append(
                 [
@@ -811,9 +824,13 @@ def review_rows(
     return rows
 
 
-def read_review_csv(path, routes: Sequence[tuple[float, int]] = LEARN_ROUTES) -> list[list]:
+def read_review_csv(
+    path,
+    routes: Sequence[tuple[float, int]] = LEARN_ROUTES,
+    cascades: Sequence[tuple[float, int]] = REVIEW_CASCADES,
+) -> list[list]:
     """`review_rows`' output back from its CSV (numbers parsed)."""
-    header = review_header(routes)
+    header = review_header(routes, cascades)
     return [
         [r["mesh"], r["noise"], float(r["level"]), int(r["seed"])]
         + [float(r[h]) for h in header[4:]]
@@ -821,12 +838,13 @@ def read_review_csv(path, routes: Sequence[tuple[float, int]] = LEARN_ROUTES) ->
     ]
 
 
-def review_arrays(rows: Sequence[Sequence], n_routes: int):
-    """`(features, errors)` `[n, len(review.OUTPUT_FEATURE_NAMES)]`, `[n, 1 + n_routes]`
-    of `review_rows`: what the review reads, and each option's error."""
+def review_arrays(rows: Sequence[Sequence], n_options: int):
+    """`(features, errors)` `[n, len(review.OUTPUT_FEATURE_NAMES)]`, `[n, n_options]` of
+    `review_rows`: what the review reads, and each option's error (the network, the
+    routes, the cascades)."""
     from dmd_jax.presmooth import FEATURE_NAMES
 
-    n = 1 + n_routes
+    n = n_options
     return (
         np.array([r[4 + len(FEATURE_NAMES) : -n] for r in rows], np.float64),
         np.array([r[-n:] for r in rows], np.float64),
@@ -843,6 +861,10 @@ class LearnedReview(NamedTuple):
     regrets: tuple[float, ...]
     neighbours: int
     cv_regret: dict[int, float]  # neighbours -> cross-validated geometric-mean regret
+    cascades: tuple[tuple[float, int], ...] = ()  # the cascades of the second choice
+    cascade_regrets: tuple[float, ...] = ()
+    cascade_neighbours: int = 0
+    cascade_cv_regret: dict[int, float] | None = None  # as cv_regret, for the second
 
     def policy_fields(self) -> dict:
         return {
@@ -852,34 +874,67 @@ class LearnedReview(NamedTuple):
             "review_examples": self.examples,
             "review_regrets": self.regrets,
             "review_neighbours": self.neighbours,
+            "cascade_sigmas": tuple(s for s, _ in self.cascades),
+            "cascade_passes": tuple(p for _, p in self.cascades),
+            "cascade_regrets": self.cascade_regrets,
+            "cascade_neighbours": self.cascade_neighbours,
         }
 
     def choose_options(self, features) -> np.ndarray:
-        """`[n]` chosen options (0: the network's result, i + 1: route i) for
-        `[n, n_features]` features."""
-        n_options = len(self.regrets) * len(self.center) // len(self.examples)
-        return _choose(
-            n_options,
-            self.center,
-            self.scale,
-            self.examples,
-            self.regrets,
-            self.neighbours,
-            features,
+        """`[n]` chosen options for `[n, n_features]` features, as `review.review_choice`
+        chooses them: 0 the network's result, `1 + i` route `i`, `1 + n_route + j`
+        cascade `j`."""
+        n_route = len(self.regrets) * len(self.center) // len(self.examples) - 1
+        table = (self.center, self.scale, self.examples)
+        chosen = _choose(1 + n_route, *table, self.regrets, self.neighbours, features)
+        if not self.cascades:
+            return chosen
+        cascade = _choose(
+            1 + len(self.cascades), *table, self.cascade_regrets, self.cascade_neighbours, features
         )
+        return np.where((chosen == 0) & (cascade > 0), n_route + cascade, chosen)
 
 
 def fit_review(
     rows: Sequence[Sequence],
     n_routes: int,
+    cascades: Sequence[tuple[float, int]] = REVIEW_CASCADES,
     *,
+    offered: Sequence[tuple[float, int]] | None = None,
     route: int = REVIEW_ROUTE,
     neighbours: Sequence[int] = LEARN_NEIGHBOURS,
     folds: int = LEARN_FOLDS,
 ) -> LearnedReview:
     """Fits the review on `review_rows` of the training split, as
-    `fit_learned_presmooth` fits the choice (regrets over the network's result and each
-    route's, neighbours by cross-validation over whole meshes)."""
-    features, errors = review_arrays(rows, n_routes)
-    table = _fit_nearest(features, errors, [r[0] for r in rows], neighbours, folds)
-    return LearnedReview(route, *table)
+    `fit_learned_presmooth` fits the choice: its first choice over the network's result
+    and each route's, its second over the network's result and each offered cascade's,
+    both from the same features and examples, each with its neighbour count chosen by
+    cross-validation over whole meshes.
+
+    Args:
+      rows: `review_rows` measured with `n_routes` routes and `cascades`.
+      n_routes: the routes of the rows (all are offered).
+      cascades: the cascades of the rows' error columns.
+      offered: the cascades the review may take, a subset of `cascades` (default: all;
+        `()`: none, the first choice only).
+      route, neighbours, folds: the compared route, the neighbour counts tried and the
+        cross-validation folds.
+
+    Raises:
+      ValueError: an offered cascade the rows do not measure, or as `_fit_nearest`.
+    """
+    cascades = [(float(s), int(p)) for s, p in cascades]
+    offered = cascades if offered is None else [(float(s), int(p)) for s, p in offered]
+    missing = [c for c in offered if c not in cascades]
+    if missing:
+        raise ValueError(f"cascades {missing} are not among the measured {cascades}")
+    features, errors = review_arrays(rows, 1 + n_routes + len(cascades))
+    meshes = [r[0] for r in rows]
+    first = _fit_nearest(features, errors[:, : 1 + n_routes], meshes, neighbours, folds)
+    if not offered:
+        return LearnedReview(route, *first)
+    columns = [0, *(1 + n_routes + cascades.index(c) for c in offered)]
+    second = _fit_nearest(features, errors[:, columns], meshes, neighbours, folds)
+    return LearnedReview(
+        route, *first, tuple(offered), second.regrets, second.neighbours, second.cv_regret
+    )

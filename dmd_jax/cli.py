@@ -337,6 +337,8 @@ def _denoise_one(args, src, dst, weights, extra, denoise_with, save_mesh) -> int
             "its review of the network's result took" if info.reviewed else "its learned choice ran"
         )
         how += f" ({who} the network-free route {info.route})"
+    if info is not None and info.cascade is not None:
+        how += f" (its review ran {info.cascade} on the network's result)"
     print(
         f"denoised {src} ({len(vertices)} vertices, {len(faces)} faces) with "
         f"{args.method}{how} in {elapsed:.2f} s -> {dst}"

@@ -74,6 +74,8 @@ class DenoiseInfo:
       reviewed: whether the policy's review (`dmd_jax.review`) looked at the network's
         result: on the whole-mesh path, where the learned choice chose the
         pre-smoothing.
+      cascade: the cascade the review ran on the network's result
+        (`DenoisePolicy.cascade_label`; path `"whole"`), or None.
       patch_size, patches, largest_padded_vertices, halo_rings, devices: for the patch
         path, the owned vertices per patch, patches run over every pass, the largest
         padded patch, the halo depth in rings and the devices used; else None.
@@ -89,6 +91,7 @@ class DenoiseInfo:
     unused_vertices: int
     policy: DenoisePolicy
     reviewed: bool = False
+    cascade: str | None = None
     patch_size: int | None = None
     patches: int | None = None
     largest_padded_vertices: int | None = None
@@ -249,7 +252,7 @@ def denoise(
         )
     from dmd_jax.presmooth import MAX_STEPS, laplacian_steps
     from dmd_jax.relax import relax_tangential
-    from dmd_jax.review import review_choice
+    from dmd_jax.review import review_choice, review_result
     from dmd_jax.routes import run_route
 
     # Every count is checked before any work.
@@ -282,6 +285,7 @@ def denoise(
     memory = plan(bundle.config.model, x.shape[0], f.shape[0], max_memory, patch_size)
     extra = {}
     reviewed = False
+    cascade = None
     # The learned choice's network-free route (host side, about 740 bytes a face at peak,
     # measured at 200k faces) runs where the whole-mesh network fits the budget, whose
     # host arrays alone take more (memory_plan.WHOLE_HOST_BYTES_PER_PADDED_VERTEX); a
@@ -296,9 +300,12 @@ def denoise(
         # fixed the pre-smoothing.
         reviewed = run.reviews and presmooth is None
         if reviewed:
-            route = review_choice(run, noisy, x, f)
-            if route is not None:
-                x = run_route(noisy, f, run.route_sigmas[route], run.route_passes[route])
+            option = review_choice(run, noisy, x, f)
+            x = review_result(run, option, noisy, x, f)
+            if 1 <= option <= len(run.route_sigmas):
+                route = option - 1
+            elif option:
+                cascade = run.cascade_label(option - 1 - len(run.route_sigmas))
     else:
         x, stats = denoise_patches(
             x, f, bundle, run, aggregation, memory.budget, patch_size, devices, progress
@@ -328,6 +335,7 @@ def denoise(
         unused_vertices=0 if referenced is None else int((~used).sum()),
         policy=run,
         reviewed=reviewed,
+        cascade=cascade,
         **extra,
     )
     return out, info

@@ -36,6 +36,29 @@ MIN_ROUTE_SIGMA, MAX_ROUTE_SIGMA = 0.01, 10.0
 _MAX_DEGREES = 180.0
 
 
+def _check_fields_of_runs(name: str, sigmas, passes) -> None:
+    """`{name}_sigmas` and `{name}_passes` pair up, at most `MAX_ROUTES`, each a range
+    sigma in `[MIN_ROUTE_SIGMA, MAX_ROUTE_SIGMA]` and a whole pass count in `[1,
+    MAX_ROUTE_PASSES]` (a weights file is untrusted: every run is bounded)."""
+    _check(
+        len(passes) == len(sigmas) and len(sigmas) <= MAX_ROUTES,
+        f"{name}_sigmas and {name}_passes must pair up, at most {MAX_ROUTES}, got "
+        f"{len(sigmas)} and {len(passes)}",
+    )
+    for sigma, count in zip(sigmas, passes, strict=True):
+        _check(
+            isinstance(sigma, float | int)
+            and math.isfinite(sigma)
+            and MIN_ROUTE_SIGMA <= sigma <= MAX_ROUTE_SIGMA,
+            f"{name}_sigmas must be range sigmas from {MIN_ROUTE_SIGMA} to "
+            f"{MAX_ROUTE_SIGMA}, got {sigma!r}",
+        )
+        _check(
+            isinstance(count, int) and 1 <= count <= MAX_ROUTE_PASSES,
+            f"{name}_passes must be whole numbers from 1 to {MAX_ROUTE_PASSES}, got {count!r}",
+        )
+
+
 @struct.dataclass
 class DenoisePolicy(_ConfigMixin):
     """How `denoise` runs a trained network (all static, JSON like the configs).
@@ -80,6 +103,14 @@ class DenoisePolicy(_ConfigMixin):
         regret over the `review_neighbours` nearest training examples, between keeping
         the network's result (the first regret of each row of `review_regrets`) and
         each route. Needs the learned choice and its routes.
+      cascade_sigmas, cascade_passes, cascade_regrets, cascade_neighbours: the
+        review's second choice, where it keeps the network's result: keep it, or run a
+        cascade on it, a route's candidate field and vertex update (`routes.run_route`,
+        range σ `cascade_sigmas[i]` after `cascade_passes[i]` passes) on the network's
+        *result* rather than the noisy mesh (a second stage). The same features and
+        training examples as the review (`review_examples`), with their own regrets
+        (`1 + len(cascade_sigmas)` per example: the network's result, then each
+        cascade) and neighbour count. Empty: no cascade.
     """
 
     max_passes: int = _static(1)
@@ -101,6 +132,10 @@ class DenoisePolicy(_ConfigMixin):
     review_examples: tuple[float, ...] = _static(())
     review_regrets: tuple[float, ...] = _static(())
     review_neighbours: int = _static(0)
+    cascade_sigmas: tuple[float, ...] = _static(())
+    cascade_passes: tuple[int, ...] = _static(())
+    cascade_regrets: tuple[float, ...] = _static(())
+    cascade_neighbours: int = _static(0)
 
     def __post_init__(self):
         _check_positive_int("max_passes", self.max_passes)
@@ -134,23 +169,7 @@ class DenoisePolicy(_ConfigMixin):
 
         grid, n_features = self.presmooth_grid, len(presmooth.FEATURE_NAMES)
         n_route = len(self.route_sigmas)
-        _check(
-            len(self.route_passes) == n_route and n_route <= MAX_ROUTES,
-            f"route_sigmas and route_passes must pair up, at most {MAX_ROUTES}, got "
-            f"{len(self.route_sigmas)} and {len(self.route_passes)}",
-        )
-        for sigma, passes in zip(self.route_sigmas, self.route_passes, strict=True):
-            _check(
-                isinstance(sigma, float | int)
-                and math.isfinite(sigma)
-                and MIN_ROUTE_SIGMA <= sigma <= MAX_ROUTE_SIGMA,
-                f"route_sigmas must be range sigmas from {MIN_ROUTE_SIGMA} to "
-                f"{MAX_ROUTE_SIGMA}, got {sigma!r}",
-            )
-            _check(
-                isinstance(passes, int) and 1 <= passes <= MAX_ROUTE_PASSES,
-                f"route_passes must be whole numbers from 1 to {MAX_ROUTE_PASSES}, got {passes!r}",
-            )
+        _check_fields_of_runs("route", self.route_sigmas, self.route_passes)
         fields = (
             self.presmooth_center,
             self.presmooth_scale,
@@ -211,11 +230,17 @@ class DenoisePolicy(_ConfigMixin):
     def _check_review(self) -> None:
         from dmd_jax import review
 
+        _check_fields_of_runs("cascade", self.cascade_sigmas, self.cascade_passes)
+        n_cascade = len(self.cascade_sigmas)
         fields = (self.review_center, self.review_scale, self.review_examples, self.review_regrets)
         if not any(fields) and not self.review_neighbours:
             _check(
                 self.review_route == 0,
                 f"review_route needs a review (review_examples), got {self.review_route!r}",
+            )
+            _check(
+                not (n_cascade or self.cascade_regrets or self.cascade_neighbours),
+                "cascades need a review (review_examples) to take them",
             )
             return
         n_route = len(self.route_sigmas)
@@ -233,6 +258,23 @@ class DenoisePolicy(_ConfigMixin):
             1 + n_route,
             f"the network and {n_route} routes",
         )
+        if not (n_cascade or self.cascade_regrets or self.cascade_neighbours):
+            return
+        n_example = len(self.review_examples) // len(review.OUTPUT_FEATURE_NAMES)
+        size = n_example * (1 + n_cascade)
+        _check(
+            n_cascade > 0
+            and len(self.cascade_regrets) == size
+            and all(math.isfinite(x) for x in self.cascade_regrets),
+            f"cascade_regrets must hold {size} finite numbers ({n_example} examples, the "
+            f"network and {n_cascade} cascades), got {len(self.cascade_regrets)}",
+        )
+        _check_positive_int("cascade_neighbours", self.cascade_neighbours)
+        _check(
+            self.cascade_neighbours <= n_example,
+            f"cascade_neighbours must be at most the {n_example} examples, "
+            f"got {self.cascade_neighbours}",
+        )
 
     @property
     def reviews(self) -> bool:
@@ -248,6 +290,10 @@ class DenoisePolicy(_ConfigMixin):
             review_examples=(),
             review_regrets=(),
             review_neighbours=0,
+            cascade_sigmas=(),
+            cascade_passes=(),
+            cascade_regrets=(),
+            cascade_neighbours=0,
         )
 
     @property
@@ -264,7 +310,7 @@ class DenoisePolicy(_ConfigMixin):
         tables = ("center", "scale", "regrets")
         items = []
         for key, value in self.to_dict().items():
-            if key in {f"{p}_{t}" for p in ("presmooth", "review") for t in tables}:
+            if key in {f"{p}_{t}" for p in ("presmooth", "review", "cascade") for t in tables}:
                 continue
             if key == "presmooth_examples":
                 n = len(value) // len(FEATURE_NAMES)
@@ -292,6 +338,10 @@ class DenoisePolicy(_ConfigMixin):
     def route_label(self, index: int) -> str:
         """How reports name route `index`: `"field σ0.2 ×60"`."""
         return f"field σ{self.route_sigmas[index]:g} ×{self.route_passes[index]}"
+
+    def cascade_label(self, index: int) -> str:
+        """How reports name cascade `index`: `"cascade σ0.2 ×16"`."""
+        return f"cascade σ{self.cascade_sigmas[index]:g} ×{self.cascade_passes[index]}"
 
     @property
     def learns_presmoothing(self) -> bool:

@@ -7,14 +7,16 @@ split, 0.1 edges: the network ends at 6.17° on `cgal_boeing` where its own σ 0
 alone ends at 3.06°). The review reads the *outputs*: the network's result and one
 network-free route's (`dmd_jax.routes`) on the same noisy mesh, how far apart their face
 normals are and how flat and how creased each one is (`OUTPUT_FEATURE_NAMES`); and
-keeps the network's result or takes a route's, by
+keeps the network's result, takes a route's, or runs a cascade (a route's field and
+vertex update on the network's result: a second stage), by
 the same nearest-neighbour regression as the pre-smoothing choice
 (`presmooth.learned_option`), on examples of the training split
-(`benchmarks/quality/review_learn.py`; policy fields `DenoisePolicy.review_*`).
+(`benchmarks/quality/review_learn.py`; policy fields `DenoisePolicy.review_*` and
+`DenoisePolicy.cascade_*`).
 
 Host side, NumPy. The route it compares runs on at most `REVIEW_MAX_FACES` faces (a
 connected patch of a larger mesh, `review_crop`), so the review's cost is bounded (about
-0.3 s); a route it takes then runs on the whole mesh.
+0.3 s); a route or cascade it takes then runs on the whole mesh.
 """
 
 from __future__ import annotations
@@ -127,9 +129,14 @@ def review_features(noisy, network_out, faces, sigma_r: float, passes: int) -> n
     return output_features(network_out, run_route(noisy, f, sigma_r, passes), f)
 
 
-def review_choice(policy, noisy, network_out, faces) -> int | None:
-    """The route the policy's review takes in place of the network's result (an index
-    into `policy.route_sigmas`), or None to keep the network's result.
+def review_choice(policy, noisy, network_out, faces) -> int:
+    """The option the policy's review takes: 0 keeps the network's result, `1 + i` takes
+    route `i` (`policy.route_sigmas`), `1 + n_route + j` cascade `j`
+    (`policy.cascade_sigmas`; `review_result` makes the chosen positions).
+
+    Two choices from one set of features: between the network's result and the routes
+    (`review_regrets`), then, where it keeps the network's result and the policy has
+    cascades, between that result and the cascades (`cascade_regrets`).
 
     Args:
       policy: a `DenoisePolicy` with a review (`policy.reviews`).
@@ -143,13 +150,38 @@ def review_choice(policy, noisy, network_out, faces) -> int | None:
     features = review_features(
         noisy, network_out, faces, policy.route_sigmas[k], policy.route_passes[k]
     )
+    n_route = len(policy.route_sigmas)
+    table = (policy.review_center, policy.review_scale, policy.review_examples)
     option = learned_option(
-        features,
-        1 + len(policy.route_sigmas),
-        policy.review_center,
-        policy.review_scale,
-        policy.review_examples,
-        policy.review_regrets,
-        policy.review_neighbours,
+        features, 1 + n_route, *table, policy.review_regrets, policy.review_neighbours
     )
-    return None if option == 0 else option - 1
+    if option or not policy.cascade_sigmas:
+        return option
+    cascade = learned_option(
+        features,
+        1 + len(policy.cascade_sigmas),
+        *table,
+        policy.cascade_regrets,
+        policy.cascade_neighbours,
+    )
+    return 0 if cascade == 0 else n_route + cascade
+
+
+def review_result(policy, option: int, noisy, network_out, faces) -> np.ndarray:
+    """The positions of review option `option` (`review_choice`): the network's result,
+    a route run on the noisy mesh, or a cascade run on the network's result.
+
+    Args:
+      policy: the `DenoisePolicy` whose options `option` indexes.
+      option: 0, a route `1 + i` or a cascade `1 + n_route + j`.
+      noisy, network_out: `[n_vertex, 3]` as `review_choice` takes them.
+      faces: `[n_face, 3]` vertex indices.
+    """
+    n_route = len(policy.route_sigmas)
+    if option == 0:
+        return network_out
+    if option <= n_route:
+        i = option - 1
+        return run_route(noisy, faces, policy.route_sigmas[i], policy.route_passes[i])
+    j = option - 1 - n_route
+    return run_route(network_out, faces, policy.cascade_sigmas[j], policy.cascade_passes[j])

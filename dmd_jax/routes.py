@@ -25,7 +25,7 @@ import numpy as np
 from dmd_jax.constants import FILTER_SPATIAL_SIGMA
 from dmd_jax.graph import ell_layout
 from dmd_jax.mesh import edge_unit_frame
-from dmd_jax.topology import face_adjacency, vertex_corner_arrays
+from dmd_jax.topology import face_adjacency
 
 # The normal-first head's vertex update count of the bundled configuration.
 VERTEX_ITERATIONS = 10
@@ -93,23 +93,24 @@ def field_normals(x, faces, sigma_r: float, passes: int) -> np.ndarray:
 def fit_vertices(x, faces, normals, iterations: int = VERTEX_ITERATIONS) -> np.ndarray:
     """Sun et al.'s vertex update toward fixed face normals, as
     `geometry.fit_vertices_to_normals` with every vertex free, on the host."""
+    import scipy.sparse as sp
+
     f = np.asarray(faces, np.int64)
     x = np.array(x, np.float64)
-    corner_vertex, corner_face = vertex_corner_arrays(f)
-    degree = np.maximum(np.bincount(corner_vertex, minlength=x.shape[0]), 1)[:, None]
-    nc = np.asarray(normals, np.float64)[corner_face]
+    n = np.asarray(normals, np.float64)
+    corner_vertex = f.ravel()  # corner 3 i + j is vertex f[i, j]
+    degree = np.maximum(np.bincount(corner_vertex, minlength=x.shape[0]), 1)
+    # `[n_vertex, 3 n_face]`: each vertex's mean over its corners. One sparse product
+    # per iteration is three times faster than a bincount per coordinate at 100k faces.
+    mean_over_corners = sp.csr_matrix(
+        (1.0 / degree[corner_vertex], (corner_vertex, np.arange(corner_vertex.size))),
+        shape=(x.shape[0], corner_vertex.size),
+    )
     for _ in range(int(iterations)):
-        c = x[f].mean(axis=1)
-        d = c[corner_face] - x[corner_vertex]
-        move = nc * np.sum(nc * d, axis=1, keepdims=True)
-        acc = np.stack(
-            [
-                np.bincount(corner_vertex, weights=move[:, k], minlength=x.shape[0])
-                for k in range(3)
-            ],
-            axis=1,
-        )
-        x = x + acc / degree
+        p = x[f]  # [n_face, 3 corners, 3]
+        d = p.mean(axis=1, keepdims=True) - p
+        move = n[:, None, :] * np.einsum("fkc,fc->fk", d, n)[..., None]
+        x = x + mean_over_corners @ move.reshape(-1, 3)
     return x
 
 
