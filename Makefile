@@ -122,12 +122,13 @@ ablate-quick: $(STAMP)
 	$(BIN)/python -m experiments index
 
 # Every study at the test preset (2 steps per run), into out/ (also run by the test suite).
-# Nearly all of it is compiling: rows that differ only in loss weights, dropout rate or
-# scheme share one train-step program, rows of one model one init and predictor, and rows
-# sharing programs run in one worker (56 programs for 29 rows, was 91). 2026-12-05 on 2
-# idle cores (load 0.1 at start): 6.2 min with a cold JAX cache (684 CPU-s, ~470 of them
-# XLA compiling), 2.1 min warm (out/ removed, cache kept). 2026-12-02 at load 5-10: 23 min
-# cold, 7 min warm.
+# Nearly all of it is compiling: rows that differ only in loss weights (a term switched
+# off too), dropout rate or scheme share one train-step program, every phase included;
+# rows of one model one init and predictor; rows sharing programs run in one worker (15
+# train-step programs and 14 models for 29 rows). 2026-12-06 on 2 idle cores (Intel
+# Xeon): 2 min 56 s with a cold JAX cache (311 s user, 21 s sys), 1 min 11 s warm (out/
+# removed, cache kept); before terms switched off shared the program (24 train-step
+# programs), 3 min 56 s cold, 1 min 22 s warm on the same machine.
 ablate-smoke: $(STAMP)
 	$(BIN)/python -m experiments run --preset test --out out/ablate-smoke \
 		--data-dir out/ablate-smoke-data

@@ -921,12 +921,12 @@ def _gpu() -> ExperimentConfig:
     GPU assumption: one H100/H200-class GPU runs these f32 gather/scatter and width-128
     matmul kernels 50x faster than the 2 cores, with a floor of 10 ms a step (a few
     hundred fused kernels and the host's batch): a row step takes max(2.3 / 50, 0.01)
-    = 46 ms, so the 48,400 row steps take 37 min. Compilation: 26 distinct train-step
-    programs and 15 models (init and predictor) once rows share programs
-    (`train.step_program_key`; 33 and 31 without), at an assumed 40 s and 20 s each,
-    22 min of CPU, about half of it hidden behind the other worker's training (2 workers
-    on one GPU). Data (228 meshes on 16 cores), calibration, references and the noise
-    and rotation evaluations: about 6 min. Total: about 37 + 11 + 6 = 54 min. `device_bench` on the
+    = 46 ms, so the 48,400 row steps take 37 min. Compilation: 17 distinct train-step
+    programs and 15 models (init and predictor) for the 31 rows, once rows share
+    programs (`train.step_program_key`), at an assumed 40 s and 20 s each, 16 min of
+    CPU, about half of it hidden behind the other worker's training (2 workers on one
+    GPU). Data (228 meshes on 16 cores), calibration, references and the noise and
+    rotation evaluations: about 6 min. Total: about 37 + 8 + 6 = 51 min. `device_bench` on the
     GPU measures the two assumptions (steps/s of `small` and `paper`); rescale `steps`
     by its ratio to them if they are off.
 

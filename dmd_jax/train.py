@@ -303,41 +303,54 @@ def step_program_key(cfg: ExperimentConfig, phase: str) -> str:
     """What the program of `shared_train_step(cfg, phase, ...)` depends on.
 
     Configs with equal keys compile to one program (per padded shape): the key is the
-    config as JSON without its name, seed and scheme switches, with the phase's loss
-    weights (`phase_loss`) and the dropout rate reduced to on/off; their values reach
-    the program as traced arguments (`step_values`). Whether a term is on stays static:
-    `losses.loss_terms` skips a term of weight 0 entirely, so switching one off changes
-    the program, and the shared program computes exactly the terms the config's own does.
-    What only the host reads (`_HOST_TRAIN_FIELDS`, `_HOST_SECTIONS`: the noise and
-    rotation of the batches, logging and checkpoint intervals) is left out; everything
-    else (model, optimiser, loss settings, schedule) stays in the key, so a setting added
-    later separates programs until it is known not to matter.
+    config as JSON without its name, seed, scheme switches and loss weights, with the
+    dropout rate reduced to on/off; the weights, the phase and the rate reach the
+    program as traced arguments (`step_values`). The program computes every loss term
+    the model can give (`shared_terms`) and weights them by the traced values, so rows
+    that only switch terms off, and the phases of one scheme, share it; `phase` is
+    accepted for symmetry with `step_values` and changes nothing. What only the host
+    reads (`_HOST_TRAIN_FIELDS`, `_HOST_SECTIONS`: the noise and rotation of the
+    batches, logging and checkpoint intervals) is left out; everything else (model,
+    optimiser, loss settings, schedule) stays in the key, so a setting added later
+    separates programs until it is known not to matter.
     """
+    del phase  # every phase of a config runs the one program
     d = cfg.to_dict()
     d.pop("name", None)
     for section in _HOST_SECTIONS:
         d.pop(section, None)
     for name in _HOST_TRAIN_FIELDS:
         d["train"].pop(name, None)
-    loss = phase_loss(cfg, phase).to_dict()
     for name in losses.TERMS:
-        loss[name] = bool(loss[name] > 0)
-    d["loss"] = loss
+        d["loss"].pop(name, None)
     d["model"]["dropout"] = bool(cfg.model.dropout > 0)
     return json.dumps(d, sort_keys=True)
+
+
+def shared_terms(cfg: ExperimentConfig) -> tuple[str, ...]:
+    """The loss terms a `shared_train_step` program computes: every term of
+    `losses.TERMS` the model gives inputs for (the feature term needs a feature
+    extractor, the face-normal term a normal-first head), whatever their weights."""
+    return tuple(
+        name
+        for name in losses.TERMS
+        if (name != "feature" or cfg.model.uses_feature_extractor)
+        and (name != "face_normal" or cfg.model.head == "normal")
+    )
 
 
 def step_values(cfg: ExperimentConfig, phase: str) -> dict[str, Any]:
     """The traced arguments of a `shared_train_step` program for one config and phase.
 
     Returns:
-      `{"weights": {term: float32 []}` (the phase's non-zero loss weights),
+      `{"weights": {term: float32 []}` (the phase's weight of every term of
+      `shared_terms`, 0 where the phase has it off),
       `"train": {"fe": bool [], "rest": bool []}` (the param halves the phase updates),
       `"keep_prob": float64 []}` (`1 - dropout`, at JAX's default float width once
       traced; unused when dropout is off).
     """
     loss = phase_loss(cfg, phase)
-    weights = {n: np.float32(getattr(loss, n)) for n in losses.TERMS if getattr(loss, n) > 0}
+    weights = {n: np.float32(getattr(loss, n)) for n in shared_terms(cfg)}
     return {
         "weights": weights,
         "train": {part: np.bool_(part in PHASE_PARTS[phase]) for part in ("fe", "rest")},
@@ -383,24 +396,30 @@ def shared_train_step(cfg: ExperimentConfig, phase: str, mesh: Mesh) -> Callable
     """`make_train_step`'s step with the loss weights, dropout rate and phase traced.
 
     One program serves every config of one `step_program_key`: in an ablation sweep
-    the rows that differ only in loss weights, dropout rate or training scheme share it
+    the rows that differ only in loss weights (a term switched off included), dropout
+    rate or training scheme share it, every phase included
     (`experiments.multiseed.seeds_step` keeps one per key). It computes what the
-    config's own `make_train_step` computes, up to the order of float operations: the
-    same terms, weighted by the traced values, and the phase's frozen half kept by a
-    select instead of being left out of the update.
+    config's own `make_train_step` computes, up to the order of float operations: every
+    term of `shared_terms`, those of weight 0 selected out of the loss (their values
+    still come back in the metrics), and the phase's frozen half kept by a select
+    instead of being left out of the update. Computing a term that is off costs its
+    share of a step's run time, which in a short sweep is far less than the compile it
+    saves.
 
     Args:
       cfg: any config of the key; only its static settings are read.
-      phase: `"all"`, `"fe"` or `"rest"`; only which loss terms it turns on is read.
+      phase: `"all"`, `"fe"` or `"rest"`; unused (the phase's weights come traced).
       mesh: a one-axis device mesh (`parallel.batch_mesh`).
 
     Returns:
       `step(state, noisy, clean, graph, rng, values) -> (state, metrics)`, not jitted:
       the arguments of `make_train_step`'s step plus `values` (`step_values`).
     """
+    del phase
     model = DMDNet(cfg.model)
     tx = make_optimizer(cfg)
-    loss = phase_loss(cfg, phase)  # which terms are on; their weights come traced
+    # Every term the model gives is computed; its weight (0 when off) comes traced.
+    loss = cfg.loss.with_edits({name: float(name in shared_terms(cfg)) for name in losses.TERMS})
     use_dropout = cfg.model.dropout > 0
     axis = parallel.BATCH_AXIS
 
@@ -421,8 +440,13 @@ def shared_train_step(cfg: ExperimentConfig, phase: str, mesh: Mesh) -> Callable
             means = {name: term.mean() for name, term in terms.items()}
             dtype = next(iter(means.values())).dtype if means else jnp.float32
             w = values["weights"]
+            # A select, not 0 * m: an off term's non-finite value must not reach the loss.
             total = sum(
-                (w[name].astype(m.dtype) * m for name, m in means.items()), jnp.zeros((), dtype)
+                (
+                    jnp.where(w[name] > 0, w[name].astype(m.dtype) * m, 0.0)
+                    for name, m in means.items()
+                ),
+                jnp.zeros((), dtype),
             )
             return total, means
 

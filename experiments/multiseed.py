@@ -83,8 +83,9 @@ def unstack_tree(tree, n: int) -> list:
 
 
 # One jitted, vmapped program per `train.step_program_key` in this process: the rows of
-# a sweep that differ only in loss weights, dropout rate or scheme reuse it (one compile
-# per padded shape for all of them) instead of compiling a program of their own.
+# a sweep that differ only in loss weights (terms switched off included), dropout rate or
+# scheme reuse it (one compile per padded shape for all of them, every phase) instead of
+# compiling a program of their own.
 _SEEDS_PROGRAMS: dict[str, Callable] = {}
 
 
@@ -100,7 +101,10 @@ class SeedsStep:
         self.program, self.values = program, values
 
     def __call__(self, states, noisy, clean, graph, rngs):
-        return self.program(states, noisy, clean, graph, rngs, self.values)
+        states, metrics = self.program(states, noisy, clean, graph, rngs, self.values)
+        # The program computes every term; the config's metrics are its own terms'.
+        off = {name for name, w in self.values["weights"].items() if not w > 0}
+        return states, {k: v for k, v in metrics.items() if k not in off}
 
     def _cache_size(self) -> int:
         """Programs the shared step holds (every config of its key counts)."""

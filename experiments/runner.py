@@ -992,27 +992,18 @@ def run_sweep(
 COMPILE_COST_STEPS = 100
 
 
-def _phases(t) -> set[str]:
-    """The phases a `TrainConfig`'s schedule runs (each its own train-step program)."""
-    from dmd_jax.train import phase_of
-
-    s = t.two_phase_fe_steps
-    probe = set(range(min(t.steps, 2 * t.alter_period + 1))) | {s - 1, s, t.steps - 1}
-    return {phase_of(t.scheme, i, s, t.alter_period) for i in probe if 0 <= i < t.steps}
-
-
 def job_programs(job: dict) -> list[str]:
-    """Short ids of the programs a job compiles: `step:<digest>` per phase of its row's
-    schedule (`train.step_program_key`; none when every seed is trained already) and
-    `model:<digest>`, its model's init and predictor (dropout left out: both run the
-    model deterministic)."""
+    """Short ids of the programs a job compiles: `step:<digest>`, the one train-step
+    program of every phase of its row (`train.step_program_key`; none when every seed
+    is trained already) and `model:<digest>`, its model's init and predictor (dropout
+    left out: both run the model deterministic)."""
     from dmd_jax.config import ExperimentConfig
     from dmd_jax.train import step_program_key
 
     cfg = ExperimentConfig.from_dict(job["members"][0]["config"])
     out = {"model:" + st._digest(cfg.model.with_edits({"dropout": 0.0}).to_dict())}
     if any(not m["trained"] for m in job["members"]):
-        out |= {"step:" + st._digest(step_program_key(cfg, ph)) for ph in _phases(cfg.train)}
+        out.add("step:" + st._digest(step_program_key(cfg, "all")))
     return sorted(out)
 
 

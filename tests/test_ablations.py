@@ -122,33 +122,43 @@ def _init_states(cfgs, examples):
 
 
 def test_the_program_key_keeps_what_changes_the_program():
-    from dmd_jax.train import step_program_key, step_values
+    from dmd_jax.train import shared_terms, step_program_key, step_values
 
     cfg = _tiny(model={"dropout": 0.2})
     key = step_program_key(cfg, "all")
-    # Weight values, dropout rate, scheme and seed are traced or host-side: one key.
+    # Weight values (a term switched off too), dropout rate, scheme, phase and seed are
+    # traced or host-side: one key.
     for edits in (
         {"loss": {"vertex": 1.0, "normal": 0.9}},
+        {"loss": {"chamfer": 0.0}},
         {"model": {"dropout": 0.5}},
         {"train": {"seed": 3, "scheme": "joint"}},
+        {"train": {"scheme": "u_fe"}},
         # The batches' rotation and noise are drawn on the host (`training_batch`).
         {"train": {"rotate": not cfg.train.rotate, "log_every": 7, "ckpt_keep": 9}},
         {"noise": {"p_clean": 0.5}},
     ):
         assert step_program_key(cfg.with_edits(edits), "all") == key, edits
-    # A term switched off, dropout switched off, another model or optimiser: new program.
+    assert step_program_key(cfg, "fe") == step_program_key(cfg, "rest") == key
+    # Dropout switched off, another model, optimiser or loss setting: new program.
     for edits in (
-        {"loss": {"chamfer": 0.0}},
         {"model": {"dropout": 0.0}},
         {"model": {"width": 16}},
         {"train": {"lr": 2e-3}},
+        {"loss": {"crease_weight": 2.0}},
     ):
         assert step_program_key(cfg.with_edits(edits), "all") != key, edits
-    # Alter's "rest" phase is U-FE's only phase: every term but the FE's, one program.
-    u_fe = cfg.with_edits({"train": {"scheme": "u_fe"}})
-    assert step_program_key(cfg, "rest") == step_program_key(u_fe, "all")
+    # The offset head has no face-normal term; the extractor gives the feature term.
+    terms = ("vertex", "normal", "curvature", "chamfer", "feature")
+    assert shared_terms(cfg) == terms
+    no_fe = cfg.with_edits({"model": {"variant": "do_2s"}})
+    assert "feature" not in shared_terms(no_fe)
+    assert "face_normal" in shared_terms(cfg.with_edits({"model": {"head": "normal"}}))
+    # Alter's "rest" phase: every term but the FE's on, the FE's weight 0.
     v = step_values(cfg, "rest")
-    assert set(v["weights"]) == {"vertex", "normal", "chamfer"}
+    assert set(v["weights"]) == set(terms)
+    assert {n for n, w in v["weights"].items() if w > 0} == {"vertex", "normal", "chamfer"}
+    assert {n for n, w in step_values(cfg, "fe")["weights"].items() if w > 0} == {"feature"}
     assert (bool(v["train"]["fe"]), bool(v["train"]["rest"])) == (False, True)
     assert v["keep_prob"] == 0.8
 
@@ -157,15 +167,18 @@ def test_the_program_key_keeps_what_changes_the_program():
 def test_rows_differing_in_weights_dropout_and_scheme_compile_one_program(
     tiny_examples, monkeypatch
 ):
+    from dmd_jax.train import step_values
     from experiments import multiseed
 
     monkeypatch.setattr(multiseed, "_SEEDS_PROGRAMS", {})
     rows = [
-        # Chamfer off in both (the blockwise matching is most of what there is to compile).
         _tiny(model={"dropout": 0.2}, loss={"chamfer": 0.0}, train={"scheme": "u_fe"}),
-        _tiny(model={"dropout": 0.35}, loss={"vertex": 1.0, "normal": 1.0, "chamfer": 0.0}),
+        _tiny(model={"dropout": 0.35}, loss={"vertex": 1.0, "normal": 1.0}),
+        _tiny(model={"dropout": 0.5}, loss={"feature": 0.0}),
     ]
-    phases = ["all", "rest"]  # U-FE's phase and Alter's second phase
+    # U-FE's phase (the chamfer term off), Alter's two phases (the FE's term alone, then
+    # every term but it).
+    phases = ["all", "fe", "rest"]
     with _Compiles("step") as compiles:
         for cfg, phase in zip(rows, phases, strict=True):
             state = _init_states([cfg], tiny_examples)
@@ -175,6 +188,9 @@ def test_rows_differing_in_weights_dropout_and_scheme_compile_one_program(
                 state, batch.noisy, batch.clean, batch.graph, multiseed.step_rngs([cfg], 1)
             )
             assert np.isfinite(np.asarray(out["loss"])).all()
+            # The program computes every term; a row reports its own terms only.
+            on = {n for n, w in step_values(cfg, phase)["weights"].items() if w > 0}
+            assert set(out) == {"loss", "grad_norm"} | on
     assert compiles.count == 1
     assert len(multiseed._SEEDS_PROGRAMS) == 1
 
