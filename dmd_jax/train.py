@@ -299,22 +299,20 @@ _HOST_TRAIN_FIELDS = (
 _HOST_SECTIONS = ("noise", "data")
 
 
-def step_program_key(cfg: ExperimentConfig, phase: str) -> str:
-    """What the program of `shared_train_step(cfg, phase, ...)` depends on.
+def step_program_key(cfg: ExperimentConfig) -> str:
+    """What the program of `shared_train_step(cfg, ...)` depends on.
 
     Configs with equal keys compile to one program (per padded shape): the key is the
     config as JSON without its name, seed, scheme switches and loss weights, with the
     dropout rate reduced to on/off; the weights, the phase and the rate reach the
     program as traced arguments (`step_values`). The program computes every loss term
     the model can give (`shared_terms`) and weights them by the traced values, so rows
-    that only switch terms off, and the phases of one scheme, share it; `phase` is
-    accepted for symmetry with `step_values` and changes nothing. What only the host
+    that only switch terms off, and every phase of a scheme, share it. What only the host
     reads (`_HOST_TRAIN_FIELDS`, `_HOST_SECTIONS`: the noise and rotation of the
     batches, logging and checkpoint intervals) is left out; everything else (model,
     optimiser, loss settings, schedule) stays in the key, so a setting added later
     separates programs until it is known not to matter.
     """
-    del phase  # every phase of a config runs the one program
     d = cfg.to_dict()
     d.pop("name", None)
     for section in _HOST_SECTIONS:
@@ -392,7 +390,7 @@ def _dropout_at(keep_prob) -> Callable:
     return interceptor
 
 
-def shared_train_step(cfg: ExperimentConfig, phase: str, mesh: Mesh) -> Callable:
+def shared_train_step(cfg: ExperimentConfig, mesh: Mesh) -> Callable:
     """`make_train_step`'s step with the loss weights, dropout rate and phase traced.
 
     One program serves every config of one `step_program_key`: in an ablation sweep
@@ -407,15 +405,14 @@ def shared_train_step(cfg: ExperimentConfig, phase: str, mesh: Mesh) -> Callable
     saves.
 
     Args:
-      cfg: any config of the key; only its static settings are read.
-      phase: `"all"`, `"fe"` or `"rest"`; unused (the phase's weights come traced).
+      cfg: any config of the key; only its static settings are read (the phase's
+        weights and halves come traced, `step_values`).
       mesh: a one-axis device mesh (`parallel.batch_mesh`).
 
     Returns:
       `step(state, noisy, clean, graph, rng, values) -> (state, metrics)`, not jitted:
       the arguments of `make_train_step`'s step plus `values` (`step_values`).
     """
-    del phase
     model = DMDNet(cfg.model)
     tx = make_optimizer(cfg)
     # Every term the model gives is computed; its weight (0 when off) comes traced.

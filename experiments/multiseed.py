@@ -99,12 +99,12 @@ class SeedsStep:
 
     def __init__(self, program: Callable, values: dict):
         self.program, self.values = program, values
+        # The program computes every term; the config's metrics are its own terms'.
+        self._off = {name for name, w in values["weights"].items() if not w > 0}
 
     def __call__(self, states, noisy, clean, graph, rngs):
         states, metrics = self.program(states, noisy, clean, graph, rngs, self.values)
-        # The program computes every term; the config's metrics are its own terms'.
-        off = {name for name, w in self.values["weights"].items() if not w > 0}
-        return states, {k: v for k, v in metrics.items() if k not in off}
+        return states, {k: v for k, v in metrics.items() if k not in self._off}
 
     def _cache_size(self) -> int:
         """Programs the shared step holds (every config of its key counts)."""
@@ -143,9 +143,9 @@ def seeds_step(cfg: ExperimentConfig, phase: str, n_seeds: int | None = None) ->
       With `n_seeds=1` the program is `_one_seed`'s (no vmap), which only takes a
       seeds axis of size 1; any other `n_seeds` (or `None`) gets the vmap.
     """
-    key = json.dumps([step_program_key(cfg, phase), n_seeds == 1])
+    key = json.dumps([step_program_key(cfg), n_seeds == 1])
     if key not in _SEEDS_PROGRAMS:
-        step = shared_train_step(cfg, phase, parallel.batch_mesh(jax.devices()[:1]))
+        step = shared_train_step(cfg, parallel.batch_mesh(jax.devices()[:1]))
         # The values are the same for every seed: not vmapped.
         seeds = _one_seed(step) if n_seeds == 1 else jax.vmap(step, in_axes=(0, 0, 0, 0, 0, None))
         _SEEDS_PROGRAMS[key] = jax.jit(seeds)

@@ -1003,7 +1003,7 @@ def job_programs(job: dict) -> list[str]:
     cfg = ExperimentConfig.from_dict(job["members"][0]["config"])
     out = {"model:" + st._digest(cfg.model.with_edits({"dropout": 0.0}).to_dict())}
     if any(not m["trained"] for m in job["members"]):
-        out.add("step:" + st._digest(step_program_key(cfg, "all")))
+        out.add("step:" + st._digest(step_program_key(cfg)))
     return sorted(out)
 
 

@@ -121,11 +121,12 @@ def _init_states(cfgs, examples):
     return multiseed.stack_trees(states)
 
 
-def test_the_program_key_keeps_what_changes_the_program():
+def test_the_program_key_keeps_what_changes_the_program(monkeypatch):
     from dmd_jax.train import shared_terms, step_program_key, step_values
+    from experiments import multiseed
 
     cfg = _tiny(model={"dropout": 0.2})
-    key = step_program_key(cfg, "all")
+    key = step_program_key(cfg)
     # Weight values (a term switched off too), dropout rate, scheme, phase and seed are
     # traced or host-side: one key.
     for edits in (
@@ -138,8 +139,13 @@ def test_the_program_key_keeps_what_changes_the_program():
         {"train": {"rotate": not cfg.train.rotate, "log_every": 7, "ckpt_keep": 9}},
         {"noise": {"p_clean": 0.5}},
     ):
-        assert step_program_key(cfg.with_edits(edits), "all") == key, edits
-    assert step_program_key(cfg, "fe") == step_program_key(cfg, "rest") == key
+        assert step_program_key(cfg.with_edits(edits)) == key, edits
+    # Every phase of a scheme gets the one program (built, not compiled, here).
+    monkeypatch.setattr(multiseed, "_SEEDS_PROGRAMS", {})
+    programs = {
+        id(multiseed.seeds_step(cfg, ph, n_seeds=1).program) for ph in ("all", "fe", "rest")
+    }
+    assert len(programs) == 1
     # Dropout switched off, another model, optimiser or loss setting: new program.
     for edits in (
         {"model": {"dropout": 0.0}},
@@ -147,7 +153,7 @@ def test_the_program_key_keeps_what_changes_the_program():
         {"train": {"lr": 2e-3}},
         {"loss": {"crease_weight": 2.0}},
     ):
-        assert step_program_key(cfg.with_edits(edits), "all") != key, edits
+        assert step_program_key(cfg.with_edits(edits)) != key, edits
     # The offset head has no face-normal term; the extractor gives the feature term.
     terms = ("vertex", "normal", "curvature", "chamfer", "feature")
     assert shared_terms(cfg) == terms
