@@ -341,6 +341,75 @@ def best_others(reference_csv, mesh_set: str) -> dict[tuple, float]:
     return best
 
 
+def dmd_errors(reference_csv, mesh_set: str) -> dict[tuple, float]:
+    """`{(mesh, noise, level, seed): DMD-Net's error}` of one set of a `sota_lite` CSV."""
+    out = {}
+    with open(reference_csv, newline="") as fh:
+        for r in csv.DictReader(fh):
+            if r["set"] == mesh_set and r["method"] == "dmd":
+                key = (r["mesh"], r["noise"], float(r["level"]), int(r["seed"]))
+                out[key] = float(r["normal_deg"])
+    return out
+
+
+def routed_cases(reference_csv, rows, best) -> dict[tuple, float]:
+    """`{case: DMD-Net's error}` of the validation cases of `best` (`best_others`) that
+    are not among `rows` (the review's CSV rows): those the first stage routes, as
+    `make sota-lite` measured them.
+
+    Raises:
+      ValueError: `reference_csv` does not cover the noisy cases of `rows`.
+    """
+    reviewed = {(r[0], r[1], float(r[2]), int(r[3])) for r in rows}
+    routed = {
+        k: e for k, e in dmd_errors(reference_csv, "val").items() if k not in reviewed and k in best
+    }
+    if len(routed) + sum(r[1] != "clean" for r in rows) != len(best):
+        raise ValueError(f"{reference_csv} does not cover the validation cases")
+    return routed
+
+
+def choices_table(strategies: Mapping[str, np.ndarray], rows, best, routed, first="strategy"):
+    """A markdown table of `score_choices` per strategy (`{name: [n] errors, one per
+    row}`), one column per condition of `dmd_jax.protocol.QUALITY_CONDITIONS` and all."""
+    from dmd_jax.protocol import QUALITY_CONDITIONS
+
+    labels = [c.label for c in QUALITY_CONDITIONS] + ["all"]
+    return markdown_table(
+        [first, *labels],
+        [
+            [name, *(score_choices(rows, e, best, routed).get(k, "") for k in labels)]
+            for name, e in strategies.items()
+        ],
+    )
+
+
+def score_choices(rows, picked, best, routed) -> dict[str, str]:
+    """Per condition label and `"all"`: `"mean / per-shape geometric mean over the best
+    other method / share within 5 %"` of the errors `picked` (`[n]`, one per row of
+    `rows`, validation rows `(mesh, noise, level, seed, ...)` of the review's CSVs) on the
+    noisy rows, with the cases the first stage routes (`routed`: `{case: error}`, not in
+    `rows`) as they are; `best`: `best_others` of the same cases."""
+    from dmd_jax.protocol import NoiseCondition
+
+    out = {}
+    cases = [((r[0], r[1], float(r[2]), int(r[3])), picked[i]) for i, r in enumerate(rows)]
+    for key, error in [*cases, *routed.items()]:
+        if key[1] == "clean":
+            continue
+        label = NoiseCondition(key[1], key[2]).label
+        out.setdefault(label, []).append((error, best[key]))
+    cells = {}
+    for label, pairs in [*out.items(), ("all", [p for v in out.values() for p in v])]:
+        e = np.array(pairs)
+        ratio = e[:, 0] / e[:, 1]
+        cells[label] = (
+            f"{e[:, 0].mean():.2f} / {np.exp(np.log(ratio).mean()):.3f} / "
+            f"{np.mean(ratio <= 1.05):.0%}"
+        )
+    return cells
+
+
 def write_csv(path: Path, headers: Sequence[str], rows: Sequence[Sequence[object]]) -> Path:
     """Writes raw results as CSV next to the report, for re-plotting without re-running."""
     from dmd_jax.io import atomic_write

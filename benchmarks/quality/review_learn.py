@@ -31,7 +31,6 @@ python benchmarks/quality/review_learn.py --reuse --out dmd_jax/weights/dmd_smal
 from __future__ import annotations
 
 import argparse
-import csv
 import sys
 import time
 from pathlib import Path
@@ -45,8 +44,10 @@ from benchmarks.common import (  # noqa: E402
     BUNDLED,
     RESULTS_DIR,
     best_others,
+    choices_table,
     environment,
     markdown_table,
+    routed_cases,
     write_csv,
     write_report,
 )
@@ -68,40 +69,6 @@ def rows_or_measure(path, reuse, measure, routes, cascades):
     rows = measure()
     write_csv(path, calibrate.review_header(routes, cascades), rows)
     return rows
-
-
-def dmd_errors(reference_csv, mesh_set: str) -> dict[tuple, float]:
-    """`{(mesh, noise, level, seed): DMD-Net's error}` of one set of a `sota_lite` CSV."""
-    out = {}
-    with open(reference_csv, newline="") as fh:
-        for r in csv.DictReader(fh):
-            if r["set"] == mesh_set and r["method"] == "dmd":
-                key = (r["mesh"], r["noise"], float(r["level"]), int(r["seed"]))
-                out[key] = float(r["normal_deg"])
-    return out
-
-
-def score(rows, picked, best, routed):
-    """Per condition: mean error, per-shape geometric mean over the best other method and
-    share within 5 %, of the errors `picked` (`[n]`, one per row) on the noisy rows, with
-    the cases the first stage routes (`routed`: `{case: error}`, not in `rows`) as they
-    are."""
-    out = {}
-    cases = [((r[0], r[1], float(r[2]), int(r[3])), picked[i]) for i, r in enumerate(rows)]
-    for key, error in [*cases, *routed.items()]:
-        if key[1] == "clean":
-            continue
-        label = protocol.NoiseCondition(key[1], key[2]).label
-        out.setdefault(label, []).append((error, best[key]))
-    cells = {}
-    for label, pairs in [*out.items(), ("all", [p for v in out.values() for p in v])]:
-        e = np.array(pairs)
-        ratio = e[:, 0] / e[:, 1]
-        cells[label] = (
-            f"{e[:, 0].mean():.2f} / {np.exp(np.log(ratio).mean()):.3f} / "
-            f"{np.mean(ratio <= 1.05):.0%}"
-        )
-    return cells
 
 
 def cross_validated_choices(rows, n_routes, cascades, offered, folds=calibrate.LEARN_FOLDS):
@@ -187,15 +154,7 @@ def main(argv=None) -> int:
             cascades,
         )
         best = best_others(args.reference, "val")
-        reviewed = {(r[0], r[1], float(r[2]), int(r[3])) for r in val}
-        # The cases the first stage routes: their error as `make sota-lite` measured it.
-        routed = {
-            k: e
-            for k, e in dmd_errors(args.reference, "val").items()
-            if k not in reviewed and k in best
-        }
-        if len(routed) + sum(r[1] != "clean" for r in val) != len(best):
-            raise ValueError(f"{args.reference} does not cover the validation cases")
+        routed = routed_cases(args.reference, val, best)
         fit = calibrate.fit_review(train, len(routes), cascades, offered=offered)
         first_only = calibrate.fit_review(train, len(routes), cascades, offered=())
     except (ValueError, FileNotFoundError) as exc:
@@ -218,14 +177,7 @@ def main(argv=None) -> int:
         "oracle over the network and the routes": val_errors[:, : 1 + len(routes)].min(axis=1),
         "oracle over the offered options": val_errors[:, columns].min(axis=1),
     }
-    labels = [c.label for c in protocol.QUALITY_CONDITIONS] + ["all"]
-    table = markdown_table(
-        ["strategy", *labels],
-        [
-            [name, *(score(val, e, best, routed).get(k, "") for k in labels)]
-            for name, e in strategies.items()
-        ],
-    )
+    table = choices_table(strategies, val, best, routed)
     names = [
         "network",
         *(f"σ{s:g} ×{p}" for s, p in routes),
