@@ -844,3 +844,20 @@ def test_seeds_run_now_leave_the_plan_with_every_seed(tmp_path, monkeypatch, tes
     assert plan["preset"]["seeds"] == [0, 1, 2, 3]
     assert {r["seed"] for r in plan["runs"] if r["study"] == "stn"} == {0, 1, 2, 3}
     assert "seeds 2, 3 of [0, 1, 2, 3]" in (out / "ablate.log").read_text()
+
+
+@pytest.mark.slow  # one fresh process compiling one smoke model: ~20-30 s on 2 cores
+def test_compile_cost_reports_one_flag_setting(tmp_path):
+    from experiments import compile_cost
+
+    out = tmp_path / "compile_cost.md"
+    assert compile_cost.main(["--repeat", "1", "--flags=", "--out", str(out)]) == 0
+    text = out.read_text()
+    row = next(line for line in text.splitlines() if line.startswith("| preset ("))
+    cells = [c.strip() for c in row.split("|")[2:-1]]
+    # Six timings, the ratio to itself, and the one-run range.
+    seconds = [float(c) for c in cells[:6]]
+    assert all(s > 0 for s in seconds) and cells[6] == "1.00"
+    assert seconds[1] >= seconds[4]  # the train step's wall time includes its compile
+    runs = json.loads(out.with_suffix(".json").read_text())
+    assert list(runs) == [""] and len(runs[""]) == 1
