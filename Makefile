@@ -128,7 +128,8 @@ ablate-quick: $(STAMP)
 # train-step programs and 14 models for 29 rows). 2026-12-06 on 2 idle cores (Intel
 # Xeon): 2 min 56 s with a cold JAX cache (311 s user, 21 s sys), 1 min 11 s warm (out/
 # removed, cache kept); before terms switched off shared the program (24 train-step
-# programs), 3 min 56 s cold, 1 min 22 s warm on the same machine.
+# programs), 3 min 56 s cold, 1 min 22 s warm on the same machine. On a 2-core AMD EPYC,
+# 3 min 54 s cold (322 s of XLA compiles; docs/ablations.md, experiments/compile_cost.py).
 ablate-smoke: $(STAMP)
 	$(BIN)/python -m experiments run --preset test --out out/ablate-smoke \
 		--data-dir out/ablate-smoke-data
