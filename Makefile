@@ -125,11 +125,11 @@ ablate-quick: $(STAMP)
 # Nearly all of it is compiling: rows that differ only in loss weights (a term switched
 # off too), dropout rate or scheme share one train-step program, every phase included;
 # rows of one model one init and predictor; rows sharing programs run in one worker (15
-# train-step programs and 14 models for 29 rows). 2026-12-06 on 2 idle cores (Intel
-# Xeon): 2 min 56 s with a cold JAX cache (311 s user, 21 s sys), 1 min 11 s warm (out/
-# removed, cache kept); before terms switched off shared the program (24 train-step
-# programs), 3 min 56 s cold, 1 min 22 s warm on the same machine. On a 2-core AMD EPYC,
-# 3 min 54 s cold (322 s of XLA compiles; docs/ablations.md, experiments/compile_cost.py).
+# train-step programs and 14 models for 29 rows); the preset's network has one
+# aggregator per stream and dense block (no study varies them). 2026-12-06 on 2 idle
+# cores (AMD EPYC), cold JAX cache: 2 min 38 s (278 s user, 19 s sys; 224 s of it XLA
+# compiles), 1 min 01 s warm (out/ removed, cache kept); with 3 aggregators, 3 min 54 s
+# (402 s user). Earlier steps on an Intel Xeon: docs/ablations.md.
 ablate-smoke: $(STAMP)
 	$(BIN)/python -m experiments run --preset test --out out/ablate-smoke \
 		--data-dir out/ablate-smoke-data

@@ -361,6 +361,9 @@ PRESETS: dict[str, AblatePreset] = {
         base="test",
         edits={
             "name": "ablate-test",
+            # One aggregator per stream and per dense block, not 3: no study varies them,
+            # and each compiles into every program (25 % less compile per model).
+            "model": {"n_agg": 1, "dense_layers": 1},
             "loss": {"feature_curvature": "asinh"},
             "train": _SMOKE_TRAIN,
         },
@@ -376,7 +379,10 @@ PRESETS: dict[str, AblatePreset] = {
         xla_opt_level=0,
         workers=2,
         dataset_workers=1,
-        description="smoke sweep: width 8, 2 steps per run, 1 test mesh per split",
+        description=(
+            "smoke sweep: width 8, one aggregator per stream and dense block, 2 steps per "
+            "run, 1 test mesh per split"
+        ),
     ),
     "cpu": _CPU,
     "cpu-quick": _CPU.with_changes(
