@@ -399,15 +399,20 @@ def score_choices(rows, picked, best, routed) -> dict[str, str]:
             continue
         label = NoiseCondition(key[1], key[2]).label
         out.setdefault(label, []).append((error, best[key]))
-    cells = {}
-    for label, pairs in [*out.items(), ("all", [p for v in out.values() for p in v])]:
-        e = np.array(pairs)
-        ratio = e[:, 0] / e[:, 1]
-        cells[label] = (
-            f"{e[:, 0].mean():.2f} / {np.exp(np.log(ratio).mean()):.3f} / "
-            f"{np.mean(ratio <= 1.05):.0%}"
-        )
-    return cells
+    return {
+        label: per_shape_cell(pairs)
+        for label, pairs in [*out.items(), ("all", [p for v in out.values() for p in v])]
+    }
+
+
+def per_shape_cell(pairs) -> str:
+    """`"mean / per-shape geometric mean / share within 5 %"` of `(error, best other
+    method's error)` pairs, one per case."""
+    e = np.array(pairs)
+    ratio = e[:, 0] / e[:, 1]
+    return (
+        f"{e[:, 0].mean():.2f} / {np.exp(np.log(ratio).mean()):.3f} / {np.mean(ratio <= 1.05):.0%}"
+    )
 
 
 def write_csv(path: Path, headers: Sequence[str], rows: Sequence[Sequence[object]]) -> Path:

@@ -365,7 +365,7 @@ def test_face_gate_roughness_against_brute_force():
 
     v, f = icosphere(1)
     v = v + 0.05 * np.random.default_rng(1).standard_normal(v.shape)
-    n = fg._unit(face_normals_np(v, f))
+    n = face_normals_np(v, f)
     a, b = face_adjacency(f, v.shape[0])
     mean, largest = fg._roughness(n, a, b, f.shape[0])
     for face in range(f.shape[0]):

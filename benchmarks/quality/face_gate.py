@@ -46,6 +46,7 @@ from benchmarks.common import (  # noqa: E402
     best_others,
     environment,
     markdown_table,
+    per_shape_cell,
     write_report,
 )
 from dmd_jax import calibrate, protocol  # noqa: E402
@@ -97,11 +98,6 @@ def measure(cache: Path, reuse: bool) -> list[Path]:
     return paths
 
 
-def _unit(n):
-    length = np.linalg.norm(n, axis=1, keepdims=True)
-    return n / np.where(length > 0, length, 1.0)
-
-
 def _angle(a, b):
     return np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", a, b), -1.0, 1.0)))
 
@@ -125,7 +121,7 @@ def load_case(path: Path) -> dict:
     d = dict(np.load(path))
     f = d["faces"]
     a, b = face_adjacency(f, d["clean"].shape[0])
-    normals = {k: _unit(face_normals_np(d[k], f)) for k in ("clean", "noisy", *FIELDS)}
+    normals = {k: face_normals_np(d[k], f) for k in ("clean", "noisy", *FIELDS)}
     log = lambda t: np.log(t + 0.5)  # noqa: E731
     features = [log(_angle(normals["net"], normals[k])) for k in FIELDS[1:]]
     for k in FIELDS:
@@ -227,15 +223,13 @@ def main(argv=None) -> int:
                 rows.setdefault(label, {}).setdefault(m, []).append((v, best[c["key"]]))
             share.setdefault(label, []).append(np.bincount(pick, minlength=len(FIELDS)) / pick.size)
 
-    def cell(pairs):
-        e = np.array(pairs)
-        ratio = e[:, 0] / e[:, 1]
-        geo = np.exp(np.log(ratio).mean())
-        return f"{e[:, 0].mean():.2f} / {geo:.3f} / {np.mean(ratio <= 1.05):.0%}"
-
     labels = list(rows)
     table = [
-        [m, *(cell(rows[lb][m]) for lb in labels), cell([p for lb in labels for p in rows[lb][m]])]
+        [
+            m,
+            *(per_shape_cell(rows[lb][m]) for lb in labels),
+            per_shape_cell([p for lb in labels for p in rows[lb][m]]),
+        ]
         for m in methods
     ]
     picks = [[label, *(f"{s:.0%}" for s in np.mean(share[label], 0))] for label in labels]

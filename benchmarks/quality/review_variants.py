@@ -41,12 +41,15 @@ from dmd_jax import calibrate  # noqa: E402
 
 
 def _arrays(rows, n_options: int, read: str):
-    """`(features, errors)`: the output features, the noise features or both."""
+    """`(features, errors)`: the output features (`calibrate.review_arrays`), the first
+    stage's noise features, or both."""
     from dmd_jax.presmooth import FEATURE_NAMES
 
-    x = np.array([r[4:-n_options] for r in rows], np.float64)
-    x = {"output": x[:, len(FEATURE_NAMES) :], "noise": x[:, : len(FEATURE_NAMES)]}.get(read, x)
-    return x, np.array([r[-n_options:] for r in rows], np.float64)
+    output, errors = calibrate.review_arrays(rows, n_options)
+    if read == "output":
+        return output, errors
+    noise = np.array([r[4 : 4 + len(FEATURE_NAMES)] for r in rows], np.float64)
+    return (noise if read == "noise" else np.concatenate([noise, output], 1)), errors
 
 
 def _ridge_choice(x, errors, v, lam: float, squares: bool) -> np.ndarray:
@@ -79,8 +82,7 @@ def main(argv=None) -> int:
     best = best_others(args.reference, "val")
     routed = routed_cases(args.reference, val, best)
     at = np.arange(len(val))
-    x, errors = _arrays(train, n_options, "output")
-    v, val_errors = _arrays(val, n_options, "output")
+    v, val_errors = calibrate.review_arrays(val, n_options)
     fit = calibrate.fit_review(train, len(routes), cascades)
     strategies = {
         "bundled review (two stages, nearest neighbours, output features)": val_errors[
