@@ -135,7 +135,7 @@ ablate-smoke: $(STAMP)
 		--data-dir out/ablate-smoke-data
 
 # The whole sweep on one GPU (every study, 3 seeds, the paper's schedule scaled to about an
-# hour: the gpu preset, dmd_jax/config.py), into experiments/results/gpu/.
+# hour: the gpu preset, dmd_jax/config/presets.py), into experiments/results/gpu/.
 ablate-gpu: $(STAMP)
 	$(BIN)/python -m experiments run --preset gpu
 	$(BIN)/python -m experiments index

@@ -423,7 +423,7 @@ PRESETS: dict[str, AblatePreset] = {
         ),
     ),
     # The whole sweep on one GPU in about an hour: the paper's architecture at width 128,
-    # 1,200 steps (depth rows 4,000), 3 seeds; the sizing is in `dmd_jax.config._gpu`.
+    # 1,200 steps (depth rows 4,000), 3 seeds; the sizing is in `dmd_jax.config.presets._gpu`.
     "gpu": AblatePreset(
         name="gpu",
         base="gpu",

@@ -8,7 +8,7 @@
 #
 # Needs the real meshes beside the repository (../shared/meshes/train). Rerunning the
 # script resumes an interrupted run (train resumes its workdir). Caveats: the first run
-# uses the `small` preset's defaults as they are now (dmd_jax/config.py).
+# uses the `small` preset's defaults as they are now (dmd_jax/config/presets.py).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${1:-runs/bundled}

@@ -688,7 +688,7 @@ def test_the_gpu_preset_is_the_whole_sweep_with_three_seeds():
     assert {r.study for r in runs} == set(st.STUDY_KEYS) and p.seeds == (0, 1, 2)
     rows = {runner.seedless_hash(r.config): r for r in runs}
     steps = sorted(r.config.train.steps for r in rows.values())
-    # The sizing in dmd_jax.config._gpu: 27 rows at 1,200 steps, the 4 depth rows at 4,000.
+    # The sizing in dmd_jax.config.presets._gpu: 27 rows at 1,200 steps, the 4 depth rows at 4,000.
     assert steps == [1200] * 27 + [4000] * 4
     assert {r.config.model.width for r in rows.values()} == {128}
 
