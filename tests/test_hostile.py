@@ -561,14 +561,16 @@ def test_case11_sigterm_mid_write_leaves_no_temp_file(tmp_path):
 def no_work(monkeypatch):
     """Fails the test if a denoise, a noise draw or a mesh load starts."""
     import dmd_jax.api
-    import dmd_jax.cli
+    import dmd_jax.cli.add_noise
+    import dmd_jax.cli.denoise
 
     def boom(*args, **kwargs):
         raise AssertionError("the work started before the output was checked")
 
     monkeypatch.setattr(dmd_jax.api, "denoise_with", boom)
     monkeypatch.setattr(dmd_jax.api, "add_noise", boom)
-    monkeypatch.setattr(dmd_jax.cli, "_load_input", boom)
+    monkeypatch.setattr(dmd_jax.cli.denoise, "_load_input", boom)
+    monkeypatch.setattr(dmd_jax.cli.add_noise, "_load_input", boom)
 
 
 @pytest.mark.parametrize(

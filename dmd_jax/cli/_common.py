@@ -1,0 +1,201 @@
+"""What the subcommands share: reading an input mesh the CLI's way, checking an output
+before any work, the help formatter and the `note:` line."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+# METHODS: every denoiser `--method` accepts, the names of `dmd_jax.denoise_with`;
+# MESH_SUFFIXES: the files `dmd_jax.io` reads (both import only NumPy, so `--help`
+# stays quick).
+from dmd_jax.api import METHODS as METHODS
+from dmd_jax.io import SUPPORTED_EXTENSIONS as MESH_SUFFIXES
+
+# The methods that read `--weights`: DMD-Net and the learned CNR baseline.
+WEIGHTED_METHODS = ("dmd", "cnr")
+
+
+class _HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """Defaults after each option's help (not for None/False, nor when the help names
+    its default itself); the epilog's examples keep their line breaks."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        if action.default is None or action.default is False or "default" in text:
+            return text
+        return super()._get_help_string(action)
+
+
+def _note(message: str) -> None:
+    """A remark that is not an error, on stderr (stdout stays clean for `--json`)."""
+    print(f"note: {message}", file=sys.stderr)
+
+
+def _ply_element_counts(path) -> dict[str, int]:
+    """`{element: count}` of a PLY header, read as `load_mesh` reads it.
+
+    `{}` when the header is unreadable: `load_mesh` then says what is wrong with it (a
+    header this function parsed more leniently than the reader could hide its faces
+    and pass for a point cloud).
+    """
+    from dmd_jax.io import read_ply_header
+
+    with open(path, "rb") as fh:
+        head = fh.read(1 << 20)
+    try:
+        return read_ply_header(head, str(path)).counts()
+    except ValueError:
+        return {}
+
+
+def _zero_area_faces(vertices, faces) -> int:
+    """Faces of zero area, to rounding (1e-12 of the squared longest bounding-box side)."""
+    import numpy as np
+
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces)
+    # Scaled to at most 1 first: coordinates near 1e300 (or 1e-300) would overflow (or
+    # underflow) in the cross products, with a NumPy warning per operation.
+    largest = float(np.abs(v).max()) if v.size else 0.0
+    if largest == 0.0:
+        return len(f)
+    v = v / largest
+    doubled = np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+    side = float(np.ptp(v, axis=0).max())
+    return int(np.count_nonzero(doubled <= 1e-12 * side * side))
+
+
+def _load_input(path):
+    """`load_mesh` for a file the user named, with the CLI's plainer words.
+
+    A directory or a point-cloud PLY is refused with a message that says so; polygon
+    triangulation and zero-area faces each become one `note:` line on stderr instead of
+    a raw Python warning, or silence.
+    """
+    import warnings
+    from pathlib import Path
+
+    from dmd_jax.io import load_mesh
+
+    p = Path(path)
+    if p.is_dir():
+        found = sorted(q.name for q in p.iterdir() if q.suffix.lower() in MESH_SUFFIXES)
+        hint = f"; it holds {len(found)} mesh files, e.g. {found[0]}" if found else ""
+        raise ValueError(
+            f"{path}: is a directory, not a mesh file ({', '.join(MESH_SUFFIXES)}){hint}"
+        )
+    from dmd_jax.io import check_readable_file
+
+    check_readable_file(p)  # a FIFO would block the header read below
+    if p.suffix.lower() == ".ply":
+        counts = _ply_element_counts(p)
+        if counts.get("vertex", 0) > 0 and not counts.get("face"):
+            raise ValueError(
+                f"{path}: is a point cloud ({counts['vertex']} vertices, no faces); "
+                "denoising needs a triangle mesh (reconstruct a surface first)"
+            )
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        vertices, faces = load_mesh(p)
+    for w in caught:
+        text = str(w.message)
+        if "triangulated" in text:
+            text += "; every output of this command is a triangle mesh"
+        _note(text)
+    zero = _zero_area_faces(vertices, faces)
+    if zero:
+        _note(
+            f"{path}: {zero} of {len(faces)} faces have zero area; their normals are "
+            "undefined (the normal error leaves them out)"
+        )
+    return vertices, faces
+
+
+def _check_output(output, inputs, overwrite: bool, *, parents: bool = False, suffixes=None) -> None:
+    """Everything that would make writing `output` fail, checked before any work.
+
+    The format (`suffixes`), `-` (no stdout output), the input itself or a hard link to
+    it, a directory, an existing file without --overwrite, a missing folder (created
+    later with `parents`, see `_make_parent`), and a folder one may not write in.
+    """
+    import os
+    from pathlib import Path
+
+    if str(output) == "-":
+        raise ValueError("-o -: meshes are not written to stdout; give a file name")
+    out = Path(output)
+    if suffixes is not None and out.suffix.lower() not in suffixes:
+        raise ValueError(
+            f"{output}: unknown mesh format {out.suffix!r}; use one of {', '.join(suffixes)}"
+        )
+    for src in [inputs] if isinstance(inputs, (str, Path)) else inputs:
+        same = Path(src).resolve() == out.resolve()
+        if not same and out.exists() and Path(src).exists():
+            same = os.path.samefile(src, out)  # a hard link to the input
+        if same:
+            raise ValueError(f"{output}: the output path is the input file; choose another")
+    if out.is_dir():
+        raise ValueError(f"{output}: is a directory; give a file name")
+    if out.exists() and not overwrite:
+        raise FileExistsError(f"{output}: already exists (pass --overwrite to replace it)")
+    folder = out.parent
+    if not folder.is_dir():
+        if folder.exists():
+            raise NotADirectoryError(f"{folder}: is not a directory")
+        if not parents:
+            raise FileNotFoundError(
+                f"{folder}: output directory does not exist (pass --parents to create it)"
+            )
+        while not folder.exists():  # the folder that will hold the new ones
+            folder = folder.parent
+        if not folder.is_dir():
+            raise NotADirectoryError(f"{folder}: is not a directory")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise PermissionError(f"{output}: cannot write in {folder} (permission denied)")
+
+
+def _make_parent(output) -> None:
+    """Creates the folders above `output` (`--parents`), just before writing it."""
+    from pathlib import Path
+
+    Path(output).parent.mkdir(parents=True, exist_ok=True)
+
+
+def _in_gt_order(v, f, gt_v, gt_f, path, gt_path):
+    """The vertices of `path` in the ground truth's vertex order, or a clear error.
+
+    The metrics compare vertex i with vertex i. A mesh with the ground truth's faces is
+    taken as it is; one with the same number of faces but another vertex numbering (an
+    STL output, which renumbers its vertices, or a mesh reordered by another tool) is
+    matched through its faces, corner by corner, or else through identical positions,
+    with a note; anything else is refused, naming what differs.
+    """
+    import numpy as np
+
+    if v.shape == gt_v.shape and f.shape == gt_f.shape and (f == gt_f).all():
+        return v
+    counts = f"{len(v)} vs {len(gt_v)} vertices, {len(f)} vs {len(gt_f)} faces"
+    if f.shape == gt_f.shape and len(v) == len(gt_v):
+        # Faces in the same order, vertices renumbered: face i corner j is the same
+        # point in both, so the faces themselves give the vertex map.
+        perm = np.full(len(gt_v), -1, np.int64)
+        perm[gt_f.ravel()] = f.ravel()
+        if (perm[gt_f] == f).all() and (np.sort(perm) == np.arange(len(v))).all():
+            _note(f"{path}: vertices matched to {gt_path} through the faces (another vertex order)")
+            return v[perm]
+        # Or the very same points, listed in another order (and faces with them).
+        order_v, order_gt = np.lexsort(v.T[::-1]), np.lexsort(gt_v.T[::-1])
+        if (v[order_v] == gt_v[order_gt]).all() and len(np.unique(v, axis=0)) == len(v):
+            perm = np.empty(len(v), np.int64)
+            perm[order_gt] = order_v
+            ours = np.unique(np.sort(np.argsort(perm)[f], axis=1), axis=0)
+            if np.array_equal(ours, np.unique(np.sort(gt_f, axis=1), axis=0)):
+                _note(f"{path}: vertices matched to {gt_path} by position (another order)")
+                return v[perm]
+        raise ValueError(
+            f"{path}: the counts match {gt_path} ({counts}) but the vertex order does not "
+            "(an STL output renumbers vertices; evaluate the OBJ, OFF or PLY output, "
+            "which keeps the input's order)"
+        )
+    raise ValueError(f"{path}: vertex/face correspondence with {gt_path} is required ({counts})")

@@ -1,0 +1,280 @@
+"""`dmd-jax denoise`: one mesh file (-o FILE), or several and folders (--out DIR)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from dmd_jax.cli._common import (
+    MESH_SUFFIXES,
+    METHODS,
+    WEIGHTED_METHODS,
+    _check_output,
+    _load_input,
+    _make_parent,
+    _note,
+)
+
+
+def _denoise_inputs(args: argparse.Namespace):
+    """`[(input, output)]` of a `denoise` call: one file and `-o`, or files and folders
+    (their mesh files, not recursive) and `--out DIR` (same names there)."""
+    from pathlib import Path
+
+    if args.skip_existing and args.overwrite:
+        raise ValueError("--skip-existing and --overwrite contradict each other; pass one")
+    many = len(args.input) > 1 or Path(args.input[0]).is_dir()
+    if not many:
+        if args.out is not None:
+            raise ValueError("one input file takes -o/--output FILE; --out DIR is for several")
+        if args.output is None:
+            raise ValueError("give -o/--output FILE for the denoised mesh")
+        pairs = [(args.input[0], args.output)]
+        return _unfinished(pairs, args)
+    if args.output is not None:
+        raise ValueError("several inputs (or a folder) take --out DIR, not -o/--output")
+    if args.out is None:
+        raise ValueError("several inputs (or a folder) need --out DIR for the results")
+    files = []
+    for name in args.input:
+        p = Path(name)
+        if p.is_dir():
+            found = sorted(q for q in p.iterdir() if q.suffix.lower() in MESH_SUFFIXES)
+            if not found:
+                raise ValueError(f"{name}: holds no mesh files ({', '.join(MESH_SUFFIXES)})")
+            files += found
+        else:
+            files.append(p)
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"{args.out}: exists and is not a directory")
+    names = [f.name for f in files]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        raise ValueError(f"two inputs share the file name {twice[0]}; their outputs would collide")
+    pairs = [(str(f), str(out / f.name)) for f in files]
+    # --out DIR is created when missing (like `mkdir -p`): it names a folder of results,
+    # so there is nothing to mistype into an unintended place but the folder itself.
+    args.parents = True
+    return _unfinished(pairs, args)
+
+
+def _unfinished(pairs, args):
+    """The `(input, output)` pairs still to run, every output checked before any work.
+
+    With --skip-existing, pairs whose output exists are left out with a note (the
+    outputs of an interrupted run are complete files: every write is atomic).
+    """
+    from pathlib import Path
+
+    todo = []
+    for src, dst in pairs:
+        if args.skip_existing and Path(dst).is_file():
+            continue
+        _check_output(dst, src, args.overwrite, parents=args.parents, suffixes=MESH_SUFFIXES)
+        todo.append((src, dst))
+    if len(todo) < len(pairs):
+        _note(f"--skip-existing: {len(pairs) - len(todo)} of {len(pairs)} outputs exist already")
+    return todo
+
+
+def _cmd_denoise(args: argparse.Namespace) -> int:
+    import time
+
+    from dmd_jax.api import denoise_with
+    from dmd_jax.io import save_mesh
+
+    if args.iterations is not None and args.iterations < 1:
+        raise ValueError(f"--iterations must be at least 1, got {args.iterations}")
+    if args.method not in METHODS:
+        raise ValueError(f"unknown --method {args.method!r}; choose one of: {', '.join(METHODS)}")
+    if args.weights is not None and args.method not in WEIGHTED_METHODS:
+        raise ValueError(
+            f"--weights is for --method {' or '.join(WEIGHTED_METHODS)}; {args.method!r} is a "
+            "classic filter with no weights (drop --weights)"
+        )
+    extra = {}
+    if args.max_memory is not None:
+        if args.method != "dmd":
+            raise ValueError("--max-memory is for --method dmd (the network)")
+        from dmd_jax.memory_plan import parse_memory
+
+        extra["max_memory"] = parse_memory(args.max_memory)
+    if args.relax is not None:
+        if args.method != "dmd":
+            raise ValueError("--relax is for --method dmd (the network)")
+        if args.relax < 0:
+            raise ValueError(f"--relax must be 0 or more steps, got {args.relax}")
+        extra["relax"] = args.relax
+    if args.presmooth is not None:
+        if args.method != "dmd":
+            raise ValueError("--presmooth is for --method dmd (the network)")
+        if args.presmooth != "rule":
+            try:
+                steps = int(args.presmooth)
+            except ValueError:
+                steps = -1
+            if steps < 0:
+                raise ValueError(
+                    f"--presmooth must be 0 or more steps, or 'rule', got {args.presmooth!r}"
+                )
+            extra["presmooth"] = steps
+        else:
+            extra["presmooth"] = "rule"
+    pairs = _denoise_inputs(args)
+    weights = args.weights
+    if args.method == "dmd" and args.out is not None:
+        from dmd_jax.checkpoints import load_model
+
+        weights = load_model(weights)  # once for every mesh
+    t_all = time.perf_counter()
+    many = args.out is not None  # folder mode: one bad file does not stop the others
+    failed: list[tuple[str, str]] = []
+    done = 0
+    for src, dst in pairs:
+        try:
+            done += _denoise_one(args, src, dst, weights, extra, denoise_with, save_mesh)
+        except (ValueError, OSError) as exc:
+            if not many:
+                raise
+            # One bad file must not cost the rest of a folder: say so, go on, sum up.
+            message = " ".join(str(exc).split()) or type(exc).__name__
+            print(f"dmd-jax denoise: error: {message} (going on with the others)", file=sys.stderr)
+            failed.append((src, message))
+        except KeyboardInterrupt as exc:
+            if many:
+                exc.hint = (
+                    f" after {done} of {len(pairs)} meshes; the finished outputs are complete "
+                    "files: rerun the same command with --skip-existing to resume"
+                )
+            raise
+    if many:
+        minutes = max(time.perf_counter() - t_all, 1e-9) / 60
+        print(
+            f"{done} meshes in {minutes * 60:.1f} s ({done / minutes:.1f} meshes "
+            "per minute, reading and writing included)"
+        )
+    if failed:
+        names = ", ".join(src.replace("\\", "/").rsplit("/", 1)[-1] for src, _ in failed[:5])
+        more = f" and {len(failed) - 5} more" if len(failed) > 5 else ""
+        print(
+            f"dmd-jax denoise: {len(failed)} of {len(pairs)} meshes failed ({names}{more}); "
+            + ("the others were written" if done else "no output was written"),
+            file=sys.stderr,
+        )
+        return 1
+    return 0
+
+
+def _denoise_one(args, src, dst, weights, extra, denoise_with, save_mesh) -> int:
+    """Denoises one file into `dst` and prints its line; returns 1."""
+    import time
+
+    vertices, faces = _load_input(src)
+    if args.parents:
+        _make_parent(dst)
+    t0 = time.perf_counter()
+    # One call for the network and every baseline, as in Python (dmd_jax.denoise_with).
+    out = denoise_with(
+        args.method,
+        vertices,
+        faces,
+        weights=weights,
+        iterations=args.iterations,
+        **({"return_info": True} if args.method == "dmd" else {}),
+        **extra,
+    )
+    out, info = out if args.method == "dmd" else (out, None)
+    elapsed = time.perf_counter() - t0
+    save_mesh(dst, out, faces, overwrite=args.overwrite, protect=[src])
+    how = ""
+    if info is not None and info.presmooth_steps:
+        how = f" after {info.presmooth_steps} Laplacian steps"
+    if info is not None and info.passes > 1:
+        how += f" ({info.passes} passes)"
+    if info is not None and info.path == "patches":
+        how += f" in {info.patches} patches of {info.patch_size:,} vertices"
+    if info is not None and info.route is not None:
+        who = (
+            "its review of the network's result took" if info.reviewed else "its learned choice ran"
+        )
+        how += f" ({who} the network-free route {info.route})"
+    if info is not None and info.cascade is not None:
+        how += f" (its review ran {info.cascade} on the network's result)"
+    print(
+        f"denoised {src} ({len(vertices)} vertices, {len(faces)} faces) with "
+        f"{args.method}{how} in {elapsed:.2f} s -> {dst}"
+    )
+    return 1
+
+
+def add_parser(sub) -> None:
+    """Registers the subcommand on `sub`, the parser's subparsers."""
+    p = sub.add_parser(
+        "denoise",
+        help="denoise mesh files",
+        description="Denoise one mesh file (-o FILE) or several and folders (--out DIR). "
+        "Every output is checked before any work starts. A folder run goes on past a file "
+        "it cannot read or denoise, names it, and exits with 1 and a summary at the end; "
+        "after Ctrl-C or SIGTERM, rerun it with --skip-existing to resume.",
+    )
+    p.add_argument(
+        "input", nargs="+", help="noisy mesh (.obj .off .ply .stl), or several, or folders"
+    )
+    p.add_argument("-o", "--output", help="where to write the result (one input file)")
+    p.add_argument("--out", help="folder for the results of several inputs (same file names)")
+    p.add_argument(
+        "--weights",
+        default=None,
+        help="weights file or checkpoint directory (default: bundled model)",
+    )
+    p.add_argument(
+        "--method",
+        default="dmd",
+        metavar="METHOD",
+        help="'dmd' (the network) or another denoiser of dmd_jax.baselines: "
+        + ", ".join(METHODS[1:])
+        + " (cnr is learned: it takes --weights too; the others are classic filters)",
+    )
+    p.add_argument(
+        "--iterations",
+        type=int,
+        default=None,
+        help="passes of the denoiser (default: 1 for a classic filter; for dmd the pass rule "
+        "stored with the weights: `dmd-jax info --weights W` shows it)",
+    )
+    p.add_argument(
+        "--max-memory",
+        default=None,
+        help="memory budget of the network, e.g. 8GB or 6GiB; larger meshes run in "
+        "patches (default: half the memory available)",
+    )
+    p.add_argument(
+        "--relax",
+        type=int,
+        default=None,
+        metavar="STEPS",
+        help="steps of crease-preserving tangential relaxation after the network, for "
+        "noise that is not along the normals, e.g. 3 (default: the weights' policy)",
+    )
+    p.add_argument(
+        "--presmooth",
+        default=None,
+        metavar="STEPS",
+        help="uniform Laplacian steps before the network (default: the weights' policy "
+        "chooses, from what the noisy mesh looks like; 0: none; 'rule': the roughness "
+        "rule stored with the weights, in place of the learned choice)",
+    )
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    p.add_argument(
+        "--skip-existing",
+        action="store_true",
+        help="leave out inputs whose output exists: resumes an interrupted folder run "
+        "(outputs are written atomically, so an existing one is complete)",
+    )
+    p.add_argument(
+        "--parents",
+        action="store_true",
+        help="create -o's missing folders (--out DIR is always created when missing)",
+    )
+    p.set_defaults(func=_cmd_denoise)

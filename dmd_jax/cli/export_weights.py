@@ -1,0 +1,128 @@
+"""`dmd-jax export-weights`: a checkpoint directory (or weights file) to one weights file."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def _cmd_export_weights(args: argparse.Namespace) -> int:
+    import json
+    import platform
+    from pathlib import Path
+
+    from dmd_jax.checkpoints import load_params, load_weights, save_weights
+    from dmd_jax.policy import trained_policy
+
+    source = Path(args.checkpoint)
+    if source.is_file():
+        # A weights file: the same params with a newly fitted inference policy.
+        bundle = load_weights(source)
+        params, cfg, meta = bundle.params, bundle.config, dict(bundle.meta)
+        policy = bundle.policy
+        step = meta.get("step")
+        meta["exported_from"] = str(args.checkpoint)
+    else:
+        params, cfg = load_params(source)
+        policy = trained_policy(cfg)
+        step = _latest_step(source)
+        meta = {"source": str(args.checkpoint), "platform": platform.platform()}
+        if step is not None:
+            meta["step"] = step
+    if args.policy_from is not None:
+        # A fine-tune keeps the policy fitted for the weights it started from; the
+        # edits below still apply on top of it.
+        policy = load_weights(args.policy_from).policy
+        meta["policy_from"] = str(args.policy_from)
+    policy = _edited_policy(policy, args)
+    if args.meta:
+        meta.update(json.loads(args.meta))
+    path = save_weights(args.output, params, cfg, meta, policy=policy, overwrite=args.overwrite)
+    print(
+        f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB): "
+        + (f"step {step}" if step is not None else "the newest step")
+        + f" of {args.checkpoint}, preset {cfg.name}"
+    )
+    return 0
+
+
+def _edited_policy(policy, args: argparse.Namespace):
+    """`policy` with export-weights' --pass-tolerance, --max-passes, --presmooth and
+    --relax-steps applied (a tolerance on a one-pass policy without --max-passes gets
+    `policy.LEGACY_AUTO_MAX_PASSES`, the cap such weights always had)."""
+    from dmd_jax.policy import LEGACY_AUTO_MAX_PASSES
+
+    edits = {}
+    if args.pass_tolerance is not None:
+        edits["pass_tolerance"] = args.pass_tolerance
+        if args.pass_tolerance > 0 and policy.max_passes == 1:
+            edits["max_passes"] = LEGACY_AUTO_MAX_PASSES
+    if args.max_passes is not None:
+        edits["max_passes"] = args.max_passes
+    if args.presmooth is not None:
+        # An explicit rule is the one to run: it replaces a learned choice.
+        policy = policy.with_presmooth_rule()
+        edits["presmooth_start"], edits["presmooth_per_step"] = args.presmooth
+    if args.relax_steps is not None:
+        edits["relax_steps"] = args.relax_steps
+    return policy.with_edits(edits)
+
+
+def _latest_step(checkpoint_dir) -> int | None:
+    """The step `load_params` reads: the newest checkpoint of an Orbax manager directory."""
+    from pathlib import Path
+
+    import orbax.checkpoint as ocp
+
+    return ocp.CheckpointManager(Path(checkpoint_dir).absolute()).latest_step()
+
+
+def add_parser(sub) -> None:
+    """Registers the subcommand on `sub`, the parser's subparsers."""
+    p = sub.add_parser("export-weights", help="checkpoint directory -> one weights file")
+    p.add_argument(
+        "checkpoint",
+        help="an Orbax checkpoint directory (e.g. RUN/checkpoints/best), or a weights file "
+        "to rewrite with a new --pass-tolerance / --presmooth",
+    )
+    p.add_argument("-o", "--output", required=True, help="weights file to write (.msgpack)")
+    p.add_argument("--meta", default=None, help="JSON object of provenance to store")
+    p.add_argument(
+        "--pass-tolerance",
+        type=float,
+        default=None,
+        help="store this pass tolerance in the weights' policy: passes repeat while the last "
+        "moved the mesh by more than it, in mean edges (fit it with `make calibrate`; "
+        "0: every one of --max-passes)",
+    )
+    p.add_argument(
+        "--max-passes",
+        type=int,
+        default=None,
+        help="store this most network passes in the weights' policy",
+    )
+    p.add_argument(
+        "--relax-steps",
+        type=int,
+        default=None,
+        help="store this many tangential relaxation steps in the weights' policy",
+    )
+    p.add_argument(
+        "--presmooth",
+        type=float,
+        nargs=2,
+        default=None,
+        metavar=("START", "PER_STEP"),
+        help="store this pre-smoothing rule in the weights' policy (degrees of roughness: "
+        "round((roughness - START) / PER_STEP) steps; fit it with `make calibrate`; "
+        "START 0 turns it off), in place of a learned pre-smoothing choice",
+    )
+    p.add_argument(
+        "--policy-from",
+        default=None,
+        metavar="WEIGHTS",
+        help="take the inference policy (learned pre-smoothing, rules) from this weights "
+        "file instead of the checkpoint's trained policy, e.g. the weights a fine-tune "
+        "started from; the options above still edit it",
+    )
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    p.set_defaults(func=_cmd_export_weights)
