@@ -141,6 +141,16 @@ def main(argv=None) -> int:
     if args.command == "aggregate":
         from experiments import aggregate
 
+        _, records = aggregate.load_records(args.out)
+        if not any(recs for rows in records.values() for recs in rows.values()):
+            # The runs' folders are not in git (`.gitignore`): in a fresh clone this
+            # would overwrite the committed tables with empty ones.
+            print(
+                f"{args.out}: no finished run to aggregate (the runs' folders are not in "
+                "git; run the sweep here first)",
+                file=sys.stderr,
+            )
+            return 1
         aggregate.aggregate(args.out)
         if args.index:
             aggregate.write_index(args.index)

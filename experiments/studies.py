@@ -219,7 +219,7 @@ class AblatePreset:
         the rest of the row's seeds follow in the same process, one group after the
         other, on the same compiled program. At 5 seeds on two busy cores one seed at a
         time costs 25 % less CPU per step than all five vmapped
-        (`python -m experiments.seed_speedup --preset cpu-offset --seeds 5`).
+        (docs/ablations.md, measured by the retired `experiments/seed_speedup.py`).
       dataset: the dataset cache's name, `data/ablate-<dataset>` (default: `name`);
         presets that share one dataset name it alike and generate it once.
       studies: the studies `run` does by default (`None`: every study).
