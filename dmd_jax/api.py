@@ -39,6 +39,7 @@ def add_noise(
     impulse_q: float = 0.15,
     impulse_mode: str = "coordinate",
     direction: str = "isotropic",
+    view=None,
 ) -> np.ndarray:
     """`dmd_jax.noise.add_noise_jax` for NumPy users: an integer seed, NumPy out, dtype kept.
 
@@ -46,13 +47,17 @@ def add_noise(
       seed: an `int` (as `dmd-jax add-noise --seed`) or a `jax.random` key.
       vertices: `[n_vertex, 3]` positions, in any frame.
       faces: `[n_face, 3]` vertex indices (used by `units="edge"`).
-      kind: `gaussian`, `uniform`, `gamma` or `impulse` (`dmd_jax.noise`).
-      level: σ for Gaussian, the amplitude for the other kinds, in `units`.
+      kind: `gaussian`, `uniform`, `gamma`, `impulse` or `scanner` (`dmd_jax.noise`).
+      level: σ for Gaussian, the rms for scanner, the amplitude for the other kinds, in
+        `units`.
       units: `"canonical"` (fraction of the longest bounding-box side) or `"edge"`
         (× mean edge length).
       impulse_p, impulse_q, impulse_mode: see `dmd_jax.noise.add_noise_jax`.
       direction: `"isotropic"` (per coordinate) or `"normal"` (one draw per vertex along
-        its vertex normal: the mesh-denoising benchmark protocol).
+        its vertex normal: the mesh-denoising benchmark protocol). The scanner kind moves
+        along its view and takes the default.
+      view: `kind="scanner"` only: the direction the sensor looks along, `[3]`; None
+        draws it from the seed.
 
     Returns:
       `[n_vertex, 3]` NumPy array: float32 for float32 input, float64 otherwise (the
@@ -77,6 +82,14 @@ def add_noise(
     if v.ndim != 2 or v.shape[-1] != 3 or v.shape[0] == 0:
         raise ValueError(f"vertices must have shape [n_vertex, 3], got {v.shape}")
     noise.check_direction(direction)
+    if kind == "scanner":
+        if direction != "isotropic":
+            raise ValueError(
+                f"kind='scanner' moves vertices along its view, not direction={direction!r}"
+            )
+        return noise.scanner_noise(key, v, faces, level, units=units, view=view).astype(dtype)
+    if view is not None:
+        raise ValueError(f"view is the scanner kind's; kind {kind!r} takes none")
     along_normal = direction == "normal"
     if along_normal and faces is None:
         raise ValueError("direction='normal' needs the faces of the mesh")

@@ -13,8 +13,14 @@ from __future__ import annotations
 # Noise
 # --------------------------------------------------------------------------------------
 
-# The distributions of `noise.add_noise_jax` (`NoiseConfig.kinds`).
-NOISE_KINDS = ("gaussian", "uniform", "gamma", "impulse")
+# The paper's four distributions, drawn independently per coordinate (or per vertex along
+# its normal); the default of `NoiseConfig.kinds`.
+PAPER_NOISE_KINDS = ("gaussian", "uniform", "gamma", "impulse")
+# Depth-sensor noise (`noise.scanner_displacement`): along one view direction, spatially
+# correlated, growing at grazing angles, quantised in depth. Not a per-coordinate law.
+SCANNER_KIND = "scanner"
+# Every kind `noise.add_noise_jax` and `dmd_jax.add_noise` take (`NoiseConfig.kinds` too).
+NOISE_KINDS = (*PAPER_NOISE_KINDS, SCANNER_KIND)
 
 # --------------------------------------------------------------------------------------
 # Surface regions

@@ -42,6 +42,26 @@ of hundreds of sizes up to 4,096 vertices compiles one program per noise kind an
 direction instead of one per mesh. The rounding changes no value: with JAX's
 partitionable threefry (the default) the draws of the first rows do not depend on how
 many rows are drawn (`tests/test_noise.py`).
+
+The `scanner` kind (`scanner_displacement`, parameters in `ScannerModel`) is not a
+per-coordinate law: it models a depth sensor, as measured on public depth-camera scans
+with ground truth (see `docs/noise-models.md`). Every vertex moves along one view
+direction `d` (drawn from the key, or given) by `level · unit · s`, where `s` is
+
+* a smooth random field over the surface (random Fourier features of a Gaussian kernel
+  in 3D, correlation length `correlation_length` mean edges: neighbours alike over 4-8
+  rings, faded by ~16, as measured), plus a small white part (`white_share` of the
+  variance), scaled to unit rms on the mesh;
+* multiplied by the grazing-angle gain `1 / max(|n · d|, 1 / grazing_max_gain)` (`n` the
+  vertex normal), normalised to unit rms, so the rms stays `level` mean edges
+  (measured: 0.4-0.9 on depth-camera scans, ~0.15 on careful reconstructions);
+* with a few spikes (`spike_share` of the vertices moved by `± spike_gain · level`);
+* and the noisy depth rounded to steps of `quant_step · level` that grow by
+  `quant_growth` over the depth range (depth cameras quantise depth, coarser far away).
+
+It is drawn on the host in NumPy from a generator seeded by the key's bits (no program
+compiles), so the same key, mesh, level and view give the same noise; it needs the faces
+(normals, edge lengths) and is not traceable under `jit`.
 """
 
 from __future__ import annotations
@@ -55,7 +75,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dmd_jax.constants import NOISE_KINDS
+from dmd_jax.constants import NOISE_KINDS, PAPER_NOISE_KINDS, SCANNER_KIND
 from dmd_jax.mesh import mean_edge_length
 from dmd_jax.topology import vertex_edges
 
@@ -86,6 +106,10 @@ PAPER_LEVELS = MappingProxyType(
 
 # Levels in units of the mean edge length (the CNR benchmark's Gaussian levels).
 EDGE_LEVELS = (0.1, 0.2, 0.3, 0.4, 0.5)
+
+# Training levels of the scanner kind, in mean edge lengths (always edge units): from a
+# careful reconstruction (~0.15 measured) to the depth-camera range (0.4-0.9 measured).
+SCANNER_LEVELS = (0.15, 0.3, 0.5, 0.8)
 
 
 class NoiseSpec(NamedTuple):
@@ -183,6 +207,11 @@ def unit_noise(
       Array of `shape`.
     """
     _check_kind(kind)
+    if kind == SCANNER_KIND:
+        raise ValueError(
+            "the scanner kind is not drawn per coordinate: use scanner_displacement "
+            "(or add_noise_jax / dmd_jax.add_noise with kind='scanner')"
+        )
     shape = tuple(shape)
     if shape and isinstance(shape[0], int | np.integer):
         # Eager call: sample a bucketed row count (one compile per bucket), slice on host.
@@ -260,6 +289,217 @@ def noise_unit_length(vertices, faces, units):
     return jnp.mean(jnp.linalg.norm(v[a] - v[b], axis=-1))
 
 
+# --------------------------------------------------------------------------------------
+# Scanner noise
+# --------------------------------------------------------------------------------------
+
+
+class ScannerModel(NamedTuple):
+    """The parameters of the `scanner` noise kind (module docstring), each a named choice.
+
+    Attributes:
+      correlation_length: length of the Gaussian correlation kernel of the smooth field, in
+        mean edge lengths: the correlation of two points `r` apart is `exp(−r² / 2ℓ²)`;
+        6 gives 0.80 at 4 rings, 0.41 at 8 and 0.03 at 16 (measured on real scans: alike
+        over 4-8 rings, faded by ~16).
+      white_share: share of the variance that is white (independent per vertex); real
+        scans have "a small white part".
+      grazing_max_gain: the noise along the ray grows as `1 / |cos θ|` (θ between the
+        vertex normal and the view) up to this factor, reached at `acos(1 / gain)` (60°
+        for 2); the gain is normalised to unit rms over the mesh.
+      spike_share: share of vertices moved by a spike (range images have "a few").
+      spike_gain: a spike's displacement along the view, in units of `level`, either sign.
+      quant_step: the depth step at the nearest depth, in units of `level` (rounding adds
+        an rms of `quant_step / √12` levels: 0.14 for 0.5).
+      quant_growth: the step grows linearly with depth by this fraction of itself over
+        the mesh's depth range (depth cameras quantise disparity: coarser far away).
+      n_features: random Fourier features of the smooth field (its marginal is close to
+        Gaussian for tens of features).
+    """
+
+    correlation_length: float = 6.0
+    white_share: float = 0.15
+    grazing_max_gain: float = 2.0
+    spike_share: float = 0.001
+    spike_gain: float = 5.0
+    quant_step: float = 0.5
+    quant_growth: float = 1.0
+    n_features: int = 128
+
+
+SCANNER_MODEL = ScannerModel()
+
+
+def check_scanner_model(model: ScannerModel) -> ScannerModel:
+    """`model` if every field is in range, else `ValueError` naming the field."""
+    if not isinstance(model, ScannerModel):
+        raise ValueError(f"scanner model must be a ScannerModel, got {type(model).__name__}")
+    for name, low, high in (
+        ("correlation_length", 0.0, math.inf),
+        ("white_share", 0.0, 1.0),
+        ("grazing_max_gain", 1.0, math.inf),
+        ("spike_share", 0.0, 1.0),
+        ("spike_gain", 0.0, math.inf),
+        ("quant_step", 0.0, math.inf),
+        ("quant_growth", 0.0, math.inf),
+    ):
+        value = getattr(model, name)
+        ok = isinstance(value, int | float) and math.isfinite(value) and low <= value <= high
+        if not ok or (name == "correlation_length" and value <= 0):
+            raise ValueError(f"scanner model {name} out of range: {value!r}")
+    if not isinstance(model.n_features, int) or model.n_features < 1:
+        raise ValueError(
+            f"scanner model n_features must be a positive int, got {model.n_features!r}"
+        )
+    return model
+
+
+def host_rng(key) -> np.random.Generator:
+    """A NumPy generator seeded by the bits of a `jax.random` key (raw or typed)."""
+    if jax.dtypes.issubdtype(jnp.asarray(key).dtype, jax.dtypes.prng_key):
+        key = jax.random.key_data(key)
+    bits = np.asarray(key).astype(np.uint32).ravel()
+    return np.random.default_rng([int(b) for b in bits])
+
+
+def check_view(view) -> np.ndarray:
+    """`view` as a unit `[3]` float64 vector; `ValueError` naming `view` otherwise."""
+    try:
+        d = np.asarray(view, np.float64)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"view must be a 3-vector, got {view!r}") from err
+    if d.shape != (3,):
+        raise ValueError(f"view must be a 3-vector, got shape {d.shape}")
+    norm = float(np.linalg.norm(d))
+    if not np.all(np.isfinite(d)) or norm < 1e-12:
+        raise ValueError(f"view must be a finite non-zero 3-vector, got {d.tolist()}")
+    return d / norm
+
+
+def random_view(rng: np.random.Generator) -> np.ndarray:
+    """A uniformly distributed unit view direction `[3]`."""
+    while True:
+        d = rng.standard_normal(3)
+        norm = float(np.linalg.norm(d))
+        if norm > 1e-6:
+            return d / norm
+
+
+def smooth_field(rng: np.random.Generator, points, length: float, n_features: int) -> np.ndarray:
+    """A zero-mean random field `[n]` with correlation `exp(−r² / 2 length²)` and variance 1.
+
+    Random Fourier features (Rahimi & Recht): `√(2/M) Σ cos(ω_m · x + φ_m)`, `ω_m ~
+    N(0, I / length²)`, `φ_m ~ U(0, 2π)`: `O(n M)` work, no loop over points.
+
+    Args:
+      rng: the generator.
+      points: `[n, 3]` positions.
+      length: the correlation length, in the units of `points`.
+      n_features: `M`.
+    """
+    x = np.asarray(points, np.float64)
+    omega = rng.standard_normal((x.shape[1], n_features)) / length
+    phase = rng.uniform(0.0, 2.0 * np.pi, n_features)
+    centred = x - x.mean(axis=0)  # keeps the phases well conditioned far from the origin
+    return np.sqrt(2.0 / n_features) * np.cos(centred @ omega + phase).sum(axis=1)
+
+
+def _unit_rms(x: np.ndarray) -> np.ndarray:
+    rms = float(np.sqrt(np.mean(x * x))) if x.size else 0.0
+    return x / rms if rms > 0 else x
+
+
+def scanner_displacement(
+    rng: np.random.Generator,
+    vertices,
+    faces,
+    level: float,
+    unit: float,
+    *,
+    view=None,
+    model: ScannerModel = SCANNER_MODEL,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The scanner kind's displacement of every vertex (module docstring).
+
+    Args:
+      rng: the generator every draw comes from (`host_rng(key)`).
+      vertices: `[n_vertex, 3]` positions.
+      faces: `[n_face, 3]` vertex indices (normals, mean edge length).
+      level: the rms of the displacement, in `unit`s.
+      unit: the length of one level unit (`noise_unit_length`).
+      view: the direction the sensor looks along, `[3]` (any length); None: drawn from
+        `rng` (uniform on the sphere).
+      model: the `ScannerModel`.
+
+    Returns:
+      `(displacement [n_vertex, 3] float64, view [3] unit)`: every row is a multiple of
+      `view`.
+    """
+    check_scanner_model(model)
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces)
+    # The view is drawn first, so a given view and a drawn one leave the rest alike.
+    d = random_view(rng) if view is None else check_view(view)
+    n = v.shape[0]
+    if level == 0.0 or n == 0:
+        return np.zeros_like(v), d
+    edge = mean_edge_length(v, f)
+    length = model.correlation_length * (edge if edge > 0 else 1.0)
+    field = _unit_rms(smooth_field(rng, v, length, model.n_features))
+    white = _unit_rms(rng.standard_normal(n))
+    s = _unit_rms(np.sqrt(1.0 - model.white_share) * field + np.sqrt(model.white_share) * white)
+    cos = np.abs(vertex_normals_np(v, f) @ d)
+    gain = 1.0 / np.maximum(cos, 1.0 / model.grazing_max_gain)
+    s = s * gain / float(np.sqrt(np.mean(gain * gain)))
+    spikes = rng.random(n) < model.spike_share
+    signs = np.where(rng.random(n) < 0.5, -1.0, 1.0)
+    s = np.where(spikes, model.spike_gain * signs, s)
+    amount = level * unit * s
+    step0 = model.quant_step * level * unit
+    if step0 > 0:
+        depth = v @ d
+        span = float(depth.max() - depth.min())
+        rel = (depth - depth.min()) / span if span > 0 else np.zeros(n)
+        step = step0 * (1.0 + model.quant_growth * rel)
+        amount = np.round((depth + amount) / step) * step - depth
+    return amount[:, None] * d[None, :], d
+
+
+def scanner_noise(
+    key, vertices, faces, level, *, units="edge", view=None, model: ScannerModel = SCANNER_MODEL
+) -> np.ndarray:
+    """`vertices` with the scanner kind's noise, in float64 NumPy (any JAX x64 mode).
+
+    Args:
+      key: a `jax.random` key (`host_rng` seeds the draws with its bits).
+      vertices: `[n_vertex, 3]` finite positions.
+      faces: `[n_face, 3]` vertex indices.
+      level: the rms displacement in `units`.
+      units: `"canonical"` or `"edge"` (the measurements are in edges).
+      view: the direction the sensor looks along, `[3]`; None draws it from `key`.
+      model: the `ScannerModel`.
+
+    Returns:
+      `[n_vertex, 3]` float64 noisy positions.
+    """
+    _check_units(units)
+    level = check_level(level)
+    v = np.asarray(vertices, np.float64)
+    if v.ndim != 2 or v.shape[-1] != 3 or v.shape[0] == 0:
+        raise ValueError(f"vertices must have shape [n_vertex, 3], got {v.shape}")
+    if not np.all(np.isfinite(v)):
+        raise ValueError("vertices must be finite (NaN or inf found)")
+    if faces is None:
+        raise ValueError("kind='scanner' needs the faces of the mesh")
+    f = np.asarray(faces)
+    if f.ndim != 2 or f.shape[1] != 3 or f.shape[0] == 0:
+        raise ValueError(f"faces must have shape [n_face, 3], got {f.shape}")
+    # noise_unit_length in float64 NumPy, so JAX's x64 mode changes no bit.
+    unit = mean_edge_length(v, f) if units == "edge" else float(np.max(np.ptp(v, axis=0)))
+    moved, _ = scanner_displacement(host_rng(key), v, faces, level, unit, view=view, model=model)
+    return v + moved
+
+
 def add_noise_jax(
     key,
     vertices,
@@ -272,11 +512,13 @@ def add_noise_jax(
     impulse_q=0.15,
     impulse_mode="coordinate",
     direction="isotropic",
+    view=None,
+    scanner: ScannerModel = SCANNER_MODEL,
 ):
     """Adds noise of one kind and level to the vertices of a mesh, from a `jax.random` key.
 
-    JAX arrays in and out, traceable under `jit` except with `direction="normal"`;
-    `dmd_jax.add_noise(seed, ...)` is the same noise for NumPy users.
+    JAX arrays in and out, traceable under `jit` except with `direction="normal"` or
+    `kind="scanner"`; `dmd_jax.add_noise(seed, ...)` is the same noise for NumPy users.
 
     Args:
       key: a `jax.random` key; the same key gives the same noise.
@@ -291,14 +533,17 @@ def add_noise_jax(
       impulse_mode: `"coordinate"` (default, matches the paper's table) or `"vertex"`.
       direction: `"isotropic"` (default: per coordinate) or `"normal"`: one scalar draw
         per vertex along its vertex normal (the benchmark protocol; needs `faces` and
-        concrete arrays).
+        concrete arrays). The scanner kind moves along its view and takes the default.
+      view: `kind="scanner"` only: the direction the sensor looks along, `[3]`; None
+        draws it from `key`.
+      scanner: `kind="scanner"` only: its `ScannerModel`.
 
     Returns:
       `[n_vertex, 3]` noisy positions, in the frame of `vertices`.
 
     Raises:
-      ValueError: on an unknown kind, units or impulse mode, a negative level, or
-        vertices that are not `[n, 3]`.
+      ValueError: on an unknown kind, units or impulse mode, a negative level, vertices
+        that are not `[n, 3]`, or a bad `view` (zero, not finite, not a 3-vector).
     """
     _check_kind(kind)
     _check_units(units)
@@ -309,6 +554,15 @@ def add_noise_jax(
     if not jnp.issubdtype(v.dtype, jnp.floating):
         v = v.astype(jnp.result_type(float))
     check_direction(direction)
+    if kind == SCANNER_KIND:
+        if faces is None or isinstance(v, jax.core.Tracer):
+            raise ValueError("kind='scanner' needs concrete vertices and the faces")
+        if direction != "isotropic":
+            raise ValueError("kind='scanner' moves vertices along its view: leave direction")
+        noisy = scanner_noise(key, vertices, faces, level, units=units, view=view, model=scanner)
+        return jnp.asarray(noisy.astype(v.dtype))
+    if view is not None:
+        raise ValueError(f"view is the scanner kind's; kind {kind!r} takes none")
     if direction == "normal":
         if faces is None or isinstance(v, jax.core.Tracer):
             raise ValueError("direction='normal' needs concrete vertices and the faces")
@@ -360,12 +614,14 @@ def _levels_for(levels, kind, name):
 def sample_noise_spec(
     key,
     *,
-    kinds: Sequence[str] = NOISE_KINDS,
+    kinds: Sequence[str] = PAPER_NOISE_KINDS,
     canonical_levels: Mapping[str, Sequence[float]] | Sequence[float] | None = PAPER_LEVELS,
     edge_levels: Mapping[str, Sequence[float]] | Sequence[float] | None = EDGE_LEVELS,
     p_edge: float = 0.5,
     p_normal: float = 0.0,
     p_clean: float = 0.0,
+    p_scanner: float = 0.0,
+    scanner_levels: Sequence[float] = SCANNER_LEVELS,
 ) -> NoiseSpec:
     """Draws a noise kind, units and level uniformly at random (on the host) from `key`.
 
@@ -379,6 +635,10 @@ def sample_noise_spec(
       p_normal: probability that an edge-unit draw is along the vertex normals.
       p_clean: probability of level 0 (a clean input: the model must learn to leave a
         clean mesh alone).
+      p_scanner: probability that the draw is the scanner kind whatever `kinds` says (a
+        share of scanner samples in a mix of the paper's kinds).
+      scanner_levels: the scanner kind's levels, always in edge units (it is drawn so
+        whether it comes from `kinds` or from `p_scanner`).
 
     Returns:
       A `NoiseSpec` of Python values.
@@ -391,10 +651,17 @@ def sample_noise_spec(
     p_edge = _check_probability("p_edge", p_edge)
     p_normal = _check_probability("p_normal", p_normal)
     p_clean = _check_probability("p_clean", p_clean)
+    p_scanner = _check_probability("p_scanner", p_scanner)
     canonical_levels = PAPER_LEVELS if canonical_levels is None else canonical_levels
     edge_levels = EDGE_LEVELS if edge_levels is None else edge_levels
     k_kind, k_units, k_level = jax.random.split(key, 3)
     kind = kinds[int(jax.random.randint(k_kind, (), 0, len(kinds)))]
+    # Scanner draws use keys of their own: with p_scanner 0 and no "scanner" in kinds,
+    # every other spec stays bit-identical to older configs.
+    if kind == SCANNER_KIND or (
+        p_scanner > 0.0 and bool(jax.random.uniform(jax.random.fold_in(key, 11)) < p_scanner)
+    ):
+        return _scanner_spec(key, scanner_levels, p_clean)
     use_edge = bool(jax.random.uniform(k_units) < p_edge)
     units = "edge" if use_edge else "canonical"
     levels = _levels_for(
@@ -418,22 +685,41 @@ def sample_noise_spec(
     )
 
 
+def _scanner_spec(key, scanner_levels, p_clean) -> NoiseSpec:
+    levels = tuple(scanner_levels)
+    if not levels:
+        raise ValueError("scanner_levels is empty")
+    for level in levels:
+        check_level(level)
+    k_level, k_clean = jax.random.split(jax.random.fold_in(key, 12))
+    level = levels[int(jax.random.randint(k_level, (), 0, len(levels)))]
+    if p_clean > 0.0 and bool(jax.random.uniform(k_clean) < p_clean):
+        level = 0.0
+    return NoiseSpec(kind=SCANNER_KIND, level=float(level), units="edge")
+
+
 def add_mixed_noise(
     key,
     vertices,
     faces,
     *,
-    kinds: Sequence[str] = NOISE_KINDS,
+    kinds: Sequence[str] = PAPER_NOISE_KINDS,
     canonical_levels: Mapping[str, Sequence[float]] | Sequence[float] | None = PAPER_LEVELS,
     edge_levels: Mapping[str, Sequence[float]] | Sequence[float] | None = EDGE_LEVELS,
     p_edge: float = 0.5,
     p_normal: float = 0.0,
     p_clean: float = 0.0,
+    p_scanner: float = 0.0,
+    scanner_levels: Sequence[float] = SCANNER_LEVELS,
     impulse_p=0.15,
     impulse_q=0.15,
     impulse_mode="coordinate",
+    view=None,
 ):
     """Adds noise of a randomly drawn kind, units and level (`sample_noise_spec`).
+
+    `view`: the scanner kind's view direction when it is drawn (None: drawn from the
+    key); the other kinds ignore it.
 
     Returns:
       `(noisy [n_vertex, 3], spec)`.
@@ -447,6 +733,8 @@ def add_mixed_noise(
         p_edge=p_edge,
         p_normal=p_normal,
         p_clean=p_clean,
+        p_scanner=p_scanner,
+        scanner_levels=scanner_levels,
     )
     noisy = add_noise_jax(
         k_noise,
@@ -459,6 +747,7 @@ def add_mixed_noise(
         impulse_q=impulse_q,
         impulse_mode=impulse_mode,
         direction=spec.direction,
+        view=view if spec.kind == SCANNER_KIND else None,
     )
     return noisy, spec
 

@@ -33,11 +33,17 @@ from dmd_jax.mesh import canonical_frame
 
 
 class MeshExample(NamedTuple):
-    """One clean mesh and its graph, built once on the host."""
+    """One clean mesh and its graph, built once on the host.
+
+    `view`: for a range-image mesh (`dmd_jax.scan.simulate_scan`) or a mesh meant to be
+    seen by one sensor, the direction it was scanned along `[3]`: its noise is then always
+    the scanner kind along that view (rotated with the mesh). None: `NoiseConfig` decides.
+    """
 
     vertices: np.ndarray  # [n_vertex, 3] float
     faces: np.ndarray  # [n_face, 3] int32
     graph: MeshGraph
+    view: np.ndarray | None = None
 
 
 class Batch(NamedTuple):
@@ -53,13 +59,16 @@ class Batch(NamedTuple):
     graph: MeshGraph
 
 
-def make_examples(meshes: Sequence[tuple[np.ndarray, np.ndarray]]) -> list[MeshExample]:
-    """Builds the host-side graph of every `(vertices, faces)` pair once."""
+def make_examples(meshes: Sequence[tuple]) -> list[MeshExample]:
+    """Builds the host-side graph of every `(vertices, faces)` pair once; a triple
+    `(vertices, faces, view)` also gives the example a view (`MeshExample.view`)."""
     out = []
-    for vertices, faces in meshes:
+    for mesh in meshes:
+        vertices, faces = mesh[0], mesh[1]
+        view = None if len(mesh) < 3 or mesh[2] is None else np.asarray(mesh[2], np.float64)
         v = np.asarray(vertices, np.float64)
         f = np.asarray(faces, np.int32)
-        out.append(MeshExample(v, f, build_mesh_graph(f, v.shape[0])))
+        out.append(MeshExample(v, f, build_mesh_graph(f, v.shape[0]), view))
     return out
 
 
@@ -105,12 +114,15 @@ def corrupt(
     rotate: bool,
     noise: NoiseConfig,
     encoding: str = "xyz",
+    view: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, noise_lib.NoiseSpec]:
     """Rotates (optionally) and noises one clean mesh.
 
     Both outputs are expressed in the frame of the *noisy* mesh that the model's
     `encoding` works in (`dmd_jax.encoding.mesh_frame`), the frame that `denoise` will
-    use at inference time, so training sees what inference sees.
+    use at inference time, so training sees what inference sees. With a `view` (a scan's
+    `[3]` sensor direction) the noise is the scanner kind along the rotated view, at one
+    of `noise.scanner_levels`.
 
     Returns:
       `(noisy [n, 3], clean [n, 3], spec)`.
@@ -118,19 +130,27 @@ def corrupt(
     k_rot, k_noise = jax.random.split(key)
     v = np.asarray(vertices, np.float64)
     if rotate:
-        v = v @ random_rotation(k_rot).T
+        rotation = random_rotation(k_rot)
+        v = v @ rotation.T
+        view = None if view is None else rotation @ np.asarray(view, np.float64)
     v = canonical_frame(v).apply(v)
+    scanner_levels = (
+        noise_lib.SCANNER_LEVELS if noise.scanner_levels is None else noise.scanner_levels
+    )
     noisy, spec = noise_lib.add_mixed_noise(
         k_noise,
         v,
         faces,
-        kinds=noise.kinds,
+        kinds=noise.kinds if view is None else (noise_lib.SCANNER_KIND,),
         # Unset levels (None) are the sampler's defaults: the paper's.
         canonical_levels=None if noise.canonical_levels is None else dict(noise.canonical_levels),
         edge_levels=noise_lib.EDGE_LEVELS if noise.edge_levels is None else noise.edge_levels,
         p_edge=noise.p_edge,
         p_normal=noise.p_normal,
         p_clean=noise.p_clean,
+        p_scanner=noise.p_scanner,
+        scanner_levels=scanner_levels,
+        view=view,
     )
     noisy = np.asarray(noisy, np.float64)
     frame = mesh_frame(encoding, noisy, faces)
@@ -276,6 +296,7 @@ def training_batch(
                 rotate=rotate,
                 noise=noise,
                 encoding=encoding,
+                view=ex.view,
             )
             noisy.append(n)
             clean.append(c)
@@ -308,6 +329,7 @@ def evaluation_batches(
             rotate=rotate,
             noise=noise,
             encoding=encoding,
+            view=ex.view,
         )
         out.append((collate([n], [c], [ex.graph], sizes), spec))
     return out

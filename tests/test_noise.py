@@ -16,6 +16,8 @@ from dmd_jax.noise import (
     EDGE_LEVELS,
     NOISE_KINDS,
     PAPER_LEVELS,
+    PAPER_NOISE_KINDS,
+    SCANNER_LEVELS,
     NoiseSpec,
     add_mixed_noise,
     add_noise_jax,
@@ -145,7 +147,7 @@ def test_paper_noise_table_reference_vertex_errors(kind, level, paper_reference)
 # --------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("kind", NOISE_KINDS)
+@pytest.mark.parametrize("kind", PAPER_NOISE_KINDS)
 def test_canonical_units_follow_the_bounding_box(kind):
     v, f = icosphere(2)
     key = jax.random.PRNGKey(4)
@@ -158,7 +160,7 @@ def test_canonical_units_follow_the_bounding_box(kind):
     np.testing.assert_allclose(base, 0.02 * canonical_frame(v).scale * unit, rtol=1e-12, atol=1e-15)
 
 
-@pytest.mark.parametrize("kind", NOISE_KINDS)
+@pytest.mark.parametrize("kind", PAPER_NOISE_KINDS)
 def test_edge_units_follow_the_mean_edge_length(kind):
     key = jax.random.PRNGKey(5)
     coarse, f_coarse = icosphere(1)
@@ -191,8 +193,9 @@ def test_zero_level_is_identity():
 
 
 def test_paper_and_edge_levels():
-    assert set(PAPER_LEVELS) == set(NOISE_KINDS)
-    for kind in NOISE_KINDS:
+    assert set(PAPER_LEVELS) == set(PAPER_NOISE_KINDS)
+    assert set(NOISE_KINDS) == {*PAPER_NOISE_KINDS, "scanner"}
+    for kind in PAPER_NOISE_KINDS:
         levels = PAPER_LEVELS[kind]
         assert len(levels) == 5 and list(levels) == sorted(levels) and levels[0] > 0
     assert EDGE_LEVELS == (0.1, 0.2, 0.3, 0.4, 0.5)
@@ -209,7 +212,8 @@ def test_sample_noise_spec_covers_every_setting():
         levels = EDGE_LEVELS if spec.units == "edge" else PAPER_LEVELS[spec.kind]
         assert spec.level in levels
         seen.add((spec.kind, spec.units))
-    assert seen == {(k, u) for k in NOISE_KINDS for u in ("canonical", "edge")}
+    # The default mix is the paper's four kinds: scanner noise comes only when asked for.
+    assert seen == {(k, u) for k in PAPER_NOISE_KINDS for u in ("canonical", "edge")}
 
 
 def test_sample_noise_spec_options():
@@ -365,3 +369,257 @@ def test_old_name_add_noise_still_works_with_a_deprecation_warning():
         assert noise.add_noise is add_noise_jax
     with pytest.raises(AttributeError, match="no attribute 'add_nois'"):
         noise.add_nois  # noqa: B018
+
+
+# --------------------------------------------------------------------------------------
+# The scanner kind
+# --------------------------------------------------------------------------------------
+
+
+def _edge_pairs(f):
+    from dmd_jax.topology import vertex_edges
+
+    return vertex_edges(np.asarray(f), int(np.max(f)) + 1)
+
+
+def _grid(n=120):
+    """A flat `n × n` grid of unit squares in the xy plane (two triangles each)."""
+    x, y = np.meshgrid(np.arange(n, dtype=np.float64), np.arange(n, dtype=np.float64))
+    v = np.stack([x.ravel(), y.ravel(), np.zeros(n * n)], axis=1)
+    i = (np.arange(n - 1)[None, :] + n * np.arange(n - 1)[:, None]).ravel()
+    f = np.concatenate([np.stack([i, i + 1, i + n + 1], 1), np.stack([i, i + n + 1, i + n], 1)])
+    return v, f.astype(np.int32)
+
+
+def test_scanner_noise_meets_the_issue_statistics_on_an_icosphere():
+    """Issue 53's bar: direction, neighbour correlation, rms and determinism."""
+    import dmd_jax
+
+    v, f = icosphere(4)
+    h = mean_edge_length(v, f)
+    noisy = dmd_jax.add_noise(3, v, f, "scanner", 0.5, units="edge")
+    d = noisy - v
+    # One main axis: the first right singular vector of the displacements.
+    axis = np.linalg.svd(d, full_matrices=False)[2][0]
+    length = np.linalg.norm(d, axis=1)
+    moved = length > 0
+    cos = np.abs(d[moved] @ axis) / length[moved]
+    assert np.median(cos) >= 0.9
+    s = d @ axis
+    a, b = _edge_pairs(f)
+    assert np.corrcoef(s[a], s[b])[0, 1] >= 0.3
+    rms = np.sqrt(np.mean(np.sum(d * d, axis=1)))
+    assert rms == pytest.approx(0.5 * h, rel=0.3)
+    again = dmd_jax.add_noise(3, v, f, "scanner", 0.5, units="edge")
+    assert np.array_equal(noisy, again)
+    assert not np.array_equal(noisy, dmd_jax.add_noise(4, v, f, "scanner", 0.5, units="edge"))
+
+
+def test_scanner_noise_follows_a_given_view_and_the_key_draws_one_otherwise():
+    v, f = icosphere(3)
+    view = np.array([1.0, 2.0, -2.0])
+    d = np.asarray(add_noise_jax(jax.random.PRNGKey(0), v, f, "scanner", 0.3, view=view)) - v
+    unit = view / 3.0
+    assert np.abs(d - np.outer(d @ unit, unit)).max() < 1e-12
+    # Drawn views differ between keys and are uniform enough to cover both hemispheres.
+    views = []
+    for i in range(40):
+        disp, drawn = noise.scanner_displacement(
+            noise.host_rng(jax.random.PRNGKey(i)), v, f, 0.3, 1.0
+        )
+        assert np.abs(disp - np.outer(disp @ drawn, drawn)).max() < 1e-12
+        views.append(drawn)
+    views = np.array(views)
+    np.testing.assert_allclose(np.linalg.norm(views, axis=1), 1.0)
+    assert (views[:, 2] > 0).sum() >= 10 and (views[:, 2] < 0).sum() >= 10
+
+
+def test_scanner_correlation_is_strong_over_rings_and_fades_by_sixteen():
+    """On a flat grid seen head-on (no grazing gain), correlation against edge distance."""
+    v, f = _grid(120)
+    model = noise.ScannerModel(spike_share=0.0, quant_step=0.0)
+    s = []
+    for seed in range(6):
+        d = np.asarray(
+            add_noise_jax(
+                jax.random.PRNGKey(seed),
+                v,
+                f,
+                "scanner",
+                1.0,
+                units="edge",
+                view=(0, 0, 1),
+                scanner=model,
+            )
+        )
+        s.append(d[:, 2] - v[:, 2])
+    s = np.stack(s)  # [seed, vertex]
+    rng = np.random.default_rng(0)
+    i = rng.integers(0, v.shape[0], 40000)
+    j = rng.integers(0, v.shape[0], 40000)
+    r = np.linalg.norm(v[i] - v[j], axis=1) / mean_edge_length(v, f)
+
+    def corr(lo, hi):
+        m = (r >= lo) & (r < hi)
+        return np.corrcoef(s[:, i[m]].ravel(), s[:, j[m]].ravel())[0, 1]
+
+    # Gaussian kernel of length 6 edges (mean edge of this grid 1.14, so r in edges):
+    # white share 0.15 caps it at 0.85; 4 rings ~0.68, 8 ~0.35, 16 ~0.03.
+    assert corr(3.0, 5.0) > 0.5
+    assert corr(7.0, 9.0) > 0.2
+    assert abs(corr(15.0, 18.0)) < 0.12
+
+
+def test_smooth_field_has_the_gaussian_kernel_correlation():
+    """Over many generators, E[f(x) f(y)] = exp(−r² / 2ℓ²) (independent of the code's
+    normalisation per mesh: the raw random Fourier features)."""
+    points = np.array([[0.0, 0, 0], [1.0, 0, 0], [0, 2.0, 0], [0, 0, 4.0]])
+    draws = np.stack(
+        [noise.smooth_field(np.random.default_rng(k), points, 2.0, 128) for k in range(2000)]
+    )
+    for j, r in ((1, 1.0), (2, 2.0), (3, 4.0)):
+        assert np.mean(draws[:, 0] * draws[:, j]) == pytest.approx(np.exp(-(r**2) / 8.0), abs=0.04)
+    np.testing.assert_allclose(np.mean(draws**2, axis=0), 1.0, atol=0.06)
+
+
+def test_scanner_noise_grows_at_grazing_angles():
+    v, f = icosphere(4)
+    view = np.array([0.0, 0.0, 1.0])
+    model = noise.ScannerModel(spike_share=0.0, quant_step=0.0)
+    facing = np.abs(noise.vertex_normals_np(v, f) @ view)
+    head_on, grazing = [], []
+    for seed in range(4):
+        d = (
+            np.asarray(
+                add_noise_jax(
+                    jax.random.PRNGKey(seed), v, f, "scanner", 0.5, view=view, scanner=model
+                )
+            )[:, 2]
+            - v[:, 2]
+        )
+        head_on.append(d[facing > 0.9])
+        grazing.append(d[facing < 0.4])
+    ratio = np.sqrt(np.mean(np.concatenate(grazing) ** 2) / np.mean(np.concatenate(head_on) ** 2))
+    # The gain is 1 / max(|cos|, 1/2): 2 below cos 0.5, 1/0.95 on average head-on.
+    assert 1.5 < ratio < 2.6
+
+
+def test_scanner_noise_quantises_depth():
+    v, f = icosphere(3)
+    view = np.array([0.0, 0.6, 0.8])
+    model = noise.ScannerModel(quant_step=0.5, quant_growth=0.0)
+    h = mean_edge_length(v, f)
+    noisy = np.asarray(
+        add_noise_jax(
+            jax.random.PRNGKey(2), v, f, "scanner", 0.4, units="edge", view=view, scanner=model
+        )
+    )
+    steps = noisy @ view / (0.5 * 0.4 * h)
+    np.testing.assert_allclose(steps, np.round(steps), atol=1e-6)
+    # With growth, far points get coarser steps than near ones; rms still ≈ level.
+    d = (
+        np.asarray(
+            add_noise_jax(jax.random.PRNGKey(2), v, f, "scanner", 0.4, units="edge", view=view)
+        )
+        - v
+    )
+    assert np.sqrt(np.mean(np.sum(d * d, axis=1))) == pytest.approx(0.4 * h, rel=0.3)
+
+
+def test_scanner_zero_level_units_and_dtype():
+    v, f = icosphere(2)
+    key = jax.random.PRNGKey(5)
+    np.testing.assert_array_equal(np.asarray(add_noise_jax(key, v, f, "scanner", 0.0)), v)
+    # Canonical units: the rms is level x the longest bounding-box side.
+    d = np.asarray(add_noise_jax(key, v * 10.0, f, "scanner", 0.01)) - v * 10.0
+    assert np.sqrt(np.mean(np.sum(d * d, axis=1))) == pytest.approx(0.01 * 20.0, rel=0.3)
+    out = np.asarray(add_noise_jax(key, v.astype(np.float32), f, "scanner", 0.01))
+    assert out.dtype == np.float32
+
+
+def test_scanner_bad_arguments():
+    v, f = icosphere(1)
+    key = jax.random.PRNGKey(0)
+    for view in ((0, 0, 0), (1, 2), (np.nan, 0, 1), "up"):
+        with pytest.raises(ValueError, match="view"):
+            add_noise_jax(key, v, f, "scanner", 0.1, view=view)
+    with pytest.raises(ValueError, match="faces"):
+        add_noise_jax(key, v, None, "scanner", 0.1)
+    with pytest.raises(ValueError, match="view"):
+        add_noise_jax(key, v, f, "gaussian", 0.1, view=(0, 0, 1))
+    with pytest.raises(ValueError, match="direction"):
+        add_noise_jax(key, v, f, "scanner", 0.1, direction="normal")
+    with pytest.raises(ValueError, match="finite"):
+        add_noise_jax(
+            key, np.where(np.arange(v.shape[0])[:, None] == 0, np.nan, v), f, "scanner", 0.1
+        )
+    with pytest.raises(ValueError, match="white_share"):
+        add_noise_jax(key, v, f, "scanner", 0.1, scanner=noise.ScannerModel(white_share=2.0))
+    with pytest.raises(ValueError, match="per coordinate"):
+        noise.unit_noise(key, v.shape, "scanner")
+
+
+def test_sampler_mixes_in_scanner_samples():
+    specs = [sample_noise_spec(jax.random.PRNGKey(i), p_scanner=0.3) for i in range(200)]
+    scanner = [s for s in specs if s.kind == "scanner"]
+    assert 0.2 < len(scanner) / len(specs) < 0.4
+    assert all(s.units == "edge" and s.level in SCANNER_LEVELS for s in scanner)
+    # The other draws are those the sampler makes without p_scanner.
+    for i, s in enumerate(specs):
+        if s.kind != "scanner":
+            assert s == sample_noise_spec(jax.random.PRNGKey(i))
+    only = {sample_noise_spec(jax.random.PRNGKey(i), kinds=["scanner"]) for i in range(30)}
+    assert {s.level for s in only} == set(SCANNER_LEVELS)
+    with pytest.raises(ValueError, match="p_scanner"):
+        sample_noise_spec(jax.random.PRNGKey(0), p_scanner=1.5)
+
+
+def test_add_mixed_noise_passes_the_view_to_scanner_draws():
+    v, f = icosphere(2)
+    view = np.array([0.0, 1.0, 0.0])
+    noisy, spec = add_mixed_noise(jax.random.PRNGKey(1), v, f, kinds=["scanner"], view=view)
+    assert spec.kind == "scanner"
+    d = np.asarray(noisy) - v
+    assert np.abs(d[:, [0, 2]]).max() < 1e-12 and np.abs(d[:, 1]).max() > 0
+
+
+def test_cli_add_noise_takes_the_scanner_kind(tmp_path, capsys):
+    import dmd_jax
+    from dmd_jax.cli import main
+    from dmd_jax.io import load_mesh, save_mesh
+
+    v, f = icosphere(2)
+    save_mesh(tmp_path / "clean.obj", v, f)
+    args = ["add-noise", str(tmp_path / "clean.obj"), "-o", str(tmp_path / "scan.obj")]
+    assert (
+        main([*args, "--kind", "scanner", "--level", "0.5", "--units", "edge", "--seed", "2"]) == 0
+    )
+    assert "scanner" in capsys.readouterr().out
+    out, f2 = load_mesh(tmp_path / "scan.obj")
+    np.testing.assert_array_equal(f2, f)
+    clean, _ = load_mesh(tmp_path / "clean.obj")
+    ref = dmd_jax.add_noise(2, clean, f, "scanner", 0.5, units="edge")
+    np.testing.assert_allclose(out, ref, rtol=0, atol=1e-15)
+
+
+def test_pipeline_draws_scanner_samples_and_follows_an_example_view():
+    from dmd_jax.config import NoiseConfig
+    from dmd_jax.pipeline import corrupt
+
+    assert NoiseConfig().kinds == PAPER_NOISE_KINDS and NoiseConfig().p_scanner == 0.0
+    with pytest.raises(ValueError, match="p_scanner"):
+        NoiseConfig(p_scanner=1.5)
+    with pytest.raises(ValueError, match="scanner levels"):
+        NoiseConfig(scanner_levels=(0.3, -1.0))
+    v, f = icosphere(2)
+    cfg = NoiseConfig(p_scanner=1.0, scanner_levels=(0.4,))
+    _, _, spec = corrupt(jax.random.PRNGKey(0), v, f, rotate=True, noise=cfg)
+    assert spec == NoiseSpec("scanner", 0.4, "edge")
+    # An example's view is rotated with the mesh: the displacement stays along it.
+    view = np.array([0.0, 0.0, 1.0])
+    noisy, clean, spec = corrupt(
+        jax.random.PRNGKey(1), v, f, rotate=False, noise=NoiseConfig(), view=view
+    )
+    assert spec.kind == "scanner" and spec.level in SCANNER_LEVELS
+    d = noisy - clean
+    assert np.abs(d[:, :2]).max() < 1e-9 and np.abs(d[:, 2]).max() > 0

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from dmd_jax.cli._common import MESH_SUFFIXES, _check_output, _load_input, _make_parent
+from dmd_jax.constants import NOISE_KINDS
 
 
 def _cmd_add_noise(args: argparse.Namespace) -> int:
@@ -51,8 +52,9 @@ def add_parser(sub) -> None:
     p.add_argument(
         "--kind",
         default="gaussian",
-        choices=["gaussian", "uniform", "gamma", "impulse"],
-        help="noise distribution per coordinate (dmd_jax.noise explains each)",
+        choices=NOISE_KINDS,
+        help="noise distribution per coordinate, or scanner: depth-sensor noise along a "
+        "view drawn from --seed (dmd_jax.noise explains each)",
     )
     p.add_argument(
         "--level",

@@ -15,7 +15,13 @@ from typing import Any
 from flax import struct
 
 from dmd_jax.config.codec import _ConfigMixin
-from dmd_jax.constants import ENCODINGS, FILTER_RANGE_SIGMAS, NOISE_KINDS, local_dims
+from dmd_jax.constants import (
+    ENCODINGS,
+    FILTER_RANGE_SIGMAS,
+    NOISE_KINDS,
+    PAPER_NOISE_KINDS,
+    local_dims,
+)
 
 VARIANT_NAMES = ("fgt8", "fgt3", "wo_t", "mt", "do_2s", "do_1s", "fgt_1s")
 SCHEMES = ("joint", "alter", "two_phase", "u_fe")
@@ -471,14 +477,20 @@ class NoiseConfig(_ConfigMixin):
       p_normal: probability that an edge-relative draw is along the vertex normals (the
         benchmark protocol) instead of per coordinate.
       p_clean: probability of a clean input (level 0).
+      p_scanner: probability that a mesh gets the scanner kind (`noise.ScannerModel`:
+        depth-sensor noise along a drawn view) instead of a draw from `kinds`.
+      scanner_levels: the scanner kind's levels in mean edge lengths; `None` takes
+        `noise.SCANNER_LEVELS`.
     """
 
-    kinds: tuple[str, ...] = _static(NOISE_KINDS)
+    kinds: tuple[str, ...] = _static(PAPER_NOISE_KINDS)
     canonical_levels: tuple[tuple[str, tuple[float, ...]], ...] | None = _static(None)
     edge_levels: tuple[float, ...] | None = _static(None)
     p_edge: float = _static(0.5)
     p_normal: float = _static(0.0)
     p_clean: float = _static(0.0)
+    p_scanner: float = _static(0.0)
+    scanner_levels: tuple[float, ...] | None = _static(None)
 
     def __post_init__(self):
         _check(len(self.kinds) > 0, "noise kinds must not be empty")
@@ -490,7 +502,12 @@ class NoiseConfig(_ConfigMixin):
                 _check(len(levels) > 0 and all(x > 0 for x in levels), "levels must be > 0")
         if self.edge_levels is not None:
             _check(all(x > 0 for x in self.edge_levels), "edge levels must be > 0")
-        for name in ("p_edge", "p_normal", "p_clean"):
+        if self.scanner_levels is not None:
+            _check(
+                len(self.scanner_levels) > 0 and all(x > 0 for x in self.scanner_levels),
+                "scanner levels must be > 0",
+            )
+        for name in ("p_edge", "p_normal", "p_clean", "p_scanner"):
             value = getattr(self, name)
             _check(0.0 <= value <= 1.0, f"{name} must lie in [0, 1], got {value}")
 
