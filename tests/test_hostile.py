@@ -511,7 +511,7 @@ def test_case10_the_bounds_hold_every_preset():
 
 _SIGTERM_MID_WRITE = """
 import os, signal, sys, time
-import dmd_jax.io as io
+import dmd_jax.io.obj as io
 
 def rows_then_sigterm(fh, row, rows):
     fh.write("v 0 0 0\\n")  # half a file on disk, then `timeout` or `docker stop`

@@ -877,9 +877,9 @@ def test_save_mesh_and_weights_are_atomic(tmp_path, monkeypatch, bundle):
         fh.write("v 1 2")  # a partial file, then the disk fills
         raise OSError("disk full")
 
-    import dmd_jax.io
+    import dmd_jax.io.obj
 
-    monkeypatch.setattr(dmd_jax.io, "_write_rows", failing_rows)
+    monkeypatch.setattr(dmd_jax.io.obj, "_write_rows", failing_rows)
     for name in ("new.obj", "kept.obj"):
         with pytest.raises(OSError, match="disk full"):
             save_mesh(tmp_path / name, TET_V * 2, TET_F, overwrite=True)

@@ -1,0 +1,132 @@
+"""What every format shares: the reader's result, text decoding, fan triangulation, the
+row writer of the text formats, and the checked read and atomic write of a file."""
+
+from __future__ import annotations
+
+import os
+import stat
+import tempfile
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+_BOM = b"\xef\xbb\xbf"  # the UTF-8 byte-order mark
+
+
+class _MeshText(NamedTuple):
+    """What a reader found: vertices, triangulated faces and how many were polygons."""
+
+    vertices: np.ndarray  # [n_vertex, 3] float64
+    faces: np.ndarray  # [n_face, 3] int64
+    n_polygons: int
+
+
+def _fan(corners: list[int], out: list[int]) -> None:
+    """Appends the fan triangulation `(c0, c_i, c_i+1)` of one face to a flat list."""
+    c0 = corners[0]
+    for i in range(1, len(corners) - 1):
+        out += (c0, corners[i], corners[i + 1])
+
+
+def _text_of(data: bytes, name: str) -> str:
+    """The text of an OBJ or OFF file; NUL bytes mean it is not text at all."""
+    if b"\0" in data:
+        raise ValueError(f"{name}: binary data in a text mesh format (corrupt file?)")
+    # Numbers are ASCII; anything else can only sit in comments and names, so bytes that
+    # are not UTF-8 (a Latin-1 comment, say) must not stop the file from loading.
+    # Windows editors start UTF-8 files with a byte-order mark: glued to the first
+    # keyword it would hide that statement (an OBJ's first `v` line, say).
+    return data.removeprefix(_BOM).decode("utf-8", errors="replace")
+
+
+def check_readable_file(path, what: str = "mesh file") -> None:
+    """Refuses, with the reason, a path that is not a regular file one can read.
+
+    Says which of the look-alikes of "no such file" it is: a directory, a FIFO or
+    device (reading one could block for ever), a symlink loop or a dangling symlink.
+    `what` names the expected file in the messages.
+
+    Raises:
+      FileNotFoundError: nothing there, or a symlink to nothing.
+      ValueError: a directory, or not a regular file.
+      OSError: the path cannot be examined (a symlink loop, no permission).
+    """
+    path = Path(path)
+    try:
+        info = path.stat()
+    except FileNotFoundError:
+        if path.is_symlink():
+            raise FileNotFoundError(
+                f"{path}: a symbolic link to {os.readlink(path)}, which does not exist"
+            ) from None
+        raise FileNotFoundError(f"{path}: no such {what}") from None
+    except OSError as exc:  # ELOOP (a symlink loop), EACCES on a folder, ENAMETOOLONG
+        raise OSError(exc.errno, f"{path}: cannot open it ({exc.strerror})") from None
+    if stat.S_ISDIR(info.st_mode):
+        raise ValueError(f"{path}: is a directory, not a {what}")
+    if not stat.S_ISREG(info.st_mode):
+        kind = "a FIFO (named pipe)" if stat.S_ISFIFO(info.st_mode) else "not a regular file"
+        raise ValueError(f"{path}: is {kind}; save the {what} to a regular file first")
+
+
+def atomic_write(path, write_fn, *, overwrite: bool = False, protect=()) -> Path:
+    """Writes a file by `write_fn(tmp_path)` then renames it into place.
+
+    Args:
+      path: destination.
+      write_fn: callable that writes the whole file to the temporary path it is given.
+      overwrite: replace an existing file; without it an existing file is an error.
+      protect: paths that must never be written (the user's inputs).
+    """
+    path = Path(path)
+    for p in protect:
+        if Path(p).exists() and path.exists() and os.path.samefile(p, path):
+            raise ValueError(f"{path}: refusing to overwrite the input file")
+        if Path(p).resolve() == path.resolve():
+            raise ValueError(f"{path}: refusing to overwrite the input file")
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"{path}: already exists (pass overwrite=True / --overwrite)")
+    if not path.parent.is_dir():
+        raise FileNotFoundError(f"{path.parent}: output directory does not exist")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        write_fn(tmp)
+        # mkstemp creates 0600 files; give the result the permissions a plain open() would.
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def write_text_atomic(path, text: str) -> Path:
+    """Replaces `path` with `text` atomically (a report, a log summary, a JSON file).
+
+    Args:
+      path: destination; its folder must exist. An existing file is replaced.
+      text: the whole content.
+    """
+    return atomic_write(path, lambda tmp: Path(tmp).write_text(text), overwrite=True)
+
+
+# Rows per formatting call of the text writers: big enough that the per-call overhead
+# vanishes, small enough that the text of one block stays a few tens of MB.
+_WRITE_BLOCK = 1 << 18
+
+
+def _write_rows(fh, row: str, rows: np.ndarray) -> None:
+    """Writes `row % tuple(r)` for every row, a block at a time.
+
+    `%r` of a Python float is its shortest repr, which reads back as the same float64
+    (every finite value, 1e-300 and 1e300 alike); one `%` over a whole block keeps the
+    formatting in C.
+    """
+    for s in range(0, len(rows), _WRITE_BLOCK):
+        block = rows[s : s + _WRITE_BLOCK]
+        fh.write((row * len(block)) % tuple(block.ravel().tolist()))

@@ -1,0 +1,88 @@
+"""Wavefront OBJ: its `v` and `f` statements, read and written."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from dmd_jax.io._files import _fan, _MeshText, _text_of, _write_rows
+
+
+def _read_obj(data: bytes, name: str) -> _MeshText:
+    """Reads the `v` and `f` statements of a Wavefront OBJ file; everything else is ignored.
+
+    Keeps every vertex in file order (unused ones too, which trimesh drops when faces
+    carry texture or normal indices), resolves negative (relative) indices, and names
+    the line of any malformed statement.
+    """
+    text = _text_of(data, name)
+    if "\\" in text:
+        text = text.replace("\\\r\n", " ").replace("\\\n", " ")  # continuation lines
+    coords: list[tuple[float, float, float]] = []
+    flat: list[int] = []
+    n_poly = 0
+    max_index, max_line = 0, 0
+    for lineno, line in enumerate(text.splitlines(), 1):
+        s = line.lstrip()
+        if not s.startswith(("v ", "v\t", "f ", "f\t")):
+            continue
+        parts = s.split("#", 1)[0].split()
+        if parts[0] == "v":
+            if len(parts) < 4:
+                raise ValueError(
+                    f"{name}: line {lineno}: a vertex needs 3 coordinates, got {len(parts) - 1}"
+                )
+            try:
+                coords.append((float(parts[1]), float(parts[2]), float(parts[3])))
+            except ValueError:
+                raise ValueError(
+                    f"{name}: line {lineno}: vertex coordinates are not numbers: "
+                    f"{' '.join(parts[1:4])[:60]!r}"
+                ) from None
+            continue
+        tokens = parts[1:]
+        if len(tokens) < 3:
+            raise ValueError(
+                f"{name}: line {lineno}: a face needs at least 3 vertices, got {len(tokens)}"
+            )
+        corners = []
+        for token in tokens:
+            try:
+                i = int(token.split("/", 1)[0])
+            except ValueError:
+                raise ValueError(
+                    f"{name}: line {lineno}: face index {token[:30]!r} is not an integer"
+                ) from None
+            if i > 0:
+                if i > max_index:
+                    max_index, max_line = i, lineno
+                corners.append(i - 1)
+            elif i < 0:
+                if -i > len(coords):
+                    raise ValueError(
+                        f"{name}: line {lineno}: relative face index {i} points before the "
+                        f"first vertex ({len(coords)} vertices so far)"
+                    )
+                corners.append(len(coords) + i)
+            else:
+                raise ValueError(
+                    f"{name}: line {lineno}: face index 0 is invalid (OBJ indices start at 1)"
+                )
+        n_poly += len(corners) > 3
+        _fan(corners, flat)
+    if max_index > len(coords):
+        raise ValueError(
+            f"{name}: line {max_line}: face index {max_index} is out of range for the "
+            f"file's {len(coords)} vertices (OBJ indices start at 1)"
+        )
+    return _MeshText(
+        np.array(coords, np.float64).reshape(-1, 3),
+        np.array(flat, np.int64).reshape(-1, 3),
+        n_poly,
+    )
+
+
+def _write_obj(tmp, v: np.ndarray, f: np.ndarray) -> None:
+    with open(tmp, "w", encoding="ascii", newline="\n") as fh:
+        fh.write(f"# dmd_jax: {len(v)} vertices, {len(f)} faces\n")
+        _write_rows(fh, "v %r %r %r\n", v)
+        _write_rows(fh, "f %d %d %d\n", f.astype(np.int64) + 1)
