@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
 PYTEST_WORKERS ?= 2
 
-.PHONY: install test test-slow lint format bench bench-inference bench-inference-scale bench-training ablate ablate-quick ablate-smoke ablate-gpu bench-device sota demo sota-lite calibrate
+.PHONY: install test test-slow lint format bench bench-inference bench-inference-scale bench-training ablate ablate-quick ablate-smoke ablate-gpu bench-device sota demo sota-lite
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -76,12 +76,6 @@ demo: $(STAMP)
 # Every mesh of ../shared/meshes at 3 noise levels; writes benchmarks/results/sota_lite.{md,csv}.
 sota-lite: $(STAMP)
 	$(BIN)/python benchmarks/quality/sota_lite.py $(if $(WEIGHTS),--weights $(WEIGHTS))
-
-# Fits the weights' DenoisePolicy (pass tolerance, pre-smoothing rule) on the validation
-# split (dmd_jax.calibrate; ~20 min on 2 cores): benchmarks/results/pass_tolerance.md and
-# presmooth_fit.md, the fitted policy printed; OUT=path also writes the weights with it.
-calibrate: $(STAMP)
-	$(BIN)/python benchmarks/quality/calibrate.py $(if $(WEIGHTS),--weights $(WEIGHTS)) $(if $(OUT),--out $(OUT))
 
 # Executes the notebook scripts notebooks/NN_*.py (percent format, the only source); the
 # executed notebooks go to notebooks/executed/ (git-ignored).

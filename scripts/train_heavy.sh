@@ -3,7 +3,7 @@
 # heavy (0.4-0.8 edges) and impulsive noise, clean draws kept, then scored on the
 # validation split (sota-lite, DMD-Net rows only; the other methods' rows reused from
 # benchmarks/results/sota_lite.csv) and on clean meshes (no_harm), each with the bundled
-# policy (learned pre-smoothing, pass tolerance). Each training command resumes its workdir.
+# policy (pass tolerance, pre-smoothing rule). Each training command resumes its workdir.
 #
 #   scripts/train_heavy.sh [OUT]    # OUT (default runs/heavy) gets runs, weights, reports
 #
@@ -29,6 +29,6 @@ HEAVY=('noise.kinds=["gaussian","gaussian","impulse","impulse","uniform","gamma"
 "${TRAIN[@]}" --workdir "$OUT/heavy" --init-from dmd_jax/weights/dmd_small.msgpack \
   --set train.steps=2500 train.lr=1.5e-4 "${LAST_FINETUNE[@]}" "${HEAVY[@]}" ${EXTRA:-}
 
-# The checkpoint with the bundled weights' policy (learned pre-smoothing, tolerance).
+# The checkpoint with the bundled weights' policy (pass tolerance, pre-smoothing rule).
 score_run "$OUT" heavy --policy-from dmd_jax/weights/dmd_small.msgpack
 echo "reports in $OUT: val_*.md (compare with benchmarks/results/sota_lite.md, set val), no_harm_*.md"

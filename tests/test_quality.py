@@ -6,9 +6,8 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
-import numpy as np
 import pytest
-from conftest import REPO, icosphere, shared_mesh_path
+from conftest import REPO, shared_mesh_path
 from test_inference import TINY_CONFIG, tiny_params
 
 from benchmarks.common import BUNDLED, file_sha256, provenance
@@ -189,40 +188,6 @@ def test_every_report_writer_states_its_provenance():
         assert "write_report(" in text or "provenance(" in text, path.name
 
 
-def test_calibrate_script_refits_from_its_csvs(tmp_path, weights):
-    """`make calibrate --reuse` path: the two CSVs in, reports and fitted weights out."""
-    from benchmarks.common import write_csv
-    from benchmarks.quality import calibrate as script
-    from dmd_jax import calibrate as cal
-
-    p_rows = [
-        ["m.obj", 100, lv, 0, 5.0 + lv, 5.0 + 2 * lv - 0.5 * (lv > 0.15), 0.6 * lv, 0.1]
-        for lv in cal.PASS_LEVELS
-    ]
-    write_csv(tmp_path / "pass_tolerance.csv", cal.PASS_HEADER, p_rows)
-    s_rows = [
-        ["m.obj", 100, cal.condition_name(d, lv), 0, 20.0 + 10 * lv, 9.0]
-        + [float(abs(k - round(lv))) for k in range(len(script.PRESMOOTH_CSV_HEADER) - 6)]
-        for d, lv in cal.PRESMOOTH_CONDITIONS
-    ]
-    blank = [""] * (len(script.PRESMOOTH_CSV_HEADER) - 5)
-    write_csv(
-        tmp_path / "presmooth_fit.csv",
-        script.PRESMOOTH_CSV_HEADER,
-        s_rows + [["m.obj", "", "clean", "", 5.0, *blank]],
-    )
-    out = tmp_path / "fitted.msgpack"
-    argv = ["--reuse", "--results", str(tmp_path), "--weights", str(weights), "--out", str(out)]
-    assert script.main(argv) == 0
-    fitted = checkpoints.load_weights(out)
-    assert fitted.policy.pass_tolerance in cal.TOLERANCES and fitted.policy.max_passes > 1
-    assert fitted.policy.presmooth_start in cal.STARTS
-    report = (tmp_path / "pass_tolerance.md").read_text()
-    assert f"**{fitted.policy.pass_tolerance:.2f}**" in report
-    assert f"(SHA-256 `{file_sha256(weights)}`)" in report
-    assert "Chosen rule" in (tmp_path / "presmooth_fit.md").read_text()
-
-
 def test_sota_lite_per_shape_and_region_tables_from_rows():
     from benchmarks.quality import sota_lite
 
@@ -247,132 +212,3 @@ def test_sota_lite_per_shape_and_region_tables_from_rows():
     # Only a.obj is CAD: crease 5.5 against CNR's 5.0, flat 0.5 against BNF's 1.0.
     assert "| shared | 0.2 | 1 | 5.50 | 5.00 (CNR) | +0.50 | 0.50 | 1.00 (BNF) | -0.50 |" in regions
     assert "CAD meshes: `shared`: a.obj." in regions
-
-
-def test_policy_headroom_strategies_from_rows():
-    from benchmarks.quality import policy_headroom as ph
-
-    R = ph.RULE
-
-    def rows(mesh, errs, rule=(2, 1)):
-        # errs: {(presmooth, passes): error}; the policy's own row is (rule, rule).
-        return [[mesh, "gaussian", 0.2, 7, p, k, e, *rule] for (p, k), e in errs.items()]
-
-    data = rows("a.obj", {(R, R): 4.0, (0, R): 3.0, (4, R): 5.0, (R, 2): 2.0}) + rows(
-        "b.obj", {(R, R): 6.0, (0, R): 6.5, (4, R): 1.0, (R, 2): 7.0}, rule=(0, 1)
-    )
-    s = ph.strategies(data)
-    a, b = ("a.obj", "gaussian", 0.2, 7), ("b.obj", "gaussian", 0.2, 7)
-    assert s["policy"] == {a: 4.0, b: 6.0}
-    # Constant settings: (0, rule) sums 9.5, (4, rule) 6.0, (rule, 2) 9.0.
-    assert s["best constant (presmooth 4, passes rule)"] == {a: 5.0, b: 1.0}
-    assert s["oracle pre-smoothing"] == {a: 3.0, b: 1.0}
-    assert s["oracle passes"] == {a: 2.0, b: 6.0}
-    assert s["oracle both"] == {a: 2.0, b: 1.0}
-    table = ph.summary_table(s, {a: 2.0, b: 2.0})
-    # The policy's ratios 2 and 3: geometric mean sqrt(6); neither within 5 %.
-    assert "| policy | 5.00 / 2.449 / 0 % | 5.00 / 2.449 / 0 % |" in table
-    assert "| oracle both | 1.50 / 0.707 / 100 % |" in table
-    with pytest.raises(ValueError, match="no other denoiser"):
-        ph.summary_table(s, {a: 2.0})
-    chosen = ph.chosen_table(data)
-    # The oracle's pre-smoothing: a 0 (rule 2), b 4 (rule 0); passes a 2, b 1 (rule).
-    assert "| 0.2 | 2 | 1.0 | 2.0 | 0 / 2 | 1.0 | 1.5 |" in chosen
-
-
-def test_policy_headroom_on_one_mesh(tmp_path, weights):
-    import csv
-
-    from benchmarks.common import write_csv
-    from benchmarks.quality import policy_headroom as ph
-
-    mesh = shared_mesh_path("decimated-knight.off")
-    folder = tmp_path / "meshes"
-    folder.mkdir()
-    (folder / mesh.name).symlink_to(mesh)
-    cond = protocol.parse_condition("0.2")
-    seed = protocol.condition_seed(mesh.name, cond)
-    reference = tmp_path / "ref.csv"
-    header = ["set", "mesh", "level", "seed", "method", "normal_deg", "noise"]
-    write_csv(reference, header, [["shared", mesh.name, 0.2, seed, "bnf", 5.0, "gaussian"]])
-    argv = ["--set", "shared", "--meshes", str(folder), "--weights", str(weights)]
-    argv += ["--reference", str(reference), "--conditions", "0.2", "--out-dir", str(tmp_path)]
-    assert ph.main([*argv, "--presmooth", "0", "3", "--passes", "1", "2"]) == 0
-    with open(tmp_path / "policy_headroom.csv") as fh:
-        rows = list(csv.DictReader(fh))
-    assert [(r["presmooth"], r["passes"]) for r in rows] == [
-        ("rule", "rule"),
-        ("0", "rule"),
-        ("3", "rule"),
-        ("rule", "1"),
-        ("rule", "2"),
-    ]
-    # A fixed count equal to the policy's gives the policy's result.
-    rule = rows[0]
-    for r in rows[1:]:
-        if r["presmooth"] == rule["rule_presmooth"] or r["passes"] == rule["rule_passes"]:
-            assert float(r["normal_deg"]) == pytest.approx(float(rule["normal_deg"]), abs=1e-4)
-    report = (tmp_path / "policy_headroom.md").read_text()
-    assert f"(SHA-256 `{file_sha256(weights)}`)" in report
-    assert "| oracle both |" in report and "| policy |" in report
-    # The tables again from the CSV; a reference without the case is an error.
-    assert ph.main([*argv, "--reuse"]) == 0
-    write_csv(reference, header, [["shared", "other.obj", 0.2, seed, "bnf", 5.0, "gaussian"]])
-    assert ph.main([*argv, "--reuse"]) == 2
-
-
-def test_review_variants_refit_the_bundled_review(tmp_path):
-    # Refitted from the committed review CSVs, the two-stage review scores on the
-    # validation split what `review_learn.py` reported for the bundled one.
-    from benchmarks.common import RESULTS_DIR
-    from benchmarks.quality import review_variants
-
-    assert review_variants.main(["--out-dir", str(tmp_path)]) == 0
-    ours = (tmp_path / "review_variants.md").read_text()
-    bundled = next(
-        line
-        for line in (RESULTS_DIR / "review_learn.md").read_text().splitlines()
-        if line.startswith("| with the review |")
-    )
-    cells = bundled.split("|")[2:-1]
-    assert (
-        f"| bundled review (two stages, nearest neighbours, output features) |{'|'.join(cells)}|"
-        in ours
-    )
-    assert ours.count("\n| ridge") == 12 and ours.count("\n| one stage") == 3
-
-
-def test_face_gate_learns_which_field_a_feature_favours():
-    # Two fields; the second is the better one exactly where the feature is positive.
-    from benchmarks.quality import face_gate as fg
-
-    rng = np.random.default_rng(0)
-    cases = []
-    for _ in range(4):
-        x = rng.standard_normal((500, 1))
-        errors = np.where(x > 0, [[5.0, 1.0]], [[1.0, 5.0]]) + rng.uniform(0, 0.1, (500, 2))
-        cases.append({"features": x, "errors": errors})
-    center, scale = np.zeros(1), np.ones(1)
-    w = fg.fit_gate(cases, center, scale)
-    probe = fg._design(np.array([[-2.0], [-0.5], [0.5], [2.0]]), center, scale)
-    assert (probe @ w).argmax(1).tolist() == [0, 0, 1, 1]
-
-
-def test_face_gate_roughness_against_brute_force():
-    from benchmarks.quality import face_gate as fg
-    from dmd_jax.mesh import face_normals_np
-    from dmd_jax.topology import face_adjacency
-
-    v, f = icosphere(1)
-    v = v + 0.05 * np.random.default_rng(1).standard_normal(v.shape)
-    n = face_normals_np(v, f)
-    a, b = face_adjacency(f, v.shape[0])
-    mean, largest = fg._roughness(n, a, b, f.shape[0])
-    for face in range(f.shape[0]):
-        others = [int(j) for i, j in zip(a, b, strict=True) if i == face] + [
-            int(i) for i, j in zip(a, b, strict=True) if j == face
-        ]
-        angles = [np.degrees(np.arccos(np.clip(n[face] @ n[j], -1, 1))) for j in others]
-        assert len(others) == 3
-        np.testing.assert_allclose(mean[face], np.mean(angles), rtol=1e-9)
-        np.testing.assert_allclose(largest[face], np.max(angles), rtol=1e-9)
