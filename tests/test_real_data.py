@@ -8,7 +8,7 @@ from conftest import icosphere
 from scipy.sparse.csgraph import connected_components
 
 from dmd_jax.data import real
-from dmd_jax.data.shapes import decimate
+from dmd_jax.data.repair import decimate
 from dmd_jax.io import save_mesh
 
 

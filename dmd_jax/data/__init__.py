@@ -1,9 +1,10 @@
 """Training data: procedural shape categories and on-disk mesh datasets.
 
 `shapes` generates the categories (the project's stand-in for ShapeNet, which cannot be
-downloaded here); `dataset` writes and reads datasets with the paper's train /
-test-intra / test-inter splits, and indexes or converts folders of meshes laid out as
-`category/*.obj|off|ply` (ShapeNetCore's layout included).
+downloaded here); `repair` cleans, remeshes, decimates and checks meshes, for the
+generator and for meshes read from disk; `dataset` writes and reads datasets with the
+paper's train / test-intra / test-inter splits, and indexes or converts folders of
+meshes laid out as `category/*.obj|off|ply` (ShapeNetCore's layout included).
 """
 
 from dmd_jax.data.dataset import (
@@ -19,15 +20,8 @@ from dmd_jax.data.dataset import (
     make_dataset,
     process_mesh,
 )
-from dmd_jax.data.shapes import (
-    CATEGORIES,
-    CategoryInfo,
-    category_info,
-    clean_mesh,
-    generate_shape,
-    mesh_problems,
-    remesh,
-)
+from dmd_jax.data.repair import clean_mesh, mesh_problems, remesh
+from dmd_jax.data.shapes import CATEGORIES, CategoryInfo, category_info, generate_shape
 
 __all__ = [
     "CATEGORIES",

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 from scipy.sparse.csgraph import breadth_first_order
 
-from dmd_jax.data.shapes import decimate
+from dmd_jax.data.repair import decimate
 from dmd_jax.io import SUPPORTED_EXTENSIONS as MESH_SUFFIXES
 from dmd_jax.io import load_mesh
 from dmd_jax.topology import face_adjacency_matrix
