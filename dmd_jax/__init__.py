@@ -39,6 +39,7 @@ _EXPORTS = {
     "save_mesh": "dmd_jax.io",
     # The short path of the README: noise with an int seed, any denoiser, the metrics.
     "add_noise": "dmd_jax.api",
+    "simulate_scan": "dmd_jax.scan",
     "denoise_with": "dmd_jax.api",
     "mesh_metrics": "dmd_jax.metrics",
     "metrics_table": "dmd_jax.metrics",
