@@ -15,13 +15,17 @@ Runs with the same training hash (equal configs up to the name) train once, in t
 directory of the first of them in plan order, and the others reuse that model. A job is
 one training hash: train it (or resume, or find it finished), then evaluate every pending
 run that uses it. Jobs run in `workers` spawned processes.
+
+This module executes; what to run is planned in `experiments.studies` (the runs) and
+`experiments.planning` (the jobs and their packing into processes), and what a run is
+scored on lives in `experiments.evaluation`. The per-run files stay out of git
+(`.gitignore`): a results directory in the repository holds the summaries and plan.json.
 """
 
 from __future__ import annotations
 
 import concurrent.futures
 import functools
-import json
 import math
 import multiprocessing
 import os
@@ -37,18 +41,24 @@ from typing import Any
 import numpy as np
 
 from experiments import studies as st
+from experiments.evaluation import (
+    EVAL_SEED,
+    ensure_references,
+    evaluate_checkpoint,
+    noise_evaluation,
+    rotation_evaluation,
+)
+from experiments.planning import (
+    _read_json,
+    _spec_to_json,
+    _write_json,
+    job_programs,
+    make_jobs,
+    pack_jobs,
+    reuse_finished,
+)
 
-# The key of every evaluation's noise (and of the rotation test's rotations), the same
-# for every row and seed: all models are scored on the same noisy test meshes, so seed
-# spreads are the training's and differences pair mesh by mesh. (12345 is what
-# `dmd_jax.train.train` uses at seed 0.)
-EVAL_SEED = 12345
 CALIBRATION_FILE = "ablate-calibration.json"
-# Classic denoisers scored on every sweep's test meshes (reference rows of the tables):
-# Taubin is the issue's bar for the base model, BNF the strongest classic filter on our
-# real meshes (benchmarks/results/sota_lite.md).
-CLASSIC_REFERENCES = ("taubin", "bnf")
-REFERENCES_FILE = "references.json"
 CALIBRATION_MESHES = 64
 
 
@@ -107,18 +117,6 @@ def host_info() -> dict[str, Any]:
         "devices": [str(d) for d in jax.devices()],
         "xla_flags": os.environ.get("XLA_FLAGS", ""),
     }
-
-
-def _write_json(path: Path, data: Any) -> None:
-    """Writes JSON atomically (a reader never sees half a metrics.json)."""
-    from dmd_jax.io import write_text_atomic
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(path, json.dumps(data, indent=2, allow_nan=True) + "\n")
-
-
-def _read_json(path: Path) -> Any:
-    return json.loads(Path(path).read_text())
 
 
 # --------------------------------------------------------------------------------------
@@ -281,255 +279,9 @@ def ensure_calibration(data_dir, train_examples) -> dict:
 # --------------------------------------------------------------------------------------
 
 
-def _mean_dicts(rows: Sequence[dict]) -> dict:
-    if not rows:
-        return {}
-    return {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
-
-
-def sweep_scores(cfg, eval_sets, score: Callable) -> tuple[dict, dict]:
-    """Scores something on the noisy test meshes every row of a sweep is scored on.
-
-    The meshes are `evaluation_batches` of each split with `EVAL_SEED` and `cfg`'s
-    noise, rotation and encoding: the same for every row, seed and reference.
-
-    Args:
-      cfg: an `ExperimentConfig` (its noise, rotation and encoding).
-      eval_sets: `{"test_intra": [MeshExample], "test_inter": [...]}`.
-      score: `score(batches) -> [metrics dict per mesh]`.
-
-    Returns:
-      `(means, per_mesh)`: `<split>/<metric>` means and lists (one value per test mesh).
-    """
-    from dmd_jax.pipeline import evaluation_batches
-
-    means, per_mesh = {}, {}
-    for name, examples in eval_sets.items():
-        if not examples:
-            continue
-        batches = evaluation_batches(
-            examples,
-            seed=EVAL_SEED,
-            noise=cfg.noise,
-            rotate=cfg.train.rotate,
-            encoding=cfg.model.encoding,
-        )
-        for k, values in _columns_of(score(batches)).items():
-            per_mesh[f"{name}/{k}"] = values
-            means[f"{name}/{k}"] = float(np.mean(values))
-    return means, per_mesh
-
-
-def _columns_of(rows: Sequence[dict]) -> dict[str, list[float]]:
-    return {k: [float(r[k]) for r in rows] for k in rows[0]} if rows else {}
-
-
-def evaluate_checkpoint(cfg, checkpoint_dir, eval_sets) -> tuple[dict, dict]:
-    """The test metrics of a saved checkpoint, with the sweep's evaluation noise.
-
-    Returns:
-      `(means, per_mesh)`: `<split>/<metric>` means and lists (one value per test mesh),
-      as `multiseed.train_seeds` reports them.
-    """
-    from dmd_jax.checkpoints import load_params
-    from experiments.multiseed import eval_trainer, evaluate_per_mesh
-
-    params, _ = load_params(checkpoint_dir)
-    trainer = eval_trainer(cfg)  # the predictor every run of this model shares
-    return sweep_scores(cfg, eval_sets, lambda b: evaluate_per_mesh(trainer, params, b))
-
-
-def classic_references(cfg, eval_sets, methods: Sequence[str] = CLASSIC_REFERENCES) -> dict:
-    """Classic denoisers on the sweep's noisy test meshes, as reference rows of the tables.
-
-    The meshes are the ones every training-study row is scored on (`sweep_scores`), so
-    a study's rows can be read against, e.g., Taubin smoothing, not only against the
-    noisy input.
-
-    Args:
-      cfg: the sweep's base `ExperimentConfig`.
-      eval_sets: `{"test_intra": [MeshExample], "test_inter": [...]}`.
-      methods: `dmd_jax.api.denoise_with` method names, run at their defaults.
-
-    Returns:
-      `{method: {"<split>/<metric>": mean, ..., "per_mesh": {"<split>/<metric>": [...]}}}`.
-    """
-    from dmd_jax.api import denoise_with
-    from dmd_jax.metrics import mesh_metrics
-    from dmd_jax.pipeline import unpadded_mesh
-
-    def scorer(method):
-        def score(batches):
-            rows = []
-            for batch, _ in batches:
-                noisy, clean, faces = unpadded_mesh(batch)
-                rows.append(mesh_metrics(denoise_with(method, noisy, faces), clean, faces))
-            return rows
-
-        return score
-
-    out = {}
-    for method in methods:
-        means, per_mesh = sweep_scores(cfg, eval_sets, scorer(method))
-        out[method] = {**means, "per_mesh": per_mesh}
-    return out
-
-
-def untrained_reference(cfg, eval_sets) -> dict:
-    """The base config's network at initialisation, on the sweep's noisy test meshes.
-
-    With the normal-first head an untrained network is no identity: its zero-initialised
-    head averages the candidate normals (the noisy one and the bilateral pre-filtered
-    ones) and the vertex update follows them. This row shows what the fixed parts of the
-    model give before any training, i.e. what training itself buys. Empty for the
-    offset head (untrained, it returns the noisy input).
-
-    Returns:
-      `{"<split>/<metric>": mean, ..., "per_mesh": {...}}` like `classic_references`.
-    """
-    import jax
-
-    from dmd_jax.model import init_params
-    from experiments.multiseed import eval_trainer, evaluate_per_mesh
-
-    if cfg.model.head != "normal":
-        return {}
-    params = jax.jit(lambda key: init_params(cfg.model, key))(jax.random.PRNGKey(cfg.train.seed))
-    trainer = eval_trainer(cfg)
-
-    def score(batches):
-        rows = evaluate_per_mesh(trainer, params, batches)
-        return [{k: v for k, v in r.items() if not k.startswith("noisy_")} for r in rows]
-
-    means, per_mesh = sweep_scores(cfg, eval_sets, score)
-    return {**means, "per_mesh": per_mesh}
-
-
-def ensure_references(out_dir, cfg, eval_sets) -> dict:
-    """`classic_references` and `untrained_reference` (key `"untrained"`) of a sweep,
-    each computed once and kept in `out_dir`."""
-    path = Path(out_dir) / REFERENCES_FILE
-    refs = _read_json(path) if path.is_file() else {}
-    missing = [m for m in CLASSIC_REFERENCES if m not in refs]
-    if missing:
-        refs.update(classic_references(cfg, eval_sets, missing))
-    if "untrained" not in refs:
-        untrained = untrained_reference(cfg, eval_sets)
-        if untrained:
-            refs["untrained"] = untrained
-    _write_json(path, refs)
-    return refs
-
-
-def noise_evaluation(bundle, examples, kind: str, level: float, *, seed: int = EVAL_SEED):
-    """The noise table's row `(kind, level)`: mean metrics of the denoised meshes and of
-    the noisy input ("reference") against the clean meshes.
-
-    Noise is added in the canonical frame of the clean mesh (level = a length in the unit
-    cube, the paper's convention) with a key that depends only on the row and the mesh,
-    so every model sees the same noisy meshes.
-    """
-    import jax
-
-    from dmd_jax.inference import denoise
-    from dmd_jax.metrics import mesh_metrics
-    from dmd_jax.noise import add_noise_jax
-
-    row = [(k, lv) for k, lv, _ in st.NOISE_ROWS].index((kind, level))
-    key = jax.random.fold_in(jax.random.PRNGKey(seed), row)
-    den, ref = [], []
-    for i, ex in enumerate(examples):
-        clean = np.asarray(ex.vertices, np.float64)
-        noisy = np.asarray(
-            add_noise_jax(jax.random.fold_in(key, i), clean, ex.faces, kind, level), np.float64
-        )
-        out = denoise(noisy, ex.faces, bundle)
-        den.append(mesh_metrics(out, clean, ex.faces))
-        ref.append(mesh_metrics(noisy, clean, ex.faces))
-    d, r = _mean_dicts(den), _mean_dicts(ref)
-    return {
-        **{f"denoised/{k}": v for k, v in d.items()},
-        **{f"reference/{k}": v for k, v in r.items()},
-        "n_meshes": len(examples),
-        "per_mesh": {
-            **{f"denoised/{k}": [x[k] for x in den] for k in d},
-            **{f"reference/{k}": [x[k] for x in ref] for k in r},
-        },
-    }
-
-
-def rotation_evaluation(bundle, examples, *, gamma: int = st.RE_GAMMA, seed: int = EVAL_SEED):
-    """The rotation-equivariance test of the paper's appendix E.
-
-    For each test mesh `G_i` (the clean mesh with mixed training noise, in its canonical
-    frame: centred, longest side 1) and `γ` random rotations `R_ij`, compares
-    `G^RD = R_ij(D(G_i))` with `G^DR = D(R_ij(G_i))` by the vertex, normal and chamfer
-    losses, averaged over `γ |S|` pairs (eqs. RE_test_vertex/normal/chamfer). The losses
-    are taken as they stand in that frame (no re-normalisation), as the paper's formulas
-    read; `vertex_per_coord` is the vertex loss divided by 3, the convention of the
-    paper's tables. Also returns the denoising error of `D(G_i)` against the clean mesh
-    (`denoised/...`), because a network that changes nothing is trivially equivariant.
-    """
-    import jax
-
-    from dmd_jax import losses
-    from dmd_jax.inference import denoise
-    from dmd_jax.metrics import mesh_metrics
-    from dmd_jax.pipeline import corrupt, random_rotation
-
-    noise = bundle.config.noise
-    base = jax.random.PRNGKey(seed)
-    pairs, quality, per_mesh = [], [], []
-    for i, ex in enumerate(examples):
-        k_noise, k_rot = jax.random.split(jax.random.fold_in(base, i))
-        noisy, clean, _ = corrupt(k_noise, ex.vertices, ex.faces, rotate=False, noise=noise)
-        d = denoise(noisy, ex.faces, bundle)
-        quality.append(mesh_metrics(d, clean, ex.faces))
-        first = len(pairs)
-        for j in range(gamma):
-            r = random_rotation(jax.random.fold_in(k_rot, j))
-            rd = d @ r.T
-            dr = denoise(noisy @ r.T, ex.faces, bundle)
-            v = float(losses.vertex_loss(rd, dr))
-            pairs.append(
-                {
-                    "vertex": v,
-                    "vertex_per_coord": v / 3.0,
-                    "normal_deg": float(losses.normal_loss(rd, dr, ex.faces, degrees=True)),
-                    "chamfer": float(losses.chamfer_distance(rd, dr)),
-                }
-            )
-        # Per mesh, its γ rotations averaged: the unit the bootstrap resamples.
-        per_mesh.append(
-            {
-                **{f"re/{k}": v for k, v in _mean_dicts(pairs[first:]).items()},
-                **{f"denoised/{k}": v for k, v in quality[-1].items()},
-            }
-        )
-    return {
-        **{f"re/{k}": v for k, v in _mean_dicts(pairs).items()},
-        **{f"denoised/{k}": v for k, v in _mean_dicts(quality).items()},
-        "n_meshes": len(examples),
-        "gamma": gamma,
-        "per_mesh": {k: [m[k] for m in per_mesh] for k in (per_mesh[0] if per_mesh else {})},
-    }
-
-
 # --------------------------------------------------------------------------------------
 # Jobs
 # --------------------------------------------------------------------------------------
-
-
-def _spec_to_json(r: st.RunSpec) -> dict:
-    return {
-        "study": r.study,
-        "row": r.row,
-        "seed": r.seed,
-        "config": r.config.to_dict(),
-        "evaluation": r.evaluation,
-        "train_hash": r.train_hash,
-        "run_id": r.run_id,
-    }
 
 
 def _train_members(job: dict, members: list[dict], train_ex, evals, log) -> None:
@@ -746,122 +498,6 @@ class _Log:
             tqdm.write(line)
 
 
-def seedless_hash(cfg) -> str:
-    """The training hash with `train.seed` left out: the seeds of one row share it."""
-    return st.config_hash(cfg.with_edits({"train": {"seed": 0}}))
-
-
-def _evaluation_key(train_hash: str, evaluation: dict) -> str:
-    return train_hash + json.dumps(evaluation, sort_keys=True)
-
-
-def reuse_finished(
-    runs: Sequence[st.RunSpec], sources: Sequence[st.RunSpec], out_dir: Path, log
-) -> list[str]:
-    """Writes the `metrics.json` of every run in `runs` that has none but whose model and
-    evaluation (training hash, evaluation spec) some finished run of `sources` already
-    has: its metrics are those, not a retraining's.
-
-    Within one checkout the runner reuses the trained model (its checkpoints); this
-    reuses the *result*, which is what a fresh checkout has, since checkpoints are not
-    committed. Without it a study whose base row another study already scored retrains
-    it, and the retrained seeds differ from the committed ones (XLA's CPU reductions are
-    not bitwise reproducible across processes), so one row would have two values.
-
-    Returns the `study/run_id` of the runs written.
-    """
-    finished: dict[str, tuple[st.RunSpec, dict]] = {}
-    for r in sources:
-        path = out_dir / r.study / r.run_id / "metrics.json"
-        if path.is_file():
-            finished.setdefault(_evaluation_key(r.train_hash, r.evaluation), (r, _read_json(path)))
-    written = []
-    for r in runs:
-        run_dir = out_dir / r.study / r.run_id
-        if (run_dir / "metrics.json").is_file():
-            continue
-        hit = finished.get(_evaluation_key(r.train_hash, r.evaluation))
-        if hit is None:
-            continue
-        src, record = hit
-        src_rel, rel = f"{src.study}/{src.run_id}", f"{r.study}/{r.run_id}"
-        record = {
-            **record,
-            "study": r.study,
-            "row": r.row,
-            "seed": r.seed,
-            "run_id": r.run_id,
-            "results_of": src_rel,
-        }
-        run_dir.mkdir(parents=True, exist_ok=True)
-        _write_json(run_dir / "config.json", r.config.to_dict())
-        (run_dir / "run.log").write_text(
-            f"run {rel}: study {r.study}, row {r.row!r}, seed {r.seed}\n"
-            f"config hash {r.train_hash}, evaluation {r.evaluation['kind']}: the same "
-            f"model and evaluation as {src_rel}, whose metrics.json this copies "
-            f"(trained in {record.get('trained_in', src_rel)})\n"
-        )
-        _write_json(run_dir / "metrics.json", record)
-        written.append(rel)
-    if written:
-        log(f"{len(written)} runs reuse the results of finished runs (same model, evaluation)")
-    return written
-
-
-def make_jobs(
-    runs: Sequence[st.RunSpec],
-    out_dir: Path,
-    *,
-    data_dir,
-    preset_name,
-    eval_meshes,
-    progress,
-    seeds_together: int | None = None,
-) -> list[dict]:
-    """One job per row (configs equal up to the seed) that still has a run without
-    `metrics.json`; its members are the row's seeds (one training hash each)."""
-    homes = st.training_homes(runs)
-    pending: dict[str, dict[str, list[st.RunSpec]]] = {}
-    for r in runs:
-        if not (out_dir / r.study / r.run_id / "metrics.json").is_file():
-            row = pending.setdefault(seedless_hash(r.config), {})
-            row.setdefault(r.train_hash, []).append(r)
-    jobs = []
-    for by_hash in pending.values():
-        members = []
-        for h, rs in by_hash.items():
-            home = homes[h]
-            members.append(
-                {
-                    "home": f"{home.study}/{home.run_id}",
-                    "config": home.config.to_dict(),
-                    "runs": [_spec_to_json(r) for r in rs],
-                    "trained": (
-                        out_dir / home.study / home.run_id / "train_metrics.json"
-                    ).is_file(),
-                }
-            )
-        first = homes[next(iter(by_hash))]
-        steps = first.config.train.steps
-        jobs.append(
-            {
-                "out_dir": str(out_dir),
-                "data_dir": str(data_dir),
-                "eval_meshes": eval_meshes,
-                "seeds_together": seeds_together,
-                "preset": preset_name,
-                "label": f"{first.study}/{st.slug(first.row)}",
-                "members": members,
-                "progress": progress,
-                # What the remaining-time estimate weighs a job by: its training steps
-                # (a row's seeds cost about one seed's steps, see seed_speedup.md) plus
-                # a tenth for its evaluations.
-                "cost": (steps if any(not m["trained"] for m in members) else 0) + 0.1 * steps,
-            }
-        )
-    return jobs
-
-
 def run_sweep(
     p: st.AblatePreset | str,
     out_dir,
@@ -984,89 +620,6 @@ def run_sweep(
         agg.aggregate(out_dir)
         log(f"tables, plots and README written to {out_dir}")
     return session
-
-
-# What compiling one program costs, in the unit of a job's `cost` (training steps), when
-# rows are packed into worker processes: a test-preset train step compiles in ~20 s of
-# CPU and runs in ~35 ms, a cpu-preset step in ~0.2 s; 100 steps is between the two.
-COMPILE_COST_STEPS = 100
-
-
-def job_programs(job: dict) -> list[str]:
-    """Short ids of the programs a job compiles: `step:<digest>`, the one train-step
-    program of every phase of its row (`train.step_program_key`; none when every seed
-    is trained already) and `model:<digest>`, its model's init and predictor (dropout
-    left out: both run the model deterministic)."""
-    from dmd_jax.config import ExperimentConfig
-    from dmd_jax.train import step_program_key
-
-    cfg = ExperimentConfig.from_dict(job["members"][0]["config"])
-    out = {"model:" + st._digest(cfg.model.with_edits({"dropout": 0.0}).to_dict())}
-    if any(not m["trained"] for m in job["members"]):
-        out.add("step:" + st._digest(step_program_key(cfg)))
-    return sorted(out)
-
-
-def pack_jobs(jobs: Sequence[dict], workers: int) -> list[list[dict]]:
-    """The jobs in tasks for `workers` processes, rows that share programs in one task.
-
-    A task runs in one process, one job after the other, so a later row reuses what an
-    earlier one compiled (`multiseed.seeds_step`'s shared programs, the model's init
-    and predictor) instead of compiling it in the other process as well. Rows that
-    share a train-step program always go together; rows that share only a model join
-    while the task stays within an even share of the sweep's cost (training steps plus
-    `COMPILE_COST_STEPS` per distinct program), so that no task outgrows one process's
-    share. Tasks come largest first, for the pool to balance; jobs keep plan order.
-
-    Args:
-      jobs: `make_jobs` jobs with `programs` (`job_programs`).
-      workers: processes.
-
-    Returns:
-      Lists of jobs, together all of `jobs`.
-    """
-    n = len(jobs)
-    parent = list(range(n))
-
-    def find(i):
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    def groups():
-        out: dict[int, list[int]] = {}
-        for i in range(n):
-            out.setdefault(find(i), []).append(i)
-        return out
-
-    def cost(members):
-        programs = {p for i in members for p in jobs[i]["programs"]}
-        return sum(jobs[i]["cost"] for i in members) + COMPILE_COST_STEPS * len(programs)
-
-    first: dict[str, int] = {}
-    for i, job in enumerate(jobs):
-        for prog in job["programs"]:
-            if prog.startswith("step:"):
-                if prog in first:
-                    parent[find(i)] = find(first[prog])
-                else:
-                    first[prog] = i
-    cap = cost(range(n)) / max(int(workers), 1)
-    by_model: dict[str, list[int]] = {}
-    for i, job in enumerate(jobs):
-        for prog in job["programs"]:
-            if prog.startswith("model:"):
-                by_model.setdefault(prog, []).append(i)
-    for members in by_model.values():
-        for i in members[1:]:
-            a, b = find(members[0]), find(i)
-            if a != b:
-                g = groups()
-                if cost(g[a] + g[b]) <= cap:
-                    parent[b] = a
-    tasks = sorted(groups().values(), key=lambda m: -cost(m))
-    return [[jobs[i] for i in sorted(m)] for m in tasks]
 
 
 def run_jobs(jobs: Sequence[dict], queue=None) -> list[dict]:

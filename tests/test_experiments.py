@@ -20,7 +20,7 @@ from dmd_jax.config import NoiseConfig
 from dmd_jax.metrics import mesh_metrics
 from dmd_jax.pipeline import corrupt, make_examples
 from experiments import aggregate as agg
-from experiments import runner
+from experiments import evaluation, planning, runner
 from experiments import studies as st
 from experiments.ablations import ABLATIONS, ablation_config
 
@@ -109,19 +109,19 @@ def test_a_fresh_checkout_reuses_another_studys_result_instead_of_retraining(
     (tmp_path / src.study / src.run_id).mkdir(parents=True)
     (tmp_path / src.study / src.run_id / "metrics.json").write_text(json.dumps(record))
     depth = [r for r in runs if r.study == "depth"]
-    written = runner.reuse_finished(depth, runs, tmp_path, lambda m: None)
+    written = planning.reuse_finished(depth, runs, tmp_path, lambda m: None)
     assert written == [f"depth/{dst.run_id}"]
     got = json.loads((tmp_path / "depth" / dst.run_id / "metrics.json").read_text())
     assert got["metrics"] == record["metrics"] and got["per_mesh"] == record["per_mesh"]
     assert (got["study"], got["row"], got["run_id"]) == ("depth", "DMD-Net 2", dst.run_id)
     assert got["results_of"] == f"scheme/{src.run_id}" and got["trained_in"] == "x/y"
     assert not (tmp_path / "depth" / other.run_id).exists()
-    jobs = runner.make_jobs(
+    jobs = planning.make_jobs(
         depth, tmp_path, data_dir=tmp_path, preset_name="test", eval_meshes=1, progress=False
     )
     assert {j["label"] for j in jobs} == {"depth/dmd-net_1", "depth/dmd-net_3", "depth/dmd-net_4"}
     # A second call writes nothing; a different evaluation of the same model is not reused.
-    assert runner.reuse_finished(depth, runs, tmp_path, lambda m: None) == []
+    assert planning.reuse_finished(depth, runs, tmp_path, lambda m: None) == []
     noise = [r for r in runs if r.study == "noise"]
     assert all(r.evaluation != src.evaluation for r in noise)
 
@@ -278,13 +278,13 @@ def identity_bundle(base):
 
 
 def test_noise_evaluation_of_the_identity_equals_the_reference(identity_bundle, sphere_examples):
-    out = runner.noise_evaluation(identity_bundle, sphere_examples, "gaussian", 0.025)
+    out = evaluation.noise_evaluation(identity_bundle, sphere_examples, "gaussian", 0.025)
     for key in ("vertex_per_coord", "normal_deg", "chamfer"):
         np.testing.assert_allclose(out[f"denoised/{key}"], out[f"reference/{key}"], rtol=1e-4)
     # The paper's reference vertex error of N(0, 0.025) is σ² = 6.25e-4 per coordinate.
     assert 4e-4 < out["reference/vertex_per_coord"] < 8e-4
     assert out["n_meshes"] == 2
-    assert runner.noise_evaluation(identity_bundle, sphere_examples, "gaussian", 0.025) == out
+    assert evaluation.noise_evaluation(identity_bundle, sphere_examples, "gaussian", 0.025) == out
 
 
 def _noisy_metrics(cfg, examples):
@@ -293,7 +293,7 @@ def _noisy_metrics(cfg, examples):
 
     batches = evaluation_batches(
         examples,
-        seed=runner.EVAL_SEED,
+        seed=evaluation.EVAL_SEED,
         noise=cfg.noise,
         rotate=cfg.train.rotate,
         encoding=cfg.model.encoding,
@@ -310,11 +310,11 @@ def test_classic_references_score_the_meshes_every_row_is_scored_on(
     import dmd_jax.api
 
     evals = {"test_intra": list(sphere_examples), "test_inter": list(sphere_examples)[:1]}
-    taubin = runner.classic_references(base, evals, methods=("taubin",))["taubin"]
+    taubin = evaluation.classic_references(base, evals, methods=("taubin",))["taubin"]
     assert len(taubin["per_mesh"]["test_intra/normal_deg"]) == 2
     assert len(taubin["per_mesh"]["test_inter/normal_deg"]) == 1
     monkeypatch.setattr(dmd_jax.api, "denoise_with", lambda method, v, f: v)
-    ident = runner.classic_references(base, evals, methods=("identity",))["identity"]
+    ident = evaluation.classic_references(base, evals, methods=("identity",))["identity"]
     want = _noisy_metrics(base, evals["test_intra"])
     for key in ("vertex_per_coord", "normal_deg", "chamfer"):
         np.testing.assert_allclose(
@@ -332,10 +332,10 @@ def test_references_are_computed_once_with_the_untrained_base(
     its file."""
     assert base.model.head == "normal"
     evals = {"test_intra": list(sphere_examples), "test_inter": []}
-    monkeypatch.setattr(runner, "CLASSIC_REFERENCES", ("taubin",))
-    refs = runner.ensure_references(tmp_path, base, evals)
+    monkeypatch.setattr(evaluation, "CLASSIC_REFERENCES", ("taubin",))
+    refs = evaluation.ensure_references(tmp_path, base, evals)
     assert set(refs) == {"taubin", "untrained"}
-    noisy = runner.classic_references(base, evals, methods=("taubin",))
+    noisy = evaluation.classic_references(base, evals, methods=("taubin",))
     assert refs["taubin"] == noisy["taubin"]
     untrained = refs["untrained"]
     assert len(untrained["per_mesh"]["test_intra/normal_deg"]) == 2
@@ -347,15 +347,15 @@ def test_references_are_computed_once_with_the_untrained_base(
     def boom(*args, **kwargs):
         raise AssertionError("recomputed")
 
-    monkeypatch.setattr(runner, "classic_references", boom)
-    monkeypatch.setattr(runner, "untrained_reference", boom)
-    assert runner.ensure_references(tmp_path, base, evals) == json.loads(
-        (tmp_path / runner.REFERENCES_FILE).read_text()
+    monkeypatch.setattr(evaluation, "classic_references", boom)
+    monkeypatch.setattr(evaluation, "untrained_reference", boom)
+    assert evaluation.ensure_references(tmp_path, base, evals) == json.loads(
+        (tmp_path / evaluation.REFERENCES_FILE).read_text()
     )
 
 
 def test_rotation_test_of_the_identity_is_zero(identity_bundle, sphere_examples):
-    out = runner.rotation_evaluation(identity_bundle, sphere_examples, gamma=2)
+    out = evaluation.rotation_evaluation(identity_bundle, sphere_examples, gamma=2)
     assert out["gamma"] == 2 and out["n_meshes"] == 2
     for key in ("re/vertex_per_coord", "re/chamfer"):
         assert out[key] < 1e-10
@@ -363,7 +363,9 @@ def test_rotation_test_of_the_identity_is_zero(identity_bundle, sphere_examples)
     # The denoising error is that of the noisy input, drawn with the documented keys.
     want = []
     for i, ex in enumerate(sphere_examples):
-        k_noise, _ = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(runner.EVAL_SEED), i))
+        k_noise, _ = jax.random.split(
+            jax.random.fold_in(jax.random.PRNGKey(evaluation.EVAL_SEED), i)
+        )
         noisy, clean, _ = corrupt(
             k_noise,
             ex.vertices,
@@ -384,10 +386,10 @@ def test_rotation_test_of_a_translating_denoiser(monkeypatch, identity_bundle, s
 
     c = np.array([0.02, -0.01, 0.005])
     monkeypatch.setattr(inference, "denoise", lambda v, f, bundle: np.asarray(v) + c)
-    out = runner.rotation_evaluation(identity_bundle, sphere_examples, gamma=3)
+    out = evaluation.rotation_evaluation(identity_bundle, sphere_examples, gamma=3)
     want = []
     for i in range(len(sphere_examples)):
-        _, k_rot = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(runner.EVAL_SEED), i))
+        _, k_rot = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(evaluation.EVAL_SEED), i))
         for j in range(3):
             r = random_rotation(jax.random.fold_in(k_rot, j))
             want.append(np.sum((r @ c - c) ** 2))
@@ -452,14 +454,14 @@ def test_paper_tables_match_the_tex_source():
 def _fake_results(out_dir, p, base, values_for):
     """A results dir whose runs report `values_for(study, row) -> metrics`."""
     runs = st.plan(p, base)
-    runner._write_json(
+    planning._write_json(
         out_dir / "plan.json",
         {
             "preset": p.to_dict(),
             "base_config": base.to_dict(),
             "calibration": None,
             "runs": [
-                {k: v for k, v in runner._spec_to_json(r).items() if k != "config"} for r in runs
+                {k: v for k, v in planning._spec_to_json(r).items() if k != "config"} for r in runs
             ],
         },
     )
@@ -468,7 +470,7 @@ def _fake_results(out_dir, p, base, values_for):
         metrics = values_for(r.study, r.row)
         if metrics is None:
             continue
-        runner._write_json(
+        planning._write_json(
             out_dir / r.study / r.run_id / "metrics.json",
             {
                 "study": r.study,
@@ -504,7 +506,9 @@ def test_aggregating_the_papers_own_numbers_agrees_with_the_paper(tmp_path, test
     _fake_results(tmp_path, test_preset, base, _paper_as_metrics)
     # Taubin's normal error between the paper's FGT-8 (25.458) and FGT-1S (28.368).
     taubin = {f"{s}/{k}": v for s in agg.SPLITS for k, v in (("normal_deg", 26.0),)}
-    runner._write_json(tmp_path / runner.REFERENCES_FILE, {"taubin": {**taubin, "per_mesh": {}}})
+    planning._write_json(
+        tmp_path / evaluation.REFERENCES_FILE, {"taubin": {**taubin, "per_mesh": {}}}
+    )
     summary = agg.aggregate(tmp_path)
     for study in st.STUDIES:
         if study.key not in agg.PAPER:  # our own studies: the paper has no numbers to fake
@@ -635,12 +639,12 @@ def test_smoke_sweep_writes_every_study_with_finite_numbers(tmp_path):
 
 def test_rows_sharing_a_program_are_packed_into_one_process(tmp_path, test_preset, base):
     runs = st.plan(test_preset, base)
-    jobs = runner.make_jobs(
+    jobs = planning.make_jobs(
         runs, tmp_path, data_dir=tmp_path, preset_name="test", eval_meshes=1, progress=False
     )
     for job in jobs:
-        job["programs"] = runner.job_programs(job)
-    tasks = runner.pack_jobs(jobs, 2)
+        job["programs"] = planning.job_programs(job)
+    tasks = planning.pack_jobs(jobs, 2)
     assert sorted(j["label"] for t in tasks for j in t) == sorted(j["label"] for j in jobs)
     where = {j["label"]: i for i, t in enumerate(tasks) for j in t}
     # The dropout rows with dropout on share one step program, as do Alter, 2-Phase and
@@ -652,11 +656,11 @@ def test_rows_sharing_a_program_are_packed_into_one_process(tmp_path, test_prese
     assert len(steps) < sum(1 for j in jobs for p in j["programs"] if p.startswith("step:"))
     assert len(models) < len(jobs)
     # No task takes more than an even share of the sweep, and the largest comes first.
-    total = sum(j["cost"] for j in jobs) + runner.COMPILE_COST_STEPS * len(steps | models)
+    total = sum(j["cost"] for j in jobs) + planning.COMPILE_COST_STEPS * len(steps | models)
 
     def cost(task):
         progs = {p for j in task for p in j["programs"]}
-        return sum(j["cost"] for j in task) + runner.COMPILE_COST_STEPS * len(progs)
+        return sum(j["cost"] for j in task) + planning.COMPILE_COST_STEPS * len(progs)
 
     assert all(cost(t) <= total / 2 for t in tasks)
     assert [cost(t) for t in tasks] == sorted((cost(t) for t in tasks), reverse=True)
@@ -687,7 +691,7 @@ def test_the_gpu_preset_is_the_whole_sweep_with_three_seeds():
     p = st.get_preset("gpu")
     runs = st.plan(p, st.base_config(p))
     assert {r.study for r in runs} == set(st.STUDY_KEYS) and p.seeds == (0, 1, 2)
-    rows = {runner.seedless_hash(r.config): r for r in runs}
+    rows = {planning.seedless_hash(r.config): r for r in runs}
     steps = sorted(r.config.train.steps for r in rows.values())
     # The sizing in dmd_jax.config.presets._gpu: 27 rows at 1,200 steps, the 4 depth rows at 4,000.
     assert steps == [1200] * 27 + [4000] * 4
@@ -751,7 +755,7 @@ def test_seeds_together_splits_a_row_into_groups_trained_one_after_the_other(
         calls.clear()
         evaluated.clear()
         out = tmp_path / f"t{together}"
-        (job,) = runner.make_jobs(
+        (job,) = planning.make_jobs(
             row,
             out,
             data_dir=tmp_path,
