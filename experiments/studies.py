@@ -514,6 +514,11 @@ _LATER_MODEL_FIELDS = {
     "pass_tolerance": 0.0,
     "presmooth_start": 0.0,
     "presmooth_per_step": 5.0,
+    "vertex_update": "jacobi",
+    "vertex_tolerance": 1e-4,
+    "vertex_max_iterations": 200,
+    "vertex_normal_weight": 1e-3,
+    "vertex_tangent_weight": 0.1,
 }
 
 
@@ -533,6 +538,7 @@ _LATER_FIELDS = {
     },
     "train": {"init_from": None},
     "loss": {"crease_weight": 1.0},
+    "noise": {"p_scanner": 0.0, "scanner_levels": None},
 }
 
 
