@@ -63,6 +63,7 @@ from dmd_jax import encoding, geometry, ops
 from dmd_jax.config import ModelConfig
 from dmd_jax.geometry import safe_normalize
 from dmd_jax.graph import EllLayout, MeshGraph, build_mesh_graph
+from dmd_jax.vertex_update import solve_vertices_to_normals
 
 Dtype = jnp.dtype
 
@@ -633,9 +634,21 @@ class DMDNet(nn.Module):
             faces = graph.faces
             corner_face = jnp.repeat(jnp.arange(faces.shape[0], dtype=faces.dtype), 3)
             free = jnp.ones(xyz.shape[0], xyz.dtype)
-            denoised = geometry.fit_vertices_to_normals(
-                xyz, faces, out, faces.reshape(-1), corner_face, free, cfg.vertex_iterations
-            )
+            if cfg.vertex_update == "solve":
+                denoised = solve_vertices_to_normals(
+                    xyz,
+                    faces,
+                    out,
+                    free,
+                    tolerance=cfg.vertex_tolerance,
+                    max_iterations=cfg.vertex_max_iterations,
+                    normal_weight=cfg.vertex_normal_weight,
+                    tangent_weight=cfg.vertex_tangent_weight,
+                )
+            else:
+                denoised = geometry.fit_vertices_to_normals(
+                    xyz, faces, out, faces.reshape(-1), corner_face, free, cfg.vertex_iterations
+                )
         else:
             denoised = xyz + out if cfg.predict_offset else out
         return denoised, features, aux

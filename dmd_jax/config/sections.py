@@ -31,6 +31,8 @@ SCHEDULES = ("constant", "cosine")
 MAX_TRAIN_PASSES = 8
 DTYPES = ("float32", "float64")
 HEADS = ("offset", "normal")
+# How the normal-first head moves the vertices onto its normals (`ModelConfig.vertex_update`).
+VERTEX_UPDATES = ("jacobi", "solve")
 # How the feature extractor's curvature targets are expressed: the paper's raw values, or
 # asinh(κ), which keeps the heavy tail of κ at sharp edges (1e3–1e5 in the canonical
 # frame) from swamping the loss while staying monotone and exact near zero.
@@ -100,6 +102,7 @@ MODEL_COUNT_LIMITS = {
     "mt_transforms": 16,
     "stn_width": 4096,
     "vertex_iterations": 1000,
+    "vertex_max_iterations": 10000,
     "filter_iterations": 1000,
     "taubin_iterations": 1000,
 }
@@ -158,7 +161,19 @@ class ModelConfig(_ConfigMixin):
         denoiser's last two-stream network predicts face normals, and
         `vertex_iterations` of Sun et al.'s normal-driven update move the noisy
         vertices onto them; trained end to end). `"normal"` needs `encoding="local"`.
-      vertex_iterations: iterations of the normal-driven vertex update (`head="normal"`).
+      vertex_iterations: iterations of the normal-driven vertex update (`head="normal"`,
+        `vertex_update="jacobi"`).
+      vertex_update: how the normal-first head moves the vertices onto its normals:
+        `"jacobi"` (default; every config saved before this field): `vertex_iterations`
+        steps of Sun et al.'s update (`geometry.fit_vertices_to_normals`); `"solve"`:
+        the regularised least-squares fit solved to `vertex_tolerance`
+        (`vertex_update.solve_vertices_to_normals`, implicit differentiation).
+      vertex_tolerance: `"solve"`: stop when the preconditioned residual has fallen by
+        this factor.
+      vertex_max_iterations: `"solve"`: at most this many conjugate-gradient iterations.
+      vertex_normal_weight, vertex_tangent_weight: `"solve"`: the hold toward the start
+        along the vertex normal and in the tangent plane (`μ_n`, `μ_t` of
+        `dmd_jax.vertex_update`).
       filter_iterations: passes of the longest bilateral pre-filter run of the `"local"`
         encoding (fields are also kept after 2/15 and 1/2 of it:
         `encoding.snapshot_passes`).
@@ -197,6 +212,11 @@ class ModelConfig(_ConfigMixin):
     encoding: str = _static("xyz")
     head: str = _static("offset")
     vertex_iterations: int = _static(10)
+    vertex_update: str = _static("jacobi")
+    vertex_tolerance: float = _static(1e-4)
+    vertex_max_iterations: int = _static(200)
+    vertex_normal_weight: float = _static(1e-3)
+    vertex_tangent_weight: float = _static(0.1)
     filter_iterations: int = _static(60)
     head_consistency: bool = _static(False)
     taubin_iterations: int = _static(0)
@@ -239,6 +259,17 @@ class ModelConfig(_ConfigMixin):
             "head='normal' needs encoding='local' (it mixes the pre-filtered face normals)",
         )
         _check_positive_int("vertex_iterations", self.vertex_iterations)
+        _check_choice("vertex_update", self.vertex_update, VERTEX_UPDATES)
+        _check_positive_int("vertex_max_iterations", self.vertex_max_iterations)
+        for name in ("vertex_tolerance", "vertex_normal_weight", "vertex_tangent_weight"):
+            value = getattr(self, name)
+            _check(
+                isinstance(value, int | float)
+                and not isinstance(value, bool)
+                and math.isfinite(value)
+                and 0 < value <= 1,
+                f"{name} must be a number in (0, 1], got {value!r}",
+            )
         _check_positive_int("filter_iterations", self.filter_iterations)
         _check_positive_int("taubin_iterations", self.taubin_iterations, minimum=0)
         _check(
@@ -550,6 +581,13 @@ class DataConfig(_ConfigMixin):
       real_coarse_faces: face counts each real training mesh is also decimated to, whole
         (`data.real.coarse_copies`: coarse tessellations, whose clean faces meet at large
         angles); `()`: none.
+      stress_copies: copies of each generated stress shape (`data.stress`: pyramid,
+        cube, cone, fan disc, ...) added to the training set (each copy gets its own
+        rotation and noise per step); 0: none.
+      scan_views: simulated scans (`dmd_jax.scan.simulate_scan`) of every training mesh
+        added to the training set, each a range-image triangulation with its view, so the
+        pipeline gives it scanner noise along that view; 0: none.
+      scan_resolution: pixels on the longer side of those scans' depth maps.
     """
 
     source: str = _static("procedural")
@@ -568,10 +606,7 @@ class DataConfig(_ConfigMixin):
     real_patches_per_mesh: int = _static(8)
     real_val_patch_faces: int = _static(4000)
     real_val_patches_per_mesh: int = _static(1)
-    real_coarse_faces: tuple[int, ...] = _static(())
-
-    def __post_init__(self):
-        _check_choice("data source", self.source, DATA_SOURCES)
+XX, self.source, DATA_SOURCES)
         _check(
             self.source != "folder" or self.root is not None,
             "data source 'folder' needs a root directory",
@@ -593,6 +628,13 @@ class DataConfig(_ConfigMixin):
             _check_positive_int(name, getattr(self, name))
         for n in self.real_coarse_faces:
             _check_positive_int("real_coarse_faces", n, minimum=4)
+        # Bounded: each copy or view is a training mesh held in memory.
+        _check_positive_int("stress_copies", self.stress_copies, minimum=0)
+        _check(self.stress_copies <= 64, "stress_copies must be at most 64")
+        _check_positive_int("scan_views", self.scan_views, minimum=0)
+        _check(self.scan_views <= 16, "scan_views must be at most 16")
+        _check_positive_int("scan_resolution", self.scan_resolution, minimum=8)
+        _check(self.scan_resolution <= 512, "scan_resolution must be at most 512")
 
 
 @struct.dataclass
