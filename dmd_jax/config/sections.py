@@ -606,7 +606,13 @@ class DataConfig(_ConfigMixin):
     real_patches_per_mesh: int = _static(8)
     real_val_patch_faces: int = _static(4000)
     real_val_patches_per_mesh: int = _static(1)
-XX, self.source, DATA_SOURCES)
+    real_coarse_faces: tuple[int, ...] = _static(())
+    stress_copies: int = _static(0)
+    scan_views: int = _static(0)
+    scan_resolution: int = _static(64)
+
+    def __post_init__(self):
+        _check_choice("data source", self.source, DATA_SOURCES)
         _check(
             self.source != "folder" or self.root is not None,
             "data source 'folder' needs a root directory",

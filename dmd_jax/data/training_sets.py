@@ -13,6 +13,13 @@ A run's meshes come from two places:
   connected patches of its training split join the training set, and patches of its
   fixed validation split form the `val` evaluation set.
 
+Two kinds of generated training meshes can join (`DataConfig.stress_copies`,
+`DataConfig.scan_views`): the stress family of simple CAD shapes (`dmd_jax.data.stress`:
+sharp apices, high valences, thin plates, which a denoiser must leave alone when clean),
+and simulated scans of the training meshes (`dmd_jax.scan.simulate_scan`): range-image
+triangulations with open boundaries and holes, each kept with its view so that the
+pipeline draws scanner noise along it (`pipeline.MeshExample.view`).
+
 Every mesh is `(vertices [n_vertex, 3] float, faces [n_face, 3] int)` in its file's own
 coordinates; the pipeline moves each into the model's frame per step.
 """
@@ -36,18 +43,23 @@ TEST_SPLITS = ("test_intra", "test_inter")
 REAL_VAL = "val"
 
 Mesh = tuple[np.ndarray, np.ndarray]
+# A training mesh, or a simulated scan with its `[3]` view.
+TrainMesh = tuple[np.ndarray, np.ndarray] | tuple[np.ndarray, np.ndarray, np.ndarray]
+# A scan keeps only pixels of this many faces at least (a sliver of a view trains nothing).
+MIN_SCAN_FACES = 200
 
 
 class TrainingSets(NamedTuple):
     """A run's meshes.
 
     Attributes:
-      train: the training meshes, dataset meshes first, then real-mesh patches.
+      train: the training meshes: dataset meshes, real-mesh patches, stress shapes, then
+        simulated scans `(clean vertices, faces, view)`.
       evals: `{name: meshes}` per evaluation set: `test_intra`, `test_inter` and, with a
         real-mesh folder, `val` (a set may be empty).
     """
 
-    train: list[Mesh]
+    train: list[TrainMesh]
     evals: dict[str, list[Mesh]]
 
 
@@ -95,4 +107,59 @@ def training_sets(d: DataConfig, *, seed: int) -> TrainingSets:
             max_patches=d.real_val_patches_per_mesh,
             seed=seed,
         )
+    train += stress_meshes(d.stress_copies)
+    train += scan_meshes(train, d.scan_views, resolution=d.scan_resolution, seed=seed)
     return TrainingSets(train, evals)
+
+
+def stress_meshes(copies: int) -> list[Mesh]:
+    """`copies` of every stress shape (`data.stress.STRESS_SHAPES` order), clean."""
+    if copies <= 0:
+        return []
+    from dmd_jax.data.stress import stress_shapes
+
+    shapes = list(stress_shapes().values())
+    return [shape for _ in range(copies) for shape in shapes]
+
+
+def scan_meshes(
+    meshes: list[TrainMesh], views: int, *, resolution: int, seed: int
+) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """`views` simulated scans of every mesh: `(clean scan vertices, faces, view)`.
+
+    The scans are noise-free (the pipeline adds scanner noise along `view` per step);
+    views are drawn from `(seed, mesh index, view index)`. A view that keeps fewer than
+    `MIN_SCAN_FACES` faces is skipped.
+
+    Args:
+      meshes: `(vertices, faces[, view])` training meshes (a view is ignored).
+      views: scans per mesh; 0 gives none.
+      resolution: pixels on the longer side of each depth map.
+      seed: the run's seed.
+
+    Returns:
+      The scans, in mesh order then view order.
+    """
+    if views <= 0:
+        return []
+    from dmd_jax.scan import simulate_scan
+
+    out = []
+    for i, mesh in enumerate(meshes):
+        for k in range(views):
+            rng = np.random.default_rng([seed, i, k, 0x5CA7])
+            view = rng.normal(size=3)
+            try:
+                scan = simulate_scan(
+                    int(rng.integers(2**31)),
+                    mesh[0],
+                    mesh[1],
+                    view=view,
+                    resolution=resolution,
+                    level=0.0,
+                )
+            except ValueError:  # no surface in view
+                continue
+            if scan.faces.shape[0] >= MIN_SCAN_FACES:
+                out.append((scan.clean, scan.faces, scan.view))
+    return out
