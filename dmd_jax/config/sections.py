@@ -581,6 +581,13 @@ class DataConfig(_ConfigMixin):
       real_coarse_faces: face counts each real training mesh is also decimated to, whole
         (`data.real.coarse_copies`: coarse tessellations, whose clean faces meet at large
         angles); `()`: none.
+      stress_copies: copies of each generated stress shape (`data.stress`: pyramid,
+        cube, cone, fan disc, ...) added to the training set (each copy gets its own
+        rotation and noise per step); 0: none.
+      scan_views: simulated scans (`dmd_jax.scan.simulate_scan`) of every training mesh
+        added to the training set, each a range-image triangulation with its view, so the
+        pipeline gives it scanner noise along that view; 0: none.
+      scan_resolution: pixels on the longer side of those scans' depth maps.
     """
 
     source: str = _static("procedural")
@@ -600,6 +607,9 @@ class DataConfig(_ConfigMixin):
     real_val_patch_faces: int = _static(4000)
     real_val_patches_per_mesh: int = _static(1)
     real_coarse_faces: tuple[int, ...] = _static(())
+    stress_copies: int = _static(0)
+    scan_views: int = _static(0)
+    scan_resolution: int = _static(64)
 
     def __post_init__(self):
         _check_choice("data source", self.source, DATA_SOURCES)
@@ -624,6 +634,13 @@ class DataConfig(_ConfigMixin):
             _check_positive_int(name, getattr(self, name))
         for n in self.real_coarse_faces:
             _check_positive_int("real_coarse_faces", n, minimum=4)
+        # Bounded: each copy or view is a training mesh held in memory.
+        _check_positive_int("stress_copies", self.stress_copies, minimum=0)
+        _check(self.stress_copies <= 64, "stress_copies must be at most 64")
+        _check_positive_int("scan_views", self.scan_views, minimum=0)
+        _check(self.scan_views <= 16, "scan_views must be at most 16")
+        _check_positive_int("scan_resolution", self.scan_resolution, minimum=8)
+        _check(self.scan_resolution <= 512, "scan_resolution must be at most 512")
 
 
 @struct.dataclass
