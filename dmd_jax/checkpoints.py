@@ -9,7 +9,8 @@ Two stores, one way in:
   `dmd_jax/weights/` and is read by `load_pretrained()`. DMD-Net's version 2 adds a
   `policy` section (`dmd_jax.policy.DenoisePolicy`: how `denoise` uses the network);
   version 1 files, whose rules were `ModelConfig` fields, still load, their rules moved
-  into the policy.
+  into the policy, and so do version 2 files with the retired selector fields (dropped
+  with a warning, `policy.stored_policy`).
 * a training checkpoint: an Orbax `CheckpointManager` directory written during
   training (`checkpoint_managers`, `save_checkpoint`, `restore_checkpoint`); its newest
   params and config come back from `load_params`.
@@ -33,7 +34,12 @@ import numpy as np
 from dmd_jax.config import ExperimentConfig
 from dmd_jax.graph import build_mesh_graph, pad_mesh_graph, padded_sizes_for
 from dmd_jax.io import atomic_write
-from dmd_jax.policy import DenoisePolicy, from_legacy_model_fields, trained_policy
+from dmd_jax.policy import (
+    DenoisePolicy,
+    from_legacy_model_fields,
+    stored_policy,
+    trained_policy,
+)
 
 WEIGHTS_FORMAT = "dmd_jax-weights"
 # 2: a `policy` section beside the config (2026-12-02). 1: the rules inside the model config.
@@ -200,7 +206,9 @@ def load_weights(path) -> ModelBundle:
     """Reads a weights file written by `save_weights`, checking format, version and config.
 
     Version 1 files (before the policy had its own section) load with the policy their
-    model config held (`policy.from_legacy_model_fields`).
+    model config held (`policy.from_legacy_model_fields`). Version 2 files written
+    before issue 54 load without the fitted selectors' fields of their policy, with one
+    `policy.RetiredPolicyWarning` naming them (`policy.stored_policy`).
 
     Raises:
       ValueError: not a dmd_jax weights file, another format version, a truncated file,
@@ -219,7 +227,7 @@ def load_weights(path) -> ModelBundle:
     elif "policy" not in payload:
         raise ValueError(f"{path}: incomplete weights file (no policy)")
     else:
-        policy = _parse_section(path, payload, "policy", DenoisePolicy.from_dict)
+        policy = _parse_section(path, payload, "policy", lambda d: stored_policy(d, str(path)))
     meta = _parse_section(path, payload, "meta", lambda d: d)
     params = payload["params"]
     if not isinstance(params, dict):

@@ -1,10 +1,8 @@
 """`denoise`: a noisy mesh in any frame in, denoised vertices in the same frame out.
 
-What runs, in order: the policy's pre-smoothing (`dmd_jax.policy`) or a network-free
-route in place of the network (`dmd_jax.routes`), the network's passes over the whole
-mesh or patch by patch (`dmd_jax.memory_plan` chooses, `dmd_jax.patch_runner` runs the
-patches), the policy's review of a whole-mesh result (`dmd_jax.review`), the policy's
-relaxation. The weights and the
+What runs, in order: the policy's pre-smoothing rule (`dmd_jax.policy`), the network's
+passes over the whole mesh or patch by patch (`dmd_jax.memory_plan` chooses,
+`dmd_jax.patch_runner` runs the patches), the policy's relaxation. The weights and the
 policy come from `dmd_jax.checkpoints` (`load_pretrained`, `load_weights`,
 `load_model`); the padded graph from `dmd_jax.graph`.
 """
@@ -58,24 +56,15 @@ class DenoiseInfo:
     """How a `denoise` call ran (`return_info=True`).
 
     Attributes:
-      path: `"whole"` (the network on the mesh at once), `"patches"`, or `"route"` (the
-        result is a network-free route's, `route`: the policy's learned choice took it
-        in place of the network (`passes` 0), or its review after it).
+      path: `"whole"` (the network on the mesh at once) or `"patches"`.
       budget_bytes: the memory budget planned with; None for a small mesh run whole.
       passes: network passes run.
       presmooth_steps: uniform Laplacian steps run before the network.
       roughness: the noisy mesh's roughness in degrees when the policy's rule chose the
         steps, else None.
       relax_steps: tangential relaxation steps run after the network.
-      route: the network-free route run in place of the network
-        (`DenoisePolicy.route_label`), or None.
       unused_vertices: vertices no face references (returned exactly as given).
       policy: the policy the call ran (the weights' with the caller's overrides).
-      reviewed: whether the policy's review (`dmd_jax.review`) looked at the network's
-        result: on the whole-mesh path, where the learned choice chose the
-        pre-smoothing.
-      cascade: the cascade the review ran on the network's result
-        (`DenoisePolicy.cascade_label`; path `"whole"`), or None.
       patch_size, patches, largest_padded_vertices, halo_rings, devices: for the patch
         path, the owned vertices per patch, patches run over every pass, the largest
         padded patch, the halo depth in rings and the devices used; else None.
@@ -87,11 +76,8 @@ class DenoiseInfo:
     presmooth_steps: int
     roughness: float | None
     relax_steps: int
-    route: str | None
     unused_vertices: int
     policy: DenoisePolicy
-    reviewed: bool = False
-    cascade: str | None = None
     patch_size: int | None = None
     patches: int | None = None
     largest_padded_vertices: int | None = None
@@ -202,16 +188,12 @@ def denoise(
         checkpoint via `load_model`), a path for `load_model`, raw params with
         `config`, or None (default): the bundled weights.
       policy: how to run the network (`dmd_jax.policy.DenoisePolicy`); default: the
-        policy stored with the weights (`bundle.policy`), fitted on the validation split
-        for them.
+        policy stored with the weights (`bundle.policy`).
       iterations: a fixed number of network passes, each starting from the last,
         instead of the policy's pass rule.
       presmooth: a fixed number of uniform Laplacian steps before the network
-        (`dmd_jax.presmooth`) instead of the policy's choice; 0 gives the network the
-        mesh as it is; `"rule"` runs the policy's roughness rule where the policy
-        learns its pre-smoothing (`policy.PRESMOOTH_RULE`). Either way the network runs
-        (the learned choice's network-free routes, `DenoisePolicy.route_sigmas`, are
-        the policy's alone).
+        (`dmd_jax.presmooth`) instead of the policy's rule; 0 gives the network the
+        mesh as it is; `"rule"` (`policy.PRESMOOTH_RULE`), like None, runs the rule.
       relax: steps of feature-preserving tangential relaxation of the result
         (`dmd_jax.relax.relax_tangential`) instead of the policy's; for noise with a
         tangential part (per-coordinate noise): the network moves vertices along normals
@@ -252,8 +234,6 @@ def denoise(
         )
     from dmd_jax.presmooth import MAX_STEPS, laplacian_steps
     from dmd_jax.relax import relax_tangential
-    from dmd_jax.review import review_choice, review_result
-    from dmd_jax.routes import run_route
 
     # Every count is checked before any work.
     if iterations is not None:
@@ -278,34 +258,13 @@ def denoise(
     if referenced is not None:
         used, v, f = referenced
     x, centre, scale = _prenormalised(v)
-    noisy = x
     pre = presmooth_plan(run, x, f, presmooth)
     if pre.steps:
         x = laplacian_steps(x, f, pre.steps)
     memory = plan(bundle.config.model, x.shape[0], f.shape[0], max_memory, patch_size)
     extra = {}
-    reviewed = False
-    cascade = None
-    # The learned choice's network-free route (host side, about 740 bytes a face at peak,
-    # measured at 200k faces) runs where the whole-mesh network fits the budget, whose
-    # host arrays alone take more (memory_plan.WHOLE_HOST_BYTES_PER_PADDED_VERTEX); a
-    # mesh that must go patch by patch gets the network.
-    route = pre.route if memory.whole else None
-    if route is not None:
-        x = run_route(x, f, run.route_sigmas[route], run.route_passes[route])
-        passes = 0
-    elif memory.whole:
+    if memory.whole:
         x, passes = _denoise_whole(x, f, bundle, run, aggregation)
-        # Fitted on what the learned choice leaves to the network: not where a caller
-        # fixed the pre-smoothing.
-        reviewed = run.reviews and presmooth is None
-        if reviewed:
-            option = review_choice(run, noisy, x, f)
-            x = review_result(run, option, noisy, x, f)
-            if 1 <= option <= len(run.route_sigmas):
-                route = option - 1
-            elif option:
-                cascade = run.cascade_label(option - 1 - len(run.route_sigmas))
     else:
         x, stats = denoise_patches(
             x, f, bundle, run, aggregation, memory.budget, patch_size, devices, progress
@@ -325,17 +284,14 @@ def denoise(
     if not return_info:
         return out
     info = DenoiseInfo(
-        path="route" if route is not None else "whole" if memory.whole else "patches",
+        path="whole" if memory.whole else "patches",
         budget_bytes=memory.budget,
         passes=passes,
         presmooth_steps=pre.steps,
         roughness=pre.roughness,
         relax_steps=run.relax_steps,
-        route=None if route is None else run.route_label(route),
         unused_vertices=0 if referenced is None else int((~used).sum()),
         policy=run,
-        reviewed=reviewed,
-        cascade=cascade,
         **extra,
     )
     return out, info

@@ -17,8 +17,8 @@ grows with the noise until, beyond about two edges of noise, it saturates near 1
 The number of steps is a straight line in it, `round((roughness − start) / per_step)`
 clipped to `[0, MAX_STEPS]`, whose two numbers are a property of trained weights
 stored in the weights' policy (`policy.DenoisePolicy.presmooth_start`,
-`presmooth_per_step`), fitted on the validation split of `shared/meshes/train`
-(`make calibrate`).
+`presmooth_per_step`; the bundled 27° and 4.5° were fitted on the validation split of
+`shared/meshes/train` in 2026-12, docs/bundled-model.md).
 """
 
 from __future__ import annotations
@@ -111,125 +111,6 @@ def steps_for(rough: float, start: float, per_step: float, most: int = MAX_STEPS
     if start <= 0:
         return 0
     return int(np.clip(np.round((rough - start) / per_step), 0, most))
-
-
-# What the learned pre-smoothing choice reads of a noisy mesh (`noise_features`): the
-# log quartiles and 90th percentile of its angles between adjacent face normals, how much
-# 1, 2, 4 and 8 Laplacian steps lower their median (noise falls at once under smoothing,
-# the curvature of a coarse mesh does not: the one number of the roughness rule cannot
-# tell them apart), and how far 1, 2 and 4 steps move the vertices, in mean edges.
-FEATURE_NAMES = (
-    "log q25",
-    "log q50",
-    "log q75",
-    "log q90",
-    "log median ratio 1 step",
-    "log median ratio 2 steps",
-    "log median ratio 4 steps",
-    "log median ratio 8 steps",
-    "log move 1 step",
-    "log move 2 steps",
-    "log move 4 steps",
-)
-# Up to this many faces the features read the whole mesh; a larger one, its first this
-# many faces (bounded time, about 0.1 s: mesh files list faces with locality, and scans
-# are about equally noisy all over), or the whole mesh where those faces are scattered.
-FEATURE_MAX_FACES = 30_000
-_FEATURE_STEPS = (1, 2, 4, 8)
-
-
-def _angles(normals: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    na, nb = normals[a], normals[b]
-    ok = (np.abs(na).sum(axis=1) > 0) & (np.abs(nb).sum(axis=1) > 0)
-    cos = np.clip(np.einsum("ij,ij->i", na[ok], nb[ok]), -1.0, 1.0)
-    return np.degrees(np.arccos(cos))
-
-
-def noise_features(vertices, faces) -> np.ndarray:
-    """What the learned pre-smoothing choice reads of a noisy mesh (`FEATURE_NAMES`).
-
-    Scale free (angles, and moves in mean edge lengths) and rotation free.
-
-    Args:
-      vertices: `[n_vertex, 3]` positions.
-      faces: `[n_face, 3]` vertex indices (at least one pair of faces sharing an edge).
-
-    Returns:
-      `[len(FEATURE_NAMES)]` float64.
-
-    Raises:
-      ValueError: no two faces with an area share an edge.
-    """
-    v = np.asarray(vertices, np.float64)
-    f = np.asarray(faces)
-    a = b = None
-    if f.shape[0] > FEATURE_MAX_FACES:
-        used, sub = np.unique(f[:FEATURE_MAX_FACES], return_inverse=True)
-        sub = sub.reshape(-1, 3)
-        sa, sb = _edge_pairs(sub, used.size)
-        # A connected patch has about 1.5 pairs per face; fewer than one means the file
-        # orders its faces without locality: then read the whole mesh.
-        if sa.size >= FEATURE_MAX_FACES:
-            v, f, a, b = v[used], sub, sa, sb
-    if a is None:
-        a, b = _edge_pairs(f, v.shape[0])
-    angles = _angles(face_normals_np(v, f), a, b)
-    if angles.size == 0:
-        raise ValueError("the mesh has no two faces with an area sharing an edge")
-    q = np.percentile(angles, [25, 50, 75, 90]) + 0.5  # + 0.5°: a flat mesh stays finite
-    edges = np.concatenate(
-        [v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 1]], v[f[:, 0]] - v[f[:, 2]]]
-    )
-    edge = float(np.linalg.norm(edges, axis=1).mean()) or 1.0
-    ratios, moves, x, done = [], [], v, 0
-    step = _laplacian_operator(f, v.shape[0])
-    for k in _FEATURE_STEPS:
-        for _ in range(k - done):
-            x = step(x, LAMBDA)
-        done = k
-        ratios.append(np.log((np.median(_angles(face_normals_np(x, f), a, b)) + 0.5) / q[1]))
-        moves.append(np.log(np.linalg.norm(x - v, axis=1).mean() / edge + 1e-4))
-    return np.array([*np.log(q), *ratios, *moves[:3]])
-
-
-# The most examples and neighbours a learned choice may carry (a weights file is untrusted
-# input: each denoise reads every example once).
-MAX_EXAMPLES = 20_000
-
-
-def learned_steps(features, grid, center, scale, examples, regrets, neighbours: int) -> int:
-    """The count of `grid` of least mean regret over the `neighbours` nearest examples.
-
-    The learned choice is a nearest-neighbour regression: each example is a noisy mesh of
-    the training split (its standardised features, a row of `examples`) with the regret
-    of every count of the grid, `log(error after the count / error after the best
-    count)` (a row of `regrets`); a new mesh gets the count whose regret, averaged over
-    its nearest examples in the standardised features, is least (the fewest steps among
-    equals). It predicts only regrets that happened, so it cannot extrapolate to a count
-    no similar mesh wanted (`benchmarks/quality/presmooth_learn.py` fits it).
-
-    Args:
-      features: `[n_feature]` (`noise_features`).
-      grid: `[n_grid]` candidate step counts, ascending.
-      center, scale: `[n_feature]`: `z = (features − center) / scale`.
-      examples: `[n_example * n_feature]` standardised features, row-major.
-      regrets: `[n_example * n_grid]`, row-major.
-      neighbours: how many nearest examples to average.
-    """
-    option = learned_option(features, len(grid), center, scale, examples, regrets, neighbours)
-    return int(np.asarray(grid)[option])
-
-
-def learned_option(features, n_options, center, scale, examples, regrets, neighbours) -> int:
-    """`learned_steps`'s choice as an index into `n_options` options (the grid's counts,
-    then any network-free routes of `policy.DenoisePolicy.route_sigmas`), the first
-    among equals."""
-    z = (np.asarray(features, np.float64) - np.asarray(center)) / np.asarray(scale)
-    x = np.asarray(examples, np.float64).reshape(-1, z.size)
-    r = np.asarray(regrets, np.float64).reshape(x.shape[0], n_options)
-    distance = ((x - z) ** 2).sum(axis=1)
-    nearest = np.argsort(distance, kind="stable")[:neighbours]
-    return int(np.argmin(r[nearest].mean(axis=0)))
 
 
 def _laplacian_operator(faces: np.ndarray, n: int):

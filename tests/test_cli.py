@@ -238,7 +238,7 @@ def test_presmooth_flag(files, capsys, tmp_path, weights):
     assert_one_line_error(code, err, "presmooth")
     code, _, err = run(capsys, *bad, "--presmooth", "lots")
     assert_one_line_error(code, err, "or 'rule'")
-    # 'rule': the roughness rule the weights keep beside a learned choice.
+    # 'rule': the roughness rule of the weights' policy, as by default.
     code, out, err = run(capsys, *args, "--presmooth", "rule", "--overwrite")
     assert code == 0, err
     expected = inference.denoise(noisy_v, f, weights, presmooth="rule")
@@ -655,21 +655,19 @@ def test_export_weights_says_which_step(capsys, tmp_path):
     assert after.meta["step"] == 7 and after.meta["exported_from"] == str(tmp_path / "t.msgpack")
     for a, b in zip(jax.tree.leaves(before.params), jax.tree.leaves(after.params), strict=True):
         np.testing.assert_array_equal(a, b)
-    # The bundled weights learn their pre-smoothing: `info` says so in one line, and an
-    # explicit --presmooth rule replaces the learned choice.
+    # `info` prints the bundled policy's rules in one line; --presmooth edits the rule.
     code, out, err = run(capsys, "info", "--weights", "bundled")
     assert code == 0, err
     (line,) = [x for x in out.splitlines() if x.strip().startswith("policy:")]
     bundled = checkpoints.load_weights(checkpoints.pretrained_path()).policy
-    n_examples = len(bundled.presmooth_examples) // len(bundled.presmooth_center)
-    assert f"{n_examples} training examples" in line and len(line) < 1000
+    assert bundled.describe() in line and len(line) < 1000
     args = ("export-weights", checkpoints.pretrained_path(), "-o", tmp_path / "b.msgpack")
     code, _, err = run(capsys, *args, "--presmooth", "30", "4")
     assert code == 0, err
     policy = checkpoints.load_weights(tmp_path / "b.msgpack").policy
-    assert not policy.learns_presmoothing and policy.presmooth_start == 30
+    assert policy.presmooth_start == 30 and policy.presmooth_per_step == 4
     # --policy-from: a fine-tune's checkpoint with the policy of the weights it started
-    # from (here the bundled learned choice), its own params and config.
+    # from (here the bundled rules), its own params and config.
     args = ("export-weights", ckpt, "-o", tmp_path / "f.msgpack", "--policy-from", "bundled")
     code, _, err = run(capsys, *args)
     assert code != 0 and "bundled" in err  # a path, not the `--weights` alias

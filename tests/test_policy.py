@@ -17,7 +17,7 @@ import dmd_jax
 from dmd_jax import checkpoints
 from dmd_jax.config import LEGACY_POLICY_FIELDS, ModelConfig
 from dmd_jax.inference import DenoiseInfo, denoise
-from dmd_jax.policy import DenoisePolicy, run_passes
+from dmd_jax.policy import RETIRED_FIELDS, DenoisePolicy, RetiredPolicyWarning, run_passes
 
 REFERENCE = Path(__file__).resolve().parent / "data" / "bundled_reference.npz"
 
@@ -45,8 +45,63 @@ def test_bundled_weights_carry_their_policy_in_format_2(bundled):
     )
     stored = DenoisePolicy.from_dict(json.loads(payload["policy"]))
     assert stored == bundled.policy
-    assert bundled.policy.pass_tolerance > 0 and bundled.policy.learns_presmoothing
-    assert bundled.policy.presmooth_start > 0  # the rule kept beside the learned choice
+    assert bundled.policy.pass_tolerance > 0 and bundled.policy.presmooth_start > 0
+
+
+def _numbers(value) -> int:
+    return len(value) if isinstance(value, list | tuple) else 1
+
+
+def test_the_bundled_policy_is_a_few_rules_not_fitted_tables():
+    # Issue 54: at most 6 fields and 16 numbers in all; no selector's table.
+    policy = dmd_jax.load_pretrained().policy
+    fields = policy.to_dict()
+    assert len(dataclasses.fields(DenoisePolicy)) <= 6 and len(fields) <= 6
+    assert sum(_numbers(v) for v in fields.values()) <= 16
+    assert not set(fields) & set(RETIRED_FIELDS)
+
+
+def _with_retired_fields(tmp_path, extra: dict) -> Path:
+    """The bundled weights file rewritten as a file of before issue 54: its own bytes,
+    the policy section carrying (small) selector fields beside its rules."""
+    from flax import serialization
+
+    payload = serialization.msgpack_restore(checkpoints.pretrained_path().read_bytes())
+    policy = {**json.loads(payload["policy"]), **extra}
+    path = tmp_path / "old_selectors.msgpack"
+    path.write_bytes(serialization.msgpack_serialize({**payload, "policy": json.dumps(policy)}))
+    return path
+
+
+def test_weights_with_the_retired_selector_fields_load_with_one_warning(tmp_path, bundled):
+    old = {
+        "presmooth_grid": [0, 2],
+        "presmooth_center": [0.0] * 11,
+        "presmooth_scale": [1.0] * 11,
+        "presmooth_examples": [0.5] * 22,
+        "presmooth_regrets": [0.0, 1.0, 0.0, 1.0],
+        "presmooth_neighbours": 1,
+        "route_sigmas": [0.2],
+        "route_passes": [60],
+        "review_route": 0,
+        "review_neighbours": 1,
+        "cascade_sigmas": [0.2],
+        "cascade_passes": [4],
+    }
+    path = _with_retired_fields(tmp_path, old)
+    with pytest.warns(RetiredPolicyWarning) as caught:
+        loaded = checkpoints.load_weights(path)
+    assert len(caught) == 1
+    message = str(caught[0].message)
+    assert str(path) in message and all(name in message for name in old)
+    assert loaded.policy == bundled.policy
+    assert loaded.config == bundled.config
+    v, f = icosphere(2)
+    np.testing.assert_array_equal(denoise(v, f, loaded), denoise(v, f, bundled))
+    # An unknown field that was never a selector's is still an error.
+    bad = _with_retired_fields(tmp_path, {"presmooth_gird": [0, 2]})
+    with pytest.raises(ValueError, match="unreadable policy"):
+        checkpoints.load_weights(bad)
 
 
 def _write_v1(path, model_extra: dict):
@@ -185,6 +240,18 @@ def test_info_says_how_the_call_ran(reference, bundled):
     np.testing.assert_array_equal(out, denoise(v, f, bundled))
     _, info = denoise(v, f, bundled, presmooth=2, relax=1, return_info=True)
     assert (info.presmooth_steps, info.roughness, info.relax_steps) == (2, None, 1)
+    # presmooth="rule" is the policy's rule, as with no presmooth.
+    from dmd_jax.presmooth import roughness, steps_for
+
+    _, info = denoise(v, f, bundled, presmooth="rule", return_info=True)
+    rough = roughness(v, f)
+    policy = bundled.policy
+    assert info.roughness == pytest.approx(rough)
+    assert info.presmooth_steps == steps_for(
+        rough, policy.presmooth_start, policy.presmooth_per_step
+    )
+    with pytest.raises(ValueError, match="presmooth must be a whole number"):
+        denoise(v, f, presmooth="rules")
 
 
 def test_unused_vertices_are_returned_exactly_and_change_nothing(reference, bundled):
@@ -236,83 +303,3 @@ def test_a_run_trained_for_k_passes_is_run_for_k_passes():
     v, f = icosphere(2)
     _, info = dmd_jax.denoise(v, f, bundle, return_info=True)
     assert info.passes == 3
-
-
-def _learned_fields(n_example=6, grid=(0, 1, 3)):
-    from dmd_jax.presmooth import FEATURE_NAMES
-
-    n = len(FEATURE_NAMES)
-    return {
-        "presmooth_grid": grid,
-        "presmooth_center": (0.0,) * n,
-        "presmooth_scale": (1.0,) * n,
-        "presmooth_examples": tuple(float(i % 7) for i in range(n_example * n)),
-        "presmooth_regrets": (0.1,) * (n_example * len(grid)),
-        "presmooth_neighbours": 3,
-    }
-
-
-@pytest.mark.parametrize(
-    "edits, message",
-    [
-        ({"presmooth_grid": (0, 3, 1)}, "presmooth_grid must be ascending distinct"),
-        ({"presmooth_grid": (0, 1, 99)}, "presmooth_grid must be ascending distinct"),
-        ({"presmooth_grid": ()}, "presmooth_grid must be ascending distinct"),
-        ({"presmooth_center": (0.0,)}, "presmooth_center must hold 11 finite numbers"),
-        ({"presmooth_scale": (0.0,) * 11}, "presmooth_scale must be positive"),
-        ({"presmooth_examples": ()}, "presmooth_examples must hold 1 to 20000 examples"),
-        ({"presmooth_examples": (0.0,) * 11 * 20_001}, "must hold 1 to 20000 examples"),
-        ({"presmooth_regrets": (0.1,) * 5}, "presmooth_regrets must hold 18 finite numbers"),
-        ({"presmooth_regrets": (float("nan"),) * 18}, "presmooth_regrets: expected a finite"),
-        ({"presmooth_neighbours": 0}, "presmooth_neighbours must be an integer >= 1"),
-        ({"presmooth_neighbours": 7}, "presmooth_neighbours must be at most the 6 examples"),
-    ],
-)
-def test_learned_presmoothing_fields_are_checked_before_use(edits, message):
-    policy = DenoisePolicy().with_edits(_learned_fields())
-    assert policy.learns_presmoothing
-    with pytest.raises(ValueError, match=message):
-        policy.with_edits(edits)
-
-
-def test_denoise_follows_a_learned_choice_and_reports_it(reference, bundled):
-    # Every example says: two steps would have been best (the others' regret is 1).
-    fields = _learned_fields(grid=(0, 2, 4))
-    fields["presmooth_regrets"] = (1.0, 0.0, 1.0) * 6
-    # The bundled rule and pass tolerance, this choice of counts (no routes).
-    policy = bundled.policy.with_presmooth_rule().replace(**fields)
-    out, info = denoise(reference["vertices"], reference["faces"], policy=policy, return_info=True)
-    assert info.presmooth_steps == 2 and info.roughness > 0
-    fixed = denoise(reference["vertices"], reference["faces"], presmooth=2, policy=bundled.policy)
-    np.testing.assert_allclose(out, fixed, atol=1e-6)
-    # presmooth="rule": the roughness rule the policy keeps beside the learned choice.
-    from dmd_jax.presmooth import roughness, steps_for
-
-    _, info = denoise(
-        reference["vertices"], reference["faces"], policy=policy, presmooth="rule", return_info=True
-    )
-    rough = roughness(reference["vertices"], reference["faces"])
-    assert info.presmooth_steps == steps_for(
-        rough, policy.presmooth_start, policy.presmooth_per_step
-    )
-    assert info.roughness == pytest.approx(rough)
-    with pytest.raises(ValueError, match="presmooth must be a whole number"):
-        denoise(reference["vertices"], reference["faces"], presmooth="rules")
-
-
-def test_the_rule_takes_over_only_beyond_the_largest_learned_count():
-    from dmd_jax.policy import presmooth_plan
-
-    v, f = icosphere(2)
-    noisy = v + 0.05 * np.random.default_rng(0).standard_normal(v.shape)
-    # A rule that asks for many steps on any mesh (roughness above 1 degree).
-    rule = {"presmooth_start": 1.0, "presmooth_per_step": 1.0}
-    fields = _learned_fields(grid=(0, 2, 4))
-    top = DenoisePolicy(**rule).with_edits({**fields, "presmooth_regrets": (1.0, 1.0, 0.0) * 6})
-    assert (
-        presmooth_plan(top, noisy, f, None).steps
-        == presmooth_plan(top.with_presmooth_rule(), noisy, f, None).steps
-        > 4
-    )
-    middle = top.replace(presmooth_regrets=(1.0, 0.0, 1.0) * 6)
-    assert presmooth_plan(middle, noisy, f, None).steps == 2

@@ -90,42 +90,20 @@ def bundle():
 
 
 def test_denoise_follows_the_bundled_policy(bundle):
-    from dmd_jax.presmooth import learned_option, noise_features
-
     policy = bundle.policy
-    # The bundled weights carry a learned choice, and the fitted rule beside it.
-    assert policy.learns_presmoothing and policy.presmooth_start > 0
+    assert policy.presmooth_start > 0
     clean, heavy, f = _noisy_sphere(2.0)
     _, info = denoise(clean, f, bundle, return_info=True)
     assert info.presmooth_steps == 0  # a clean mesh is left to the network
-    # Light noise: the learned choice.
-    _, light, _ = _noisy_sphere(0.3)
-    _, info = denoise(light, f, bundle, return_info=True)
-    grid = policy.presmooth_grid
-    fields = (
-        len(grid) + len(policy.route_sigmas),  # the counts, then the routes
-        policy.presmooth_center,
-        policy.presmooth_scale,
-        policy.presmooth_examples,
-        policy.presmooth_regrets,
-        policy.presmooth_neighbours,
-    )
-    option = learned_option(noise_features(light, f), *fields)
-    assert option < len(grid)  # a noisy sphere is no case for a route
-    assert info.presmooth_steps == grid[option] and info.route is None
-    # Noise of two edges per coordinate, heavier than any training example: the choice
-    # is its largest count, and the rule asks for more.
+    # Noise of two edges per coordinate, heavier than any training example: the rule.
     _, info = denoise(heavy, f, bundle, return_info=True)
-    assert grid[learned_option(noise_features(heavy, f), *fields)] == max(grid)
     expected = steps_for(roughness(heavy, f), policy.presmooth_start, policy.presmooth_per_step)
-    assert expected > max(policy.presmooth_grid)
+    assert expected > 0
     assert info.presmooth_steps == expected
     assert info.roughness == pytest.approx(roughness(heavy, f))
-    # The policy's steps are the explicit argument's (the review after the network, which
-    # a fixed count skips, left out).
-    unreviewed = bundle._replace(policy=policy.without_review())
+    # The policy's steps are the explicit argument's.
     np.testing.assert_allclose(
-        denoise(heavy, f, unreviewed), denoise(heavy, f, bundle, presmooth=expected), atol=1e-6
+        denoise(heavy, f, bundle), denoise(heavy, f, bundle, presmooth=expected), atol=1e-6
     )
 
 
@@ -155,99 +133,3 @@ def test_denoise_rejects_bad_presmooth(bundle, bad):
     v, f = icosphere(1)
     with pytest.raises((ValueError, TypeError), match="presmooth"):
         denoise(v, f, bundle, presmooth=bad)
-
-
-# --------------------------------------------------------------------------------------
-# The learned choice: what it reads, and how it picks
-# --------------------------------------------------------------------------------------
-
-
-def _features_reference(v, f):
-    """`noise_features` written out with trimesh's adjacency angles and the baseline's
-    Laplacian steps."""
-
-    def angles(x):
-        return np.degrees(trimesh.Trimesh(x, f, process=False).face_adjacency_angles)
-
-    q = np.percentile(angles(v), [25, 50, 75, 90]) + 0.5
-    edge = trimesh.Trimesh(v, f, process=False).edges_unique_length.mean()
-    out = list(np.log(q))
-    moved = {}
-    for k in (1, 2, 4, 8):
-        x = baselines.run_baseline("laplacian", v, f, iterations=k)
-        out.append(np.log((np.median(angles(x)) + 0.5) / q[1]))
-        moved[k] = np.log(np.linalg.norm(x - v, axis=1).mean() / edge + 1e-4)
-    return np.array(out + [moved[1], moved[2], moved[4]])
-
-
-def test_noise_features_match_a_trimesh_reference():
-    from dmd_jax.presmooth import FEATURE_NAMES, noise_features
-
-    _, noisy, f = _noisy_sphere(0.3)
-    got = noise_features(noisy, f)
-    assert got.shape == (len(FEATURE_NAMES),)
-    # The mean edge: each interior edge counted twice here, once in trimesh; a closed
-    # mesh has every edge twice, so the two agree.
-    np.testing.assert_allclose(got, _features_reference(noisy, f), atol=1e-6)
-
-
-def test_noise_features_are_scale_translation_and_rotation_free_and_see_noise():
-    from dmd_jax.presmooth import noise_features
-
-    clean, noisy, f = _noisy_sphere(0.3)
-    q, _ = np.linalg.qr(np.random.default_rng(1).standard_normal((3, 3)))
-    moved = 37.0 * noisy @ q.T + np.array([3.0, -2.0, 10.0])
-    np.testing.assert_allclose(noise_features(moved, f), noise_features(noisy, f), atol=1e-6)
-    # Smoothing lowers a noisy mesh's angles far more than a clean one's.
-    assert noise_features(noisy, f)[4] < noise_features(clean, f)[4] - 0.3
-    flat = noise_features(*_grid(8))
-    assert np.all(np.isfinite(flat))
-
-
-def _grid(n):
-    ij = np.stack(np.meshgrid(np.arange(n + 1), np.arange(n + 1), indexing="ij"), -1)
-    v = np.concatenate([ij.reshape(-1, 2), np.zeros(((n + 1) ** 2, 1))], 1).astype(float)
-    idx = np.arange((n + 1) ** 2).reshape(n + 1, n + 1)
-    a, b, c, d = idx[:-1, :-1], idx[1:, :-1], idx[:-1, 1:], idx[1:, 1:]
-    f = np.concatenate([np.stack([a, b, d], -1), np.stack([a, d, c], -1)]).reshape(-1, 3)
-    return v, f
-
-
-def test_noise_features_of_a_large_mesh_read_its_first_faces(monkeypatch):
-    from dmd_jax import presmooth
-
-    _, noisy, f = _noisy_sphere(0.3)
-    monkeypatch.setattr(presmooth, "FEATURE_MAX_FACES", 600)
-    used, sub = np.unique(f[:600], return_inverse=True)
-    np.testing.assert_allclose(
-        presmooth.noise_features(noisy, f),
-        presmooth.noise_features(noisy[used], sub.reshape(-1, 3)),
-    )
-    # Faces in no useful order: the whole mesh is read instead.
-    shuffled = f[np.random.default_rng(0).permutation(len(f))]
-    monkeypatch.setattr(presmooth, "FEATURE_MAX_FACES", 10**9)
-    whole = presmooth.noise_features(noisy, shuffled)
-    monkeypatch.setattr(presmooth, "FEATURE_MAX_FACES", 600)
-    np.testing.assert_allclose(presmooth.noise_features(noisy, shuffled), whole)
-    with pytest.raises(ValueError, match="no two faces with an area sharing an edge"):
-        presmooth.noise_features(noisy, f[:1])
-
-
-def test_learned_steps_is_the_mean_regret_of_the_nearest_examples():
-    from dmd_jax.presmooth import learned_steps
-
-    rng = np.random.default_rng(0)
-    grid = (0, 2, 5)
-    examples = rng.normal(size=(30, 4))
-    regrets = rng.uniform(0, 1, size=(30, 3))
-    center, scale = rng.normal(size=4), rng.uniform(0.5, 2, size=4)
-    for _ in range(20):
-        x = rng.normal(size=4) * scale + center
-        z = (x - center) / scale
-        nearest = np.argsort(np.linalg.norm(examples - z, axis=1))[:7]
-        expected = grid[int(np.argmin(regrets[nearest].mean(axis=0)))]
-        got = learned_steps(x, grid, center, scale, examples.ravel(), regrets.ravel(), 7)
-        assert got == expected
-    # Equal regrets: the fewest steps.
-    flat = np.zeros((30, 3))
-    assert learned_steps(center, grid, center, scale, examples.ravel(), flat.ravel(), 5) == 0

@@ -252,7 +252,7 @@ def test_bundled_model_figures_come_from_code():
     labels = candidate_labels(model.filter_iterations, model.taubin_iterations, model.filter_sigmas)
     n_bilateral = len([x for x in labels if x.startswith("σ")])
     n_taubin = len(taubin_snapshots(model.taubin_iterations))
-    words = {9: "nine", 12: "twelve", 2: "two", 3: "three", 10: "ten", 11: "eleven"}
+    words = {9: "nine", 12: "twelve", 2: "two", 3: "three", 5: "five", 10: "ten", 11: "eleven"}
     said(f"weights {words[len(labels)]} candidate normal fields")
     said(f"the noisy normals, {words[n_bilateral]} bilateral-filtered ones")
     said(f"and {words[n_taubin]} Taubin-smoothed ones")
@@ -261,14 +261,8 @@ def test_bundled_model_figures_come_from_code():
     said(f"range σ {sigmas} after {', '.join(map(str, p[:-1]))} and {p[-1]} passes")
     said(f"vertex update ({model.vertex_iterations} iterations)")
 
-    from dmd_jax.presmooth import FEATURE_NAMES
-
     policy = bundle.policy
-    said(f"{words[len(FEATURE_NAMES)]} scale-free measures of the noisy mesh")
-    grid = policy.presmooth_grid
-    n_examples = len(policy.presmooth_examples) // len(FEATURE_NAMES)
-    said(f"a learned choice of {min(grid)} to {max(grid)} Laplacian pre-smoothing steps")
-    said(f"served the most similar of {n_examples} noisy and clean training crops best")
+    said(f"two fixed rules, {words[len(policy.to_dict())]} numbers")
     rules = bundle_rules(bundle)
     said(f"exceeds {fmt(rules['presmooth_start'])}°, one per {fmt(rules['presmooth_per_step'])}°")
     said(f"at most {rules['max_passes']}, while the last one moved the vertices by more than")

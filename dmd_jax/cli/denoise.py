@@ -3,26 +3,38 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
+from pathlib import Path
 
 from dmd_jax.cli._common import (
     MESH_SUFFIXES,
     METHODS,
+    MIN_MAX_MEMORY,
     WEIGHTED_METHODS,
     _check_output,
     _load_input,
     _make_parent,
     _note,
+    check_range,
+    check_weights_path,
+    output_lock,
 )
 
 
 def _denoise_inputs(args: argparse.Namespace):
     """`[(input, output)]` of a `denoise` call: one file and `-o`, or files and folders
-    (their mesh files, not recursive) and `--out DIR` (same names there)."""
+    (their mesh files, not recursive, less `atomic_write`'s temporary files) and
+    `--out DIR` (same names there)."""
+    import os
     from pathlib import Path
 
     if args.skip_existing and args.overwrite:
         raise ValueError("--skip-existing and --overwrite contradict each other; pass one")
+    for name in args.input:
+        # Said first: a missing folder is not "one input file" (the wrong problem).
+        if not os.path.lexists(name):
+            raise FileNotFoundError(f"{name}: no such file or folder")
     many = len(args.input) > 1 or Path(args.input[0]).is_dir()
     if not many:
         if args.out is not None:
@@ -35,17 +47,29 @@ def _denoise_inputs(args: argparse.Namespace):
         raise ValueError("several inputs (or a folder) take --out DIR, not -o/--output")
     if args.out is None:
         raise ValueError("several inputs (or a folder) need --out DIR for the results")
+    from dmd_jax.io import is_temp_name
+
     files = []
+    skipped = 0
     for name in args.input:
         p = Path(name)
         if p.is_dir():
             found = sorted(q for q in p.iterdir() if q.suffix.lower() in MESH_SUFFIXES)
+            # An interrupted write's temporary file (`.NAME.XXXXXXXX.obj`) is no input,
+            # even where it happens to hold a whole mesh.
+            mine = [q for q in found if is_temp_name(q.name)]
+            skipped += len(mine)
+            found = [q for q in found if not is_temp_name(q.name)]
             if not found:
                 raise ValueError(f"{name}: holds no mesh files ({', '.join(MESH_SUFFIXES)})")
             files += found
         else:
             files.append(p)
+    if skipped:
+        _note(f"left out {skipped} unfinished temporary files of an interrupted write")
     out = Path(args.out)
+    if out.is_symlink() and not os.path.exists(out):
+        raise ValueError(f"{args.out}: is a symbolic link to nothing (or a loop)")
     if out.exists() and not out.is_dir():
         raise ValueError(f"{args.out}: exists and is not a directory")
     names = [f.name for f in files]
@@ -88,6 +112,12 @@ def _cmd_denoise(args: argparse.Namespace) -> int:
         raise ValueError(f"--iterations must be at least 1, got {args.iterations}")
     if args.method not in METHODS:
         raise ValueError(f"unknown --method {args.method!r}; choose one of: {', '.join(METHODS)}")
+    if args.method == "dmd":
+        from dmd_jax.policy import MAX_PASSES_LIMIT as most
+    else:
+        from dmd_jax.baselines import MAX_PASSES as most
+    check_range("--iterations", args.iterations, 1, most)
+    check_weights_path("--weights", args.weights)
     if args.weights is not None and args.method not in WEIGHTED_METHODS:
         raise ValueError(
             f"--weights is for --method {' or '.join(WEIGHTED_METHODS)}; {args.method!r} is a "
@@ -97,14 +127,23 @@ def _cmd_denoise(args: argparse.Namespace) -> int:
     if args.max_memory is not None:
         if args.method != "dmd":
             raise ValueError("--max-memory is for --method dmd (the network)")
-        from dmd_jax.memory_plan import parse_memory
+        from dmd_jax.memory_plan import format_bytes, parse_memory
 
         extra["max_memory"] = parse_memory(args.max_memory)
+        if extra["max_memory"] < MIN_MAX_MEMORY:
+            raise ValueError(
+                f"--max-memory {args.max_memory} is below the least the network runs in, "
+                f"{format_bytes(MIN_MAX_MEMORY)} (its compiled programs and XLA's working "
+                "memory alone)"
+            )
     if args.relax is not None:
         if args.method != "dmd":
             raise ValueError("--relax is for --method dmd (the network)")
         if args.relax < 0:
             raise ValueError(f"--relax must be 0 or more steps, got {args.relax}")
+        from dmd_jax.policy import MAX_RELAX_STEPS
+
+        check_range("--relax", args.relax, 0, MAX_RELAX_STEPS)
         extra["relax"] = args.relax
     if args.presmooth is not None:
         if args.method != "dmd":
@@ -118,36 +157,26 @@ def _cmd_denoise(args: argparse.Namespace) -> int:
                 raise ValueError(
                     f"--presmooth must be 0 or more steps, or 'rule', got {args.presmooth!r}"
                 )
+            from dmd_jax.presmooth import MAX_STEPS
+
+            check_range("--presmooth", steps, 0, MAX_STEPS)
             extra["presmooth"] = steps
         else:
             extra["presmooth"] = "rule"
     pairs = _denoise_inputs(args)
-    weights = args.weights
-    if args.method == "dmd" and args.out is not None:
-        from dmd_jax.checkpoints import load_model
+    with contextlib.ExitStack() as stack:
+        if args.out is not None and pairs:
+            # Two runs writing one folder at once would replace each other's outputs.
+            Path(args.out).mkdir(parents=True, exist_ok=True)
+            stack.enter_context(output_lock(args.out))
+        weights = args.weights
+        if args.method == "dmd" and args.out is not None:
+            from dmd_jax.checkpoints import load_model
 
-        weights = load_model(weights)  # once for every mesh
-    t_all = time.perf_counter()
-    many = args.out is not None  # folder mode: one bad file does not stop the others
-    failed: list[tuple[str, str]] = []
-    done = 0
-    for src, dst in pairs:
-        try:
-            done += _denoise_one(args, src, dst, weights, extra, denoise_with, save_mesh)
-        except (ValueError, OSError) as exc:
-            if not many:
-                raise
-            # One bad file must not cost the rest of a folder: say so, go on, sum up.
-            message = " ".join(str(exc).split()) or type(exc).__name__
-            print(f"dmd-jax denoise: error: {message} (going on with the others)", file=sys.stderr)
-            failed.append((src, message))
-        except KeyboardInterrupt as exc:
-            if many:
-                exc.hint = (
-                    f" after {done} of {len(pairs)} meshes; the finished outputs are complete "
-                    "files: rerun the same command with --skip-existing to resume"
-                )
-            raise
+            weights = load_model(weights)  # once for every mesh
+        t_all = time.perf_counter()
+        failed, done = _denoise_all(args, pairs, weights, extra, denoise_with, save_mesh)
+    many = args.out is not None
     if many:
         minutes = max(time.perf_counter() - t_all, 1e-9) / 60
         print(
@@ -166,10 +195,55 @@ def _cmd_denoise(args: argparse.Namespace) -> int:
     return 0
 
 
+def _denoise_all(args, pairs, weights, extra, denoise_with, save_mesh):
+    """Runs every pair; `(failed [(input, message)], number written)`."""
+    many = args.out is not None  # folder mode: one bad file does not stop the others
+    failed: list[tuple[str, str]] = []
+    done = 0
+    for src, dst in pairs:
+        try:
+            done += _denoise_one(args, src, dst, weights, extra, denoise_with, save_mesh)
+        except (ValueError, OSError) as exc:
+            if not many:
+                raise
+            # One bad file must not cost the rest of a folder: say so, go on, sum up.
+            message = " ".join(str(exc).split()) or type(exc).__name__
+            if Path(src).name not in message:  # every line names its file
+                message = f"{src}: {message}"
+            print(f"dmd-jax denoise: error: {message} (going on with the others)", file=sys.stderr)
+            failed.append((src, message))
+        except KeyboardInterrupt as exc:
+            if many:
+                exc.hint = (
+                    f" after {done} of {len(pairs)} meshes; the finished outputs are complete "
+                    "files: rerun the same command with --skip-existing to resume"
+                )
+            raise
+    return failed, done
+
+
+def _check_size(src, max_memory: int | None) -> None:
+    """Refuses, by its size and before reading it, a file larger than the memory budget
+    (reading it alone would take more)."""
+    import os
+
+    if max_memory is None:
+        return
+    size = os.stat(src).st_size
+    if size > max_memory:
+        from dmd_jax.memory_plan import format_bytes
+
+        raise ValueError(
+            f"{src}: the file is {format_bytes(size)}, more than the --max-memory budget of "
+            f"{format_bytes(max_memory)} (reading it alone would exceed it)"
+        )
+
+
 def _denoise_one(args, src, dst, weights, extra, denoise_with, save_mesh) -> int:
     """Denoises one file into `dst` and prints its line; returns 1."""
     import time
 
+    _check_size(src, extra.get("max_memory"))
     vertices, faces = _load_input(src)
     if args.parents:
         _make_parent(dst)
@@ -194,13 +268,6 @@ def _denoise_one(args, src, dst, weights, extra, denoise_with, save_mesh) -> int
         how += f" ({info.passes} passes)"
     if info is not None and info.path == "patches":
         how += f" in {info.patches} patches of {info.patch_size:,} vertices"
-    if info is not None and info.route is not None:
-        who = (
-            "its review of the network's result took" if info.reviewed else "its learned choice ran"
-        )
-        how += f" ({who} the network-free route {info.route})"
-    if info is not None and info.cascade is not None:
-        how += f" (its review ran {info.cascade} on the network's result)"
     print(
         f"denoised {src} ({len(vertices)} vertices, {len(faces)} faces) with "
         f"{args.method}{how} in {elapsed:.2f} s -> {dst}"
@@ -261,9 +328,8 @@ def add_parser(sub) -> None:
         "--presmooth",
         default=None,
         metavar="STEPS",
-        help="uniform Laplacian steps before the network (default: the weights' policy "
-        "chooses, from what the noisy mesh looks like; 0: none; 'rule': the roughness "
-        "rule stored with the weights, in place of the learned choice)",
+        help="uniform Laplacian steps before the network (default, or 'rule': the "
+        "roughness rule stored with the weights' policy; 0: none)",
     )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.add_argument(

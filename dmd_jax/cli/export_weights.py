@@ -59,8 +59,6 @@ def _edited_policy(policy, args: argparse.Namespace):
     if args.max_passes is not None:
         edits["max_passes"] = args.max_passes
     if args.presmooth is not None:
-        # An explicit rule is the one to run: it replaces a learned choice.
-        policy = policy.with_presmooth_rule()
         edits["presmooth_start"], edits["presmooth_per_step"] = args.presmooth
     if args.relax_steps is not None:
         edits["relax_steps"] = args.relax_steps
@@ -91,8 +89,7 @@ def add_parser(sub) -> None:
         type=float,
         default=None,
         help="store this pass tolerance in the weights' policy: passes repeat while the last "
-        "moved the mesh by more than it, in mean edges (fit it with `make calibrate`; "
-        "0: every one of --max-passes)",
+        "moved the mesh by more than it, in mean edges (0: every one of --max-passes)",
     )
     p.add_argument(
         "--max-passes",
@@ -113,14 +110,13 @@ def add_parser(sub) -> None:
         default=None,
         metavar=("START", "PER_STEP"),
         help="store this pre-smoothing rule in the weights' policy (degrees of roughness: "
-        "round((roughness - START) / PER_STEP) steps; fit it with `make calibrate`; "
-        "START 0 turns it off), in place of a learned pre-smoothing choice",
+        "round((roughness - START) / PER_STEP) steps; START 0 turns it off)",
     )
     p.add_argument(
         "--policy-from",
         default=None,
         metavar="WEIGHTS",
-        help="take the inference policy (learned pre-smoothing, rules) from this weights "
+        help="take the inference policy (pass and pre-smoothing rules) from this weights "
         "file instead of the checkpoint's trained policy, e.g. the weights a fine-tune "
         "started from; the options above still edit it",
     )
