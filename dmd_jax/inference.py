@@ -49,6 +49,25 @@ from dmd_jax.policy import (
 FINE_PADDING_MIN_FACES = 20_000
 # The most owned vertices a caller may force per patch (a bound on one patch's graph).
 MAX_PATCH_SIZE = 2**31 - 1
+# The longest `repr(DenoiseInfo)`: a summary a notebook prints on one screen.
+INFO_REPR_MAX = 2000
+# Sequences longer than this show as their length in the summary.
+_REPR_MAX_ITEMS = 8
+
+
+def _summary(value) -> str:
+    """A short text for one field of `DenoiseInfo`'s repr: arrays by shape and dtype,
+    long sequences by length, configs field by field, floats to 4 significant digits."""
+    if hasattr(value, "shape") and hasattr(value, "dtype"):
+        return f"array[{', '.join(map(str, value.shape))}] {value.dtype}"
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    if isinstance(value, list | tuple) and len(value) > _REPR_MAX_ITEMS:
+        return f"<{type(value).__name__} of {len(value)}>"
+    if hasattr(value, "to_dict") and dataclasses.is_dataclass(value):
+        inner = (f"{f.name}={_summary(getattr(value, f.name))}" for f in dataclasses.fields(value))
+        return f"{type(value).__name__}({', '.join(inner)})"
+    return repr(value)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -68,6 +87,10 @@ class DenoiseInfo:
       patch_size, patches, largest_padded_vertices, halo_rings, devices: for the patch
         path, the owned vertices per patch, patches run over every pass, the largest
         padded patch, the halo depth in rings and the devices used; else None.
+
+    Its `repr` is a summary of at most `INFO_REPR_MAX` characters (fields that are None
+    left out, arrays shown by shape, long sequences by length); every field stays
+    reachable as an attribute.
     """
 
     path: str
@@ -83,6 +106,15 @@ class DenoiseInfo:
     largest_padded_vertices: int | None = None
     halo_rings: int | None = None
     devices: int | None = None
+
+    def __repr__(self) -> str:
+        parts = (
+            f"{f.name}={_summary(getattr(self, f.name))}"
+            for f in dataclasses.fields(self)
+            if getattr(self, f.name) is not None
+        )
+        text = f"{type(self).__name__}({', '.join(parts)})"
+        return text if len(text) <= INFO_REPR_MAX else text[: INFO_REPR_MAX - 5] + " ...)"
 
 
 def whole_mesh_graph(faces: np.ndarray, n_vertex: int, aggregation: str):

@@ -337,3 +337,27 @@ def test_bundled_model_reduces_normal_error():
     before = mesh_metrics(noisy, v, f)["normal_deg"]
     after = mesh_metrics(out, v, f)["normal_deg"]
     assert after < 0.8 * before, (before, after)
+
+
+def test_info_repr_is_a_short_summary_with_every_field_reachable():
+    # Issue 55: printing the info in a notebook must not flood the page.
+    import dataclasses
+
+    import trimesh
+
+    from dmd_jax.inference import INFO_REPR_MAX
+
+    mesh = trimesh.creation.icosphere(3)
+    out, info = denoise(mesh.vertices, mesh.faces, return_info=True)
+    text = repr(info)
+    assert len(text) <= 2000 and INFO_REPR_MAX <= 2000
+    assert text.startswith("DenoiseInfo(path='whole', passes=")
+    assert "presmooth_steps=" in text and "policy=DenoisePolicy(max_passes=" in text
+    assert info.policy.max_passes >= 1 and info.patch_size is None  # fields as they are
+    # Arrays show by shape, long sequences by length, and the whole stays bounded.
+    wide = dataclasses.replace(info, devices=np.zeros((1000, 3)), patches=tuple(range(10**5)))
+    text = repr(wide)
+    assert "devices=array[1000, 3] float64" in text and "patches=<tuple of 100000>" in text
+    assert wide.devices.shape == (1000, 3) and len(wide.patches) == 10**5
+    long = dataclasses.replace(info, path="x" * 5000)
+    assert len(repr(long)) == INFO_REPR_MAX and repr(long).endswith(" ...)")
