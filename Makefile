@@ -36,7 +36,13 @@ bench: $(STAMP)
 	GLIBC_TUNABLES=glibc.malloc.hugetlb=1 $(BIN)/python benchmarks/bench_aggregation.py
 	$(BIN)/python benchmarks/bench_aggregation.py --name aggregation_default_malloc \
 		--sizes 100000 300000 1000000 --widths 64 --methods ell --meshes
-	$(MAKE) bench-inference bench-training
+	$(MAKE) bench-inference bench-training bench-cold
+
+# Cold start (issue 58): fresh dmd-jax denoise processes with an empty, then a filled
+# compilation cache, beside bnf; cold_start.md (about 6 minutes on 2 idle cores).
+.PHONY: bench-cold
+bench-cold: $(STAMP)
+	$(BIN)/python benchmarks/bench_cold_start.py --repeat 3 --profile
 
 # Inference scaling and training throughput, each command under 10 minutes (--append
 # adds to the same report).
@@ -92,6 +98,14 @@ notebook: $(STAMP)
 	@test -n "$(NB)" || { echo "usage: make notebook NB=05 (one of: $(notdir $(basename $(wildcard notebooks/[0-9]*.py))))"; exit 2; }
 	@test $(words $(NB_FILE)) -eq 1 || { echo "NB=$(NB) matches $(words $(NB_FILE)) notebooks: $(notdir $(NB_FILE))"; exit 2; }
 	$(if $(WEIGHTS),DMD_JAX_WEIGHTS=$(WEIGHTS)) $(BIN)/python notebooks/_run.py --only $(notdir $(NB_FILE))
+
+# The long training run of the learned model (scripts/train_long.sh: the bundled network
+# fine-tuned through the converged vertex update on the paper's noise, scanner noise,
+# simulated scans and the stress shapes). Rerun to resume from the last checkpoint
+# (bit-identical); OUT=dir picks the run folder (default runs/long), STEPS=n its length.
+.PHONY: train-long
+train-long: $(STAMP)
+	$(if $(STEPS),STEPS=$(STEPS)) scripts/train_long.sh $(if $(OUT),$(OUT),runs/long)
 
 # The paper's Table II protocol and its DMD-Net vs CNR table, written to
 # experiments/results/sota/ (benchmarks/quality/table2.py). WEIGHTS=path (weights file or
