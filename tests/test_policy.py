@@ -303,3 +303,14 @@ def test_a_run_trained_for_k_passes_is_run_for_k_passes():
     v, f = icosphere(2)
     _, info = dmd_jax.denoise(v, f, bundle, return_info=True)
     assert info.passes == 3
+
+
+def test_the_model_card_states_the_bundled_file_sha():
+    import hashlib
+    import re
+
+    card = (Path(__file__).resolve().parents[1] / "docs" / "bundled-model.md").read_text()
+    (row,) = [line for line in card.splitlines() if line.startswith("| parameters |")]
+    stated = re.search(r"SHA-256 `([0-9a-f]{12})`", row).group(1)
+    digest = hashlib.sha256(checkpoints.pretrained_path().read_bytes()).hexdigest()
+    assert digest.startswith(stated)
