@@ -20,7 +20,7 @@ from dmd_jax.config import NoiseConfig
 from dmd_jax.metrics import mesh_metrics
 from dmd_jax.pipeline import corrupt, make_examples
 from experiments import aggregate as agg
-from experiments import evaluation, planning, runner
+from experiments import evaluation, planning, runner, stats
 from experiments import studies as st
 from experiments.ablations import ABLATIONS, ablation_config
 
@@ -408,8 +408,8 @@ def test_spearman_matches_scipy():
     rng = np.random.default_rng(0)
     for n in (3, 5, 9):
         a, b = rng.normal(size=n), rng.normal(size=n)
-        np.testing.assert_allclose(agg.spearman(a, b), scipy.stats.spearmanr(a, b)[0])
-    assert agg.spearman([1.0], [2.0]) is None
+        np.testing.assert_allclose(stats.spearman(a, b), scipy.stats.spearmanr(a, b)[0])
+    assert stats.spearman([1.0], [2.0]) is None
 
 
 def test_fmt_follows_the_paper():
@@ -433,11 +433,11 @@ def test_paper_tables_match_the_tex_source():
     tex = PAPER_TEX.read_text()
     for study in st.STUDIES:
         if not study.paper_table:  # our own studies (encoding, head)
-            assert study.key not in agg.PAPER
+            assert study.key not in stats.PAPER
             continue
         block = tex[tex.index(f"\\label{{{study.paper_table}}}") :]
         block = block[: block.index("\\end{table")]
-        k = len(agg.PAPER_COLUMNS[study.kind])
+        k = len(stats.PAPER_COLUMNS[study.kind])
         rows = []
         for segment in block.split("\\\\"):
             cells = segment.split("&")
@@ -447,8 +447,10 @@ def test_paper_tables_match_the_tex_source():
                 rows.append(tuple(_numbers(c) for c in cells[-k:]))
             except ValueError:
                 continue
-        assert rows == list(agg.PAPER[study.key].values()), study.key
-        assert list(agg.PAPER[study.key]) == [r for r in study.rows if r in agg.PAPER[study.key]]
+        assert rows == list(stats.PAPER[study.key].values()), study.key
+        assert list(stats.PAPER[study.key]) == [
+            r for r in study.rows if r in stats.PAPER[study.key]
+        ]
 
 
 def _fake_results(out_dir, p, base, values_for):
@@ -488,13 +490,13 @@ def _fake_results(out_dir, p, base, values_for):
 
 def _paper_as_metrics(study_key, row):
     study = st.get_study(study_key)
-    vals = agg.PAPER.get(study_key, {}).get(row)
+    vals = stats.PAPER.get(study_key, {}).get(row)
     if vals is None:
         return None
-    cols = {k: s for k, s, _ in agg._columns(study)}
-    out = {k: v / cols[k] for k, v in zip(agg.PAPER_COLUMNS[study.kind], vals, strict=True)}
+    cols = {k: s for k, s, _ in stats._columns(study)}
+    out = {k: v / cols[k] for k, v in zip(stats.PAPER_COLUMNS[study.kind], vals, strict=True)}
     if study.kind == st.TRAIN:
-        out.update({f"{s}/noisy_{m}": 1.0 for s in agg.SPLITS for m, _, _ in agg.METRICS})
+        out.update({f"{s}/noisy_{m}": 1.0 for s in stats.SPLITS for m, _, _ in stats.METRICS})
     if study.kind == st.NOISE:
         out.update({"denoised/chamfer": 1e-4, "reference/chamfer": 2e-4})
     if study.kind == st.ROTATION:
@@ -505,13 +507,13 @@ def _paper_as_metrics(study_key, row):
 def test_aggregating_the_papers_own_numbers_agrees_with_the_paper(tmp_path, test_preset, base):
     _fake_results(tmp_path, test_preset, base, _paper_as_metrics)
     # Taubin's normal error between the paper's FGT-8 (25.458) and FGT-1S (28.368).
-    taubin = {f"{s}/{k}": v for s in agg.SPLITS for k, v in (("normal_deg", 26.0),)}
+    taubin = {f"{s}/{k}": v for s in stats.SPLITS for k, v in (("normal_deg", 26.0),)}
     planning._write_json(
         tmp_path / evaluation.REFERENCES_FILE, {"taubin": {**taubin, "per_mesh": {}}}
     )
     summary = agg.aggregate(tmp_path)
     for study in st.STUDIES:
-        if study.key not in agg.PAPER:  # our own studies: the paper has no numbers to fake
+        if study.key not in stats.PAPER:  # our own studies: the paper has no numbers to fake
             continue
         assert (tmp_path / f"{study.key}.md").is_file()
         assert (tmp_path / f"{study.key}.png").stat().st_size > 1000
@@ -553,10 +555,10 @@ def test_reversed_numbers_report_the_disagreements(tmp_path, test_preset, base):
         return m
 
     _fake_results(tmp_path, test_preset, base, reversed_structure)
-    _, records = agg.load_records(tmp_path)
+    _, records = stats.load_records(tmp_path)
     study = st.get_study("structure")
-    rows = agg.study_rows(study, records["structure"], agg.TRAIN_COLUMNS)
-    cmp = agg.compare_with_paper(study, rows)
+    rows = stats.study_rows(study, records["structure"], stats.TRAIN_COLUMNS)
+    cmp = stats.compare_with_paper(study, rows)
     assert cmp["agree"] == []
     assert {c["ours_best"] for c in cmp["columns"].values()} == {"FGT-1S"}
     assert all(c["spearman"] == pytest.approx(-1.0) for c in cmp["columns"].values())
