@@ -8,6 +8,9 @@ mesh alike:
   the lowest error of every *other* method compared (below 1: it wins the case).
 * `geometric_mean`: the mean of those ratios in log space, so 0.5 and 2 cancel.
 * `share_within`: the fraction of cases where a method is best or within 5 %.
+* `summarise_ratios`: all of these for one group of cases, with the worst ratio and the
+  case (mesh) it comes from, so one large loss (a 7x error on one pyramid) shows beside
+  the mean instead of hiding in it.
 
 and split the normal error by region of the clean mesh (`crease_faces`): faces along a
 sharp crease and the rest (flats and smooth parts), where filters and networks fail in
@@ -22,6 +25,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
+from typing import NamedTuple
 
 import numpy as np
 
@@ -38,6 +42,12 @@ CAD_MIN_FLAT_SHARE = 0.3
 CAD_MIN_CREASE_SHARE = 0.005
 # `share_within`: best or within this factor of the best other method.
 WITHIN = 1.05
+# Ratios of normal errors count errors below this many degrees as this (`floor` of
+# `ratios_to_best_other`): on a clean mesh a filter that leaves every face alone scores
+# ~0°, and a ratio against ~0 would be unbounded noise. A tenth of a degree is far below
+# what a rendering shows, and far below every noisy condition's errors (≥ 1°), whose
+# ratios it leaves unchanged.
+RATIO_FLOOR_DEG = 0.1
 
 
 def crease_faces(vertices, faces, angle: float = CREASE_ANGLE) -> np.ndarray:
@@ -94,7 +104,11 @@ def region_errors(face_errors, crease) -> tuple[float, float]:
 
 
 def ratios_to_best_other(
-    errors: Mapping[object, Mapping[str, float]], method: str, others: Sequence[str]
+    errors: Mapping[object, Mapping[str, float]],
+    method: str,
+    others: Sequence[str],
+    *,
+    floor: float = 0.0,
 ) -> dict[object, float]:
     """`method`'s error over the lowest error of `others`, per case.
 
@@ -102,6 +116,8 @@ def ratios_to_best_other(
       errors: `{case: {method: error}}` (a case is any key, e.g. `(set, mesh, level)`).
       method: the method to rate.
       others: the methods it is compared with (`method` itself is skipped if listed).
+      floor: errors below it count as it (e.g. `RATIO_FLOOR_DEG` for normal errors, so
+        a clean mesh left alone by every method rates 1, not 0/0).
 
     Returns:
       `{case: ratio}` for every case holding `method` and at least one other; a case where
@@ -118,8 +134,8 @@ def ratios_to_best_other(
         present = [errs[m] for m in rivals if m in errs]
         if method not in errs or not present:
             continue
-        best = min(present)
-        mine = errs[method]
+        best = max(min(present), floor)
+        mine = max(errs[method], floor)
         out[case] = (1.0 if mine == 0 else math.inf) if best == 0 else mine / best
     return out
 
@@ -142,3 +158,43 @@ def share_within(ratios, factor: float = WITHIN) -> float:
     """The share of ratios at most `factor` (best, or within `factor - 1` of the best)."""
     x = np.asarray(list(ratios), np.float64)
     return float(np.mean(x <= factor)) if x.size else math.nan
+
+
+class RatioSummary(NamedTuple):
+    """One group of per-case ratios (`summarise_ratios`).
+
+    Attributes:
+      n: cases.
+      geometric_mean: their geometric mean (`geometric_mean`).
+      worst: the largest ratio.
+      worst_case: the case (key) it belongs to.
+      within: cases at most `WITHIN` (best or within 5 %).
+      best: cases at most 1.
+    """
+
+    n: int
+    geometric_mean: float
+    worst: float
+    worst_case: object
+    within: int
+    best: int
+
+
+def summarise_ratios(ratios: Mapping[object, float]) -> RatioSummary:
+    """The geometric mean, the worst ratio and its case, and the wins of `{case: ratio}`.
+
+    Raises:
+      ValueError: no ratio, or one that is not finite and positive.
+    """
+    if not ratios:
+        raise ValueError("summarise_ratios needs at least one ratio")
+    values = list(ratios.values())
+    worst_case = max(ratios, key=ratios.get)
+    return RatioSummary(
+        n=len(values),
+        geometric_mean=geometric_mean(values),
+        worst=float(ratios[worst_case]),
+        worst_case=worst_case,
+        within=sum(v <= WITHIN for v in values),
+        best=sum(v <= 1.0 for v in values),
+    )

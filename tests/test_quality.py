@@ -46,6 +46,8 @@ def test_sota_lite_on_one_mesh(tmp_path, weights):
             "dmd",
             "dmd_x2",
             "--no-val",
+            "--sets",
+            "shared",
             "--name",
             "t",
             "--out-dir",
@@ -93,7 +95,7 @@ def test_sota_lite_on_one_mesh(tmp_path, weights):
     assert (
         sota_lite.main(
             ["--meshes", str(folder), "--weights", str(weights), "--conditions", "0.2"]
-            + ["--methods", "bnf", "dmd", "--no-val", "--reuse"]
+            + ["--methods", "bnf", "dmd", "--no-val", "--sets", "shared", "--reuse"]
             + ["--name", "t", "--out-dir", str(tmp_path)]
         )
         == 0
@@ -130,7 +132,7 @@ def test_no_harm_on_one_mesh(tmp_path, weights):
     (folder / mesh.name).symlink_to(mesh)
     out = tmp_path / "no_harm.md"
     argv = ["--meshes", str(folder), "--weights", str(weights), "--out", str(out)]
-    assert no_harm.main(argv) == 0
+    assert no_harm.main([*argv, "--sets", "shared"]) == 0
     report = out.read_text()
     assert "decimated-knight.off" in report and "dmd normal change" in report
     assert f"(SHA-256 `{file_sha256(weights)}`)" in report

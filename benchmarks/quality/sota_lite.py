@@ -14,10 +14,23 @@ and chamfer errors kept in the CSV), and timed. The noise seed of a mesh and lev
 CRC32 of `"<file name>|<level>"` (`protocol.noise_seed`), so a row does not change when
 files are added.
 
+Beyond the Gaussian benchmark levels, heavier and impulsive noise
+(`protocol.QUALITY_CONDITIONS`), the shared and val meshes get scanner noise at 0.3,
+0.5 and 0.8 edges (`protocol.SCANNER_CONDITIONS`: along one view, correlated, as depth
+sensors) and are scanned by the depth-camera simulator at two levels
+(`protocol.SCAN_CONDITIONS`: each method denoises the range-image mesh, scored against
+its exact ground truth). A third set, `stress`, holds the generated CAD shapes of
+`dmd_jax.data.stress` (pyramid, cube, ...), clean and at light Gaussian noise
+(`protocol.STRESS_CONDITIONS`). Every set and condition reports DMD-Net's per-mesh ratio
+to the best other method: geometric mean and the worst ratio with its mesh.
+
 ```bash
 python benchmarks/quality/sota_lite.py              # bundled weights (make sota-lite)
 python benchmarks/quality/sota_lite.py --weights run.msgpack --name sota_lite_run
 python benchmarks/quality/sota_lite.py --reuse      # rerun DMD-Net only, reuse the rest
+# only the new conditions on two meshes per set, keeping every other row of the report:
+python benchmarks/quality/sota_lite.py --conditions scanner:0.5 scan:0.5 --max-meshes 2 \
+    --reuse --merge
 ```
 """
 
@@ -47,7 +60,9 @@ from benchmarks.common import (  # noqa: E402
 from dmd_jax import comparison, protocol  # noqa: E402
 from dmd_jax.protocol import MAX_FACES, MESH_SUFFIXES, QUALITY_CONDITIONS  # noqa: E402
 
-CONDITIONS = QUALITY_CONDITIONS
+CONDITIONS = (*QUALITY_CONDITIONS, *protocol.SCANNER_CONDITIONS, *protocol.SCAN_CONDITIONS)
+STRESS_CONDITIONS = protocol.STRESS_CONDITIONS
+SETS = ("shared", "val", "stress")
 REFERENCE = protocol.REFERENCE_METHODS
 DEFAULT_MESH_DIR = protocol.shared_meshes_dir()
 # The fixed validation split of the real training meshes (dmd_jax.data.real).
@@ -122,10 +137,7 @@ def evaluate_mesh(
       noisy input first) and notes on the input (polygons triangulated on load).
     """
     from dmd_jax.io import load_mesh
-    from dmd_jax.metrics import face_normal_errors_deg, mesh_metrics
 
-    methods = protocol.benchmark_methods() if methods is None else tuple(methods)
-    cached = cached or {}
     path = Path(path)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -136,35 +148,83 @@ def evaluate_mesh(
         for w in caught
         if "triangulated" in str(w.message)
     ]
-    cad = comparison.is_cad(clean, faces)
-    crease = comparison.crease_faces(clean, faces)
+    rows = evaluate_arrays(
+        path.name,
+        clean,
+        faces,
+        bundle,
+        conditions,
+        methods,
+        mesh_set=mesh_set,
+        cached=cached,
+        echo=echo,
+    )
+    return rows, notes
+
+
+def evaluate_arrays(
+    mesh_name: str,
+    clean,
+    faces,
+    bundle,
+    conditions=CONDITIONS,
+    methods=None,
+    *,
+    mesh_set="shared",
+    cached=None,
+    echo=print,
+) -> list[list]:
+    """`evaluate_mesh` for a mesh in memory (a generated stress shape, a crop).
+
+    Each condition's clean mesh, noisy input and faces come from
+    `protocol.condition_mesh` (a `scan` condition scores the scan's own triangulation
+    against its ground truth, whose sizes, CAD flag and creases the rows then record).
+
+    Returns:
+      CSV rows in `CSV_HEADER` order, one per condition and method, the noisy input
+      first.
+    """
+    from dmd_jax.metrics import face_normal_errors_deg, mesh_metrics
+
+    methods = protocol.benchmark_methods() if methods is None else tuple(methods)
+    cached = cached or {}
+    clean = np.asarray(clean, np.float64)
+    faces = np.asarray(faces)
+    regions_of = {}  # per scored mesh: (cad, crease faces)
     rows = []
     for condition in conditions:
         level = condition.level
-        seed = protocol.condition_seed(path.name, condition)
-        noisy = protocol.condition_noise(clean, faces, condition, seed)
+        seed = protocol.condition_seed(mesh_name, condition)
+        target, noisy, tri = protocol.condition_mesh(clean, faces, condition, seed)
+        which = condition if condition.kind == protocol.SCAN_KIND else None
+        if which not in regions_of:
+            regions_of[which] = (
+                comparison.is_cad(target, tri),
+                comparison.crease_faces(target, tri),
+            )
+        cad, crease = regions_of[which]
         block = []
         for name in ("noisy", *methods):
-            key = (mesh_set, path.name, condition.kind, float(level), int(seed), name)
+            key = (mesh_set, mesh_name, condition.kind, float(level), int(seed), name)
             hit = cached.get(key)
             if hit is not None and not name.startswith("dmd"):
                 if not cad or np.isfinite(hit[COL["normal_crease_deg"]]):
                     block.append([*hit[: COL["cad"]], cad, *hit[COL["cad"] + 1 :]])
                     continue
             start = time.perf_counter()
-            v = noisy if name == "noisy" else _runner(name, faces, bundle)(noisy)
+            v = noisy if name == "noisy" else _runner(name, tri, bundle)(noisy)
             seconds = 0.0 if name == "noisy" else time.perf_counter() - start
             v = np.asarray(v, np.float64)
-            m = mesh_metrics(v, clean, faces)
+            m = mesh_metrics(v, target, tri)
             regions = comparison.region_errors(
-                face_normal_errors_deg(v, clean, faces, undefined=np.nan), crease
+                face_normal_errors_deg(v, target, tri, undefined=np.nan), crease
             )
             block.append(
                 [
                     mesh_set,
-                    path.name,
-                    len(clean),
-                    len(faces),
+                    mesh_name,
+                    len(target),
+                    len(tri),
                     float(level),
                     int(seed),
                     name,
@@ -179,8 +239,8 @@ def evaluate_mesh(
             )
         rows += block
         errors = "  ".join(f"{_label(r[6])} {r[7]:.2f}°" for r in block)
-        echo(f"  {path.name} {condition.label}: {errors}")
-    return rows, notes
+        echo(f"  {mesh_name} {condition.label}: {errors}")
+    return rows
 
 
 _label = protocol.label
@@ -208,7 +268,7 @@ def condition_label(row) -> str:
 
 
 def _condition_order(labels) -> list[str]:
-    known = [c.label for c in protocol.QUALITY_CONDITIONS]
+    known = [c.label for c in (*CONDITIONS, *STRESS_CONDITIONS)]
     return sorted(set(labels), key=lambda x: (known.index(x) if x in known else len(known), x))
 
 
@@ -232,14 +292,14 @@ def tables(rows: list[list]) -> tuple[str, str, str]:
         mesh_set, mesh, method = row[COL["set"]], row[COL["mesh"]], row[COL["method"]]
         case = (mesh_set, mesh, condition_label(row))
         by_case.setdefault(case, {})[method] = row[COL["normal_deg"]]
-        n_face[mesh] = row[COL["n_face"]]
+        n_face[case] = row[COL["n_face"]]  # a scan's own size
         seconds.setdefault((mesh_set, method), []).append(row[COL["seconds"]])
     methods = list(dict.fromkeys(r[6] for r in rows))
     sets = list(dict.fromkeys(r[0] for r in rows))
     labels = [_label(m) for m in methods]
 
     detail = [
-        [mesh_set, mesh, n_face[mesh], cond]
+        [mesh_set, mesh, n_face[(mesh_set, mesh, cond)], cond]
         + [f"{errs[m]:.2f}" for m in methods]
         + [_best(errs, methods), _margin(errs, methods)]
         for (mesh_set, mesh, cond), errs in by_case.items()
@@ -284,7 +344,9 @@ def per_shape_table(rows: list[list]) -> str:
     Per set and noise condition: the geometric mean over meshes of DMD-Net's normal
     error divided by the lowest error of every other library denoiser (below 1: DMD-Net
     wins the typical mesh), how many meshes DMD-Net is best on or within 5 % of the
-    best (`comparison.share_within`), and its worst ratio.
+    best (`comparison.share_within`), and its worst ratio with the mesh it comes from
+    (`comparison.summarise_ratios`). Errors below `comparison.RATIO_FLOOR_DEG` count as
+    it, so a clean mesh that every method leaves alone rates 1.
     """
     methods = list(dict.fromkeys(r[COL["method"]] for r in rows))
     if "dmd" not in methods or not _others(methods):
@@ -293,7 +355,9 @@ def per_shape_table(rows: list[list]) -> str:
     for row in rows:
         case = (row[COL["set"]], condition_label(row), row[COL["mesh"]])
         by_case.setdefault(case, {})[row[COL["method"]]] = row[COL["normal_deg"]]
-    ratios = comparison.ratios_to_best_other(by_case, "dmd", _others(methods))
+    ratios = comparison.ratios_to_best_other(
+        by_case, "dmd", _others(methods), floor=comparison.RATIO_FLOOR_DEG
+    )
     out = []
     for mesh_set in dict.fromkeys(r[COL["set"]] for r in rows):
         conds = _condition_order(c for (st, c, _) in ratios if st == mesh_set)
@@ -303,18 +367,17 @@ def per_shape_table(rows: list[list]) -> str:
                 for k, v in ratios.items()
                 if k[0] == mesh_set and (cond is None or k[1] == cond)
             }
-            values = list(group.values())
-            worst = max(group, key=group.get)
-            within = sum(v <= comparison.WITHIN for v in values)
+            summary = comparison.summarise_ratios(group)
+            worst = summary.worst_case
             out.append(
                 [
                     mesh_set,
                     "all" if cond is None else cond,
-                    len(values),
-                    f"{comparison.geometric_mean(values):.3f}",
-                    f"{within} ({100 * within / len(values):.0f} %)",
-                    sum(v <= 1.0 for v in values),
-                    f"{group[worst]:.2f} ({worst[2]}{'' if cond else ', ' + worst[1]})",
+                    summary.n,
+                    f"{summary.geometric_mean:.3f}",
+                    f"{summary.within} ({100 * summary.within / summary.n:.0f} %)",
+                    summary.best,
+                    f"{summary.worst:.2f} ({worst[2]}{'' if cond else ', ' + worst[1]})",
                 ]
             )
     headers = [
@@ -413,6 +476,11 @@ def _weights_description(bundle, weights) -> dict[str, str]:
     return info
 
 
+def _case(row) -> tuple:
+    """A row's case: set, mesh, noise kind and level (every method of it)."""
+    return (row[COL["set"]], row[COL["mesh"]], row[COL["noise"]], float(row[COL["level"]]))
+
+
 def read_cached(csv_path) -> dict[tuple, list]:
     """Rows of an earlier report, keyed `(set, mesh, noise, level, seed, method)`.
 
@@ -462,8 +530,11 @@ def run(
     out_dir=RESULTS_DIR,
     reuse: bool = False,
     reuse_from=(),
-    sets=("shared", "val"),
+    sets=SETS,
     max_faces: int = MAX_FACES,
+    stress_conditions=STRESS_CONDITIONS,
+    max_meshes: int = 0,
+    merge: bool = False,
     echo=print,
 ) -> tuple[Path, Path]:
     """Runs the comparison and writes `<out_dir>/<name>.md` and `.csv`.
@@ -480,9 +551,16 @@ def run(
       reuse: take rows of classic methods from an existing `<name>.csv` (same mesh,
         level, seed and method) instead of recomputing them.
       reuse_from: more CSV files to take such rows from (e.g. the sets run separately).
-      sets: which sets to run (`shared`, `val`).
+      sets: which sets to run (`shared`, `val`, `stress`).
       max_faces: meshes above this many faces are cropped to a connected patch of it
         (`protocol.crop`); 0 runs whole meshes.
+      stress_conditions: the conditions of the `stress` set (`STRESS_CONDITIONS`: clean
+        and light Gaussian noise); `conditions` are the other sets'.
+      max_meshes: run only the first this many meshes of each set (0: all), e.g. to
+        check new conditions end to end.
+      merge: keep in the report every row of the reused CSVs (`reuse`, `reuse_from`)
+        whose case (set, mesh, condition) this run does not compute, so a run of a few
+        conditions or sets updates a full report instead of replacing it.
     """
     from dmd_jax.baselines import REGISTRY
     from dmd_jax.checkpoints import load_model
@@ -492,9 +570,11 @@ def run(
     unknown = sorted(set(methods) - known)
     if unknown:
         raise ValueError(f"unknown methods {unknown}; choose from {sorted(known)}")
-    unknown_sets = sorted(set(sets) - {"shared", "val"})
+    unknown_sets = sorted(set(sets) - set(SETS))
     if unknown_sets or not sets:
-        raise ValueError(f"unknown mesh sets {unknown_sets}; choose from shared, val")
+        raise ValueError(f"unknown mesh sets {unknown_sets}; choose from {', '.join(SETS)}")
+    if isinstance(max_meshes, bool) or int(max_meshes) != max_meshes or max_meshes < 0:
+        raise ValueError(f"max_meshes must be an integer >= 0, got {max_meshes!r}")
     wanted, sets = sets, {}
     if "shared" in wanted:
         sets["shared"] = protocol.mesh_files(mesh_dir, skip)
@@ -502,8 +582,14 @@ def run(
             raise ValueError(f"{mesh_dir}: no {', '.join(MESH_SUFFIXES)} files")
     if val_dir is not None and "val" in wanted:
         sets["val"] = protocol.validation_files(val_dir)
+    if "stress" in wanted:
+        from dmd_jax.data.stress import STRESS_SHAPES
+
+        sets["stress"] = list(STRESS_SHAPES)
     if not sets:
         raise ValueError("no mesh set to run (--no-val with --sets val)")
+    if max_meshes:
+        sets = {k: files[: int(max_meshes)] for k, files in sets.items()}
     bundle = load_model(weights)
     env = environment(
         packages=("dmd_jax", "jax", "jaxlib", "flax", "numpy", "pymeshlab", "trimesh")
@@ -513,6 +599,7 @@ def run(
     cached = {}
     for csv_file in ([out_dir / f"{name}.csv"] if reuse else []) + [Path(p) for p in reuse_from]:
         cached.update(read_cached(csv_file))
+    earlier = list(cached.values())  # the reused reports' rows, for `merge`
     start = time.perf_counter()
     rows, notes = [], []
     total = sum(len(files) for files in sets.values())
@@ -520,6 +607,21 @@ def run(
     for mesh_set, files in sets.items():
         for path in files:
             i += 1
+            if mesh_set == "stress":
+                from dmd_jax.data.stress import stress_shape
+
+                echo(f"[{i}/{total}] {mesh_set}: {path}")
+                rows += evaluate_arrays(
+                    path,
+                    *stress_shape(path),
+                    bundle,
+                    stress_conditions,
+                    methods,
+                    mesh_set=mesh_set,
+                    cached=cached,
+                    echo=echo,
+                )
+                continue
             echo(f"[{i}/{total}] {mesh_set}: {path.name}")
             mesh_rows, mesh_notes = evaluate_mesh(
                 path,
@@ -533,6 +635,11 @@ def run(
             )
             rows += mesh_rows
             notes += mesh_notes
+    if merge:
+        done = {_case(r) for r in rows}
+        kept = [r for r in earlier if _case(r) not in done]
+        echo(f"kept {len(kept)} rows of the reused reports (cases not rerun)")
+        rows = kept + rows
     env["wall time"] = f"{time.perf_counter() - start:.0f} s" + (
         " (classic rows reused from the previous report)" if cached else ""
     )
@@ -544,7 +651,13 @@ def run(
         "noise along the vertex normals in units of the mesh's mean edge length: Gaussian "
         "of σ = 0.1, 0.2, 0.3 (the benchmark protocol of CNR and GCN-Denoiser) and 0.6, "
         "and impulsive (`impulse 0.6`: 15 % of the vertices moved out by 0.6 edges, 15 % "
-        "in; `dmd_jax.protocol.QUALITY_CONDITIONS`). Sets: `shared` = every file of "
+        "in; `dmd_jax.protocol.QUALITY_CONDITIONS`); scanner noise (`scanner L`: rms L "
+        "edges along one view drawn from the seed, spatially correlated, grown at grazing "
+        "angles, quantised in depth: `dmd_jax.noise.ScannerModel`); simulated depth scans "
+        f"(`scan L`: `dmd_jax.simulate_scan` at {protocol.SCAN_RESOLUTION}² from a view "
+        "drawn from the seed, depth noise of rms L of the scan's mean edges; every method "
+        "denoises the range-image mesh, scored against its exact ground truth; `faces` is "
+        "the scan's); `clean` (no noise: do no harm). Sets: `shared` = every file of "
         f"`{Path(mesh_dir).name}/`"
         + (f" except {', '.join(skip)}" if skip else "")
         + (
@@ -561,6 +674,9 @@ def run(
             if max_faces
             else ""
         )
+        + "; `stress` = the generated CAD shapes of `dmd_jax.data.stress` (pyramid, cube, "
+        "star prism, sharp cone, fan disc of valence 100, cylinder, chamfered box, thin "
+        "plate), clean and at Gaussian 0.1 along the normals"
         + ". `best` names the library denoiser with the lowest error; MeshLab Taubin and "
         "two-step are pymeshlab's filters (`dmd_jax.baselines.meshlab.PYMESHLAB_FILTERS`), "
         "shown as a reference and never counted as best; every other column is "
@@ -570,7 +686,10 @@ def run(
         "CRC32 of `<file>|<σ>` (impulsive: `<file>|impulse|<level>`; column `seed` of the "
         "CSV, which also holds vertex and chamfer errors, run times and the crease/flat "
         "split). Per shape: DMD-Net's error over the best other library denoiser's, per "
-        "mesh (`dmd_jax.comparison`). Crease faces: faces with an edge whose dihedral "
+        "mesh (`dmd_jax.comparison`): geometric mean and the worst ratio with its mesh "
+        f"(errors below {comparison.RATIO_FLOOR_DEG:g}° count as {comparison.RATIO_FLOOR_DEG:g}°, "
+        "so a clean mesh every method leaves alone rates 1). Crease faces: faces with an "
+        "edge whose dihedral "
         f"angle is at least {comparison.CREASE_ANGLE:g}° on the clean mesh; CAD meshes: "
         f"at least {comparison.CAD_MIN_FLAT_SHARE:.0%} of the edges flat (within "
         f"{comparison.FLAT_ANGLE:g}°) and {comparison.CAD_MIN_CREASE_SHARE:.1%} on creases."
@@ -616,8 +735,17 @@ def main(argv: list[str] | None = None) -> int:
         nargs="+",
         default=[c.label for c in CONDITIONS],
         metavar="CONDITION",
-        help="noise conditions: a number is Gaussian σ along the normals in mean edges, "
-        "'impulse:L' impulsive noise of amplitude L mean edges",
+        help="noise conditions of the shared and val sets: a number is Gaussian σ along "
+        "the normals in mean edges, 'impulse:L' impulsive noise of amplitude L mean edges, "
+        "'scanner:L' scanner noise of rms L edges, 'scan:L' a simulated scan at rms L, "
+        "'clean' no noise",
+    )
+    parser.add_argument(
+        "--stress-conditions",
+        nargs="+",
+        default=[c.label for c in STRESS_CONDITIONS],
+        metavar="CONDITION",
+        help="noise conditions of the stress set (default: clean and 0.1)",
     )
     parser.add_argument(
         "--levels",
@@ -642,7 +770,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--reuse-from", nargs="*", default=[], help="more CSV reports to reuse rows from"
     )
-    parser.add_argument("--sets", nargs="+", default=["shared", "val"], choices=("shared", "val"))
+    parser.add_argument("--sets", nargs="+", default=list(SETS), choices=SETS)
+    parser.add_argument(
+        "--max-meshes",
+        type=int,
+        default=0,
+        help="only the first N meshes of each set (0: all), to check conditions end to end",
+    )
+    parser.add_argument(
+        "--merge",
+        action="store_true",
+        help="keep the reused reports' rows of every case this run does not compute "
+        "(with --reuse / --reuse-from: run a few conditions or sets into a full report)",
+    )
     parser.add_argument(
         "--max-faces",
         type=int,
@@ -670,6 +810,9 @@ def main(argv: list[str] | None = None) -> int:
             reuse_from=tuple(args.reuse_from),
             sets=tuple(args.sets),
             max_faces=args.max_faces,
+            stress_conditions=tuple(protocol.parse_condition(c) for c in args.stress_conditions),
+            max_meshes=args.max_meshes,
+            merge=args.merge,
         )
     except (ValueError, FileNotFoundError) as exc:
         print(f"sota_lite: error: {exc}", file=sys.stderr)
