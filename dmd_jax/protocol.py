@@ -425,21 +425,14 @@ def condition_noise(vertices, faces, condition: NoiseCondition, seed: int) -> np
 def scan_view(vertices, faces, seed: int) -> np.ndarray:
     """The view of a `scan` condition: drawn from `seed`, turned to face an open mesh.
 
-    A crop is an open patch that a view from behind or edge-on would barely see; when the
-    area-weighted normals of the mesh add up to more than a tenth of its area (an open,
-    roughly one-sided patch) the view is turned to look against them. A closed mesh's sum
-    is zero and any drawn view stands.
+    A crop is an open patch that a view from behind or edge-on would barely see: the
+    drawn view is turned to its front (`dmd_jax.scan.facing_view`); a closed mesh keeps
+    any drawn view.
     """
     from dmd_jax.noise import random_view
+    from dmd_jax.scan import facing_view
 
-    view = random_view(np.random.default_rng([int(seed), 1]))
-    v = np.asarray(vertices, np.float64)
-    f = np.asarray(faces)
-    cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    total = cross.sum(axis=0)
-    if np.linalg.norm(total) > 0.1 * np.linalg.norm(cross, axis=1).sum() and view @ total > 0:
-        view = -view
-    return view
+    return facing_view(random_view(np.random.default_rng([int(seed), 1])), vertices, faces)
 
 
 def condition_mesh(

@@ -60,6 +60,9 @@ MAX_DEPTH_JUMP = 8.0
 FRAME_MARGIN = 0.02
 # Candidate (face, pixel) pairs rasterised at once.
 _CHUNK_CANDIDATES = 1 << 22
+# `facing_view`: an open mesh whose area-weighted normals add up to more than this share
+# of its area is roughly one-sided, and is scanned from its front.
+OPEN_MESH_SHARE = 0.1
 
 
 class Scan(NamedTuple):
@@ -101,6 +104,25 @@ def _check_resolution(resolution) -> int:
     if not 2 <= int(resolution) <= MAX_RESOLUTION:
         raise ValueError(f"resolution must lie in [2, {MAX_RESOLUTION}], got {resolution}")
     return int(resolution)
+
+
+def facing_view(view, vertices, faces) -> np.ndarray:
+    """`view` (unit), turned to look at the front of a roughly one-sided open mesh.
+
+    A crop or patch seen from behind or edge-on leaves little to scan. When the
+    area-weighted face normals add up to more than `OPEN_MESH_SHARE` of the area, the
+    view is flipped if it looks along them; a closed mesh's normals add up to zero and
+    any view stands.
+    """
+    d = noise_lib.check_view(view)
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces)
+    cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    total = cross.sum(axis=0)
+    area = np.linalg.norm(cross, axis=1).sum()
+    if np.linalg.norm(total) > OPEN_MESH_SHARE * area and d @ total > 0:
+        d = -d
+    return d
 
 
 def view_basis(view) -> np.ndarray:

@@ -215,3 +215,30 @@ def test_a_scan_trains_through_the_pipeline_with_its_view():
     # Rotated with the mesh, the view is still one direction: rank-1 displacements.
     s = np.linalg.svd(d, compute_uv=False)
     assert s[1] < 1e-3 * s[0]
+
+
+def test_scan_validation_splits_of_the_validation_patches():
+    from conftest import crop_mesh
+
+    from dmd_jax.config import NoiseConfig
+    from dmd_jax.data import training_sets as ts
+    from dmd_jax.pipeline import evaluation_batches, make_examples
+
+    v, f = icosphere(3)
+    patches = [crop_mesh(v, f, np.array(c), 0.7) for c in ([0, 0, 1.0], [1.0, 0, 0])]
+    splits = ts.scan_validation(patches, resolution=32, seed=0)
+    assert set(splits) == {ts.REAL_VAL_SCANNER, ts.REAL_VAL_SCAN}
+    for (pv, pf), (sv, sf, view), (cv, cf, cview) in zip(
+        patches, splits[ts.REAL_VAL_SCANNER], splits[ts.REAL_VAL_SCAN], strict=True
+    ):
+        assert sv is pv and sf is pf
+        np.testing.assert_allclose(cview, view)
+        # The view looks at the cap's front: against its mean outward normal.
+        assert view @ pv.mean(axis=0) < 0
+        assert np.all(np.abs(np.linalg.norm(cv, axis=1) - 1.0) < 0.02) and cf.shape[0] > 50
+    batches = evaluation_batches(
+        make_examples(splits[ts.REAL_VAL_SCAN]), seed=1, noise=NoiseConfig(), rotate=True
+    )
+    assert all(spec.kind == "scanner" for _, spec in batches)
+    again = ts.scan_validation(patches, resolution=32, seed=0)
+    assert np.array_equal(again[ts.REAL_VAL_SCAN][0][0], splits[ts.REAL_VAL_SCAN][0][0])

@@ -41,6 +41,12 @@ TEST_SPLITS = ("test_intra", "test_inter")
 # The evaluation set of the real meshes' validation split; when present it picks the
 # best checkpoint (`train.train`).
 REAL_VAL = "val"
+# With real meshes and simulated scans in training (`DataConfig.scan_views`), the same
+# validation patches are also evaluated under scanner noise along a view of each patch
+# (`val_scanner`) and as simulated scans of them (`val_scan`); both carry their view, so
+# the pipeline gives them scanner noise (`pipeline.MeshExample.view`).
+REAL_VAL_SCANNER = "val_scanner"
+REAL_VAL_SCAN = "val_scan"
 
 Mesh = tuple[np.ndarray, np.ndarray]
 # A training mesh, or a simulated scan with its `[3]` view.
@@ -56,11 +62,12 @@ class TrainingSets(NamedTuple):
       train: the training meshes: dataset meshes, real-mesh patches, stress shapes, then
         simulated scans `(clean vertices, faces, view)`.
       evals: `{name: meshes}` per evaluation set: `test_intra`, `test_inter` and, with a
-        real-mesh folder, `val` (a set may be empty).
+        real-mesh folder, `val`, and with scans in training too `val_scanner` and
+        `val_scan` (`(vertices, faces, view)` triples); a set may be empty.
     """
 
     train: list[TrainMesh]
-    evals: dict[str, list[Mesh]]
+    evals: dict[str, list[TrainMesh]]
 
 
 def training_sets(d: DataConfig, *, seed: int) -> TrainingSets:
@@ -109,7 +116,37 @@ def training_sets(d: DataConfig, *, seed: int) -> TrainingSets:
         )
     train += stress_meshes(d.stress_copies)
     train += scan_meshes(train, d.scan_views, resolution=d.scan_resolution, seed=seed)
+    if d.real_root is not None and d.scan_views > 0:
+        evals.update(scan_validation(evals[REAL_VAL], resolution=d.scan_resolution, seed=seed))
     return TrainingSets(train, evals)
+
+
+def scan_validation(
+    meshes: list[Mesh], *, resolution: int, seed: int
+) -> dict[str, list[tuple[np.ndarray, np.ndarray, np.ndarray]]]:
+    """The scanner and scan validation splits of the validation patches.
+
+    Each patch gets one view, drawn from `(seed, patch index)` and turned to the patch's
+    front (`dmd_jax.scan.facing_view`): `val_scanner` is the patch itself with that view
+    (scanner noise on the patch's own mesh), `val_scan` its noise-free simulated scan
+    from that view (a patch that leaves no scan is left out of `val_scan`).
+
+    Returns:
+      `{REAL_VAL_SCANNER: [(vertices, faces, view)], REAL_VAL_SCAN: [(clean, faces, view)]}`.
+    """
+    from dmd_jax.noise import random_view
+    from dmd_jax.scan import facing_view, simulate_scan
+
+    scanner, scans = [], []
+    for i, (v, f) in enumerate(meshes):
+        view = facing_view(random_view(np.random.default_rng([seed, i, 0x5CA9])), v, f)
+        scanner.append((v, f, view))
+        try:
+            scan = simulate_scan(0, v, f, view=view, resolution=resolution, level=0.0)
+        except ValueError:  # no surface in view
+            continue
+        scans.append((scan.clean, scan.faces, scan.view))
+    return {REAL_VAL_SCANNER: scanner, REAL_VAL_SCAN: scans}
 
 
 def stress_meshes(copies: int) -> list[Mesh]:
