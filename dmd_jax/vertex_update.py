@@ -60,7 +60,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from dmd_jax.geometry import dot3, face_centroids, safe_normalize
+from dmd_jax.geometry import dot3, safe_normalize
 
 # Defaults (see the module docstring; `ModelConfig.vertex_*` carries them for the model).
 NORMAL_WEIGHT = 1e-3
@@ -85,9 +85,8 @@ class _Operator(NamedTuple):
     """What the matrix products need, computed once per solve."""
 
     faces: jax.Array  # [n_face, 3]
-    corner_vertex: jax.Array  # [3 n_face]
-    corner_face: jax.Array  # [3 n_face]
-    corner_normal: jax.Array  # [3 n_face, 3] target normal of each corner's face
+    corner_vertex: jax.Array  # [3 n_face], faces.ravel()
+    normal: jax.Array  # [n_face, 3] target normals
     weight: jax.Array  # [n_vertex] |F_i| on moving vertices, 0 elsewhere
     direction: jax.Array  # [n_vertex, 3] m_i
     moving: jax.Array  # [n_vertex] 1 where the vertex may move
@@ -97,10 +96,13 @@ class _Operator(NamedTuple):
 
 def _fit_term(op: _Operator, d):
     """`M d = Σ_{j∋i} n_j n_jᵀ (d_i − c_j(d))` per vertex, `[n_vertex, 3]`."""
-    c = face_centroids(d, op.faces)
-    u = dot3(op.corner_normal, d[op.corner_vertex] - c[op.corner_face])
+    # n_j · (d_i − c_j) is a corner's projection less its face's mean projection: one
+    # gather of the faces' corners, then per-face arithmetic and one segment sum.
+    n = op.normal[:, None, :]  # [n_face, 1, 3]
+    s = dot3(n, d[op.faces])  # [n_face, 3]
+    u = s - (s[:, 0] + s[:, 1] + s[:, 2])[:, None] / 3.0
     return jax.ops.segment_sum(
-        op.corner_normal * u[:, None], op.corner_vertex, num_segments=d.shape[0]
+        (n * u[:, :, None]).reshape(-1, 3), op.corner_vertex, num_segments=d.shape[0]
     )
 
 
@@ -117,8 +119,9 @@ def _matvec(op: _Operator, d):
 
 def _block_inverse(op: _Operator, dtype):
     """Inverses of the 3 × 3 diagonal blocks of the operator, `[n_vertex, 3, 3]`."""
-    n = op.corner_normal
-    outer = (2.0 / 3.0) * n[:, :, None] * n[:, None, :]
+    n = op.normal
+    outer = (2.0 / 3.0) * n[:, :, None] * n[:, None, :]  # [n_face, 3, 3]
+    outer = jnp.broadcast_to(outer[:, None], (n.shape[0], 3, 3, 3)).reshape(-1, 3, 3)
     block = jax.ops.segment_sum(outer, op.corner_vertex, num_segments=op.weight.shape[0])
     m = op.direction
     mm = m[:, :, None] * m[:, None, :]
@@ -148,7 +151,12 @@ def _pcg(matvec, b, inverse, tolerance: float, max_iterations: int):
     """Preconditioned conjugate gradients from 0; returns `(x, SolveInfo)`."""
 
     def precondition(r):
-        return jnp.einsum("vij,vj->vi", inverse, r)
+        # Written out, not einsum: on CPU it fuses with the update around it.
+        return (
+            inverse[:, :, 0] * r[:, 0:1]
+            + inverse[:, :, 1] * r[:, 1:2]
+            + inverse[:, :, 2] * r[:, 2:3]
+        )
 
     def vdot(u, v):
         return jnp.sum(u * v)
@@ -249,20 +257,18 @@ def solve_vertices_to_normals(
         raise ValueError(f"free must have shape [{n_vertex}], got {free.shape}")
 
     corner_vertex = faces.reshape(-1)
-    corner_face = jnp.repeat(jnp.arange(faces.shape[0], dtype=faces.dtype), 3)
     normals = normals.astype(dtype)
     degree = jax.ops.segment_sum(
         jnp.ones(corner_vertex.shape[0], dtype), corner_vertex, num_segments=n_vertex
     )
     moving = free * (degree > 0).astype(dtype)  # a vertex of no face has nothing to fit
     direction = safe_normalize(
-        jax.ops.segment_sum(normals[corner_face], corner_vertex, num_segments=n_vertex)
+        jax.ops.segment_sum(jnp.repeat(normals, 3, axis=0), corner_vertex, num_segments=n_vertex)
     )
     op = _Operator(
         faces=faces,
         corner_vertex=corner_vertex,
-        corner_face=corner_face,
-        corner_normal=normals[corner_face],
+        normal=normals,
         weight=degree * moving,
         direction=direction,
         moving=moving,
