@@ -82,6 +82,16 @@ demo: $(STAMP)
 # Every mesh of ../shared/meshes at 3 noise levels; writes benchmarks/results/sota_lite.{md,csv}.
 sota-lite: $(STAMP)
 	$(BIN)/python benchmarks/quality/sota_lite.py $(if $(WEIGHTS),--weights $(WEIGHTS))
+	$(MAKE) headroom
+
+# The normal-first head's headroom (issue 57) on sota-lite's meshes and conditions: the
+# error of ground-truth normals, of the candidates' per-face oracle, of the best candidate
+# field and of the network, each through the 10-step and the converged vertex update; the
+# default call rated per shape against sota_lite.csv's other denoisers. A diagnostic
+# (benchmarks/results/headroom.{md,csv}); nothing in denoise reads it.
+.PHONY: headroom
+headroom: $(STAMP)
+	$(BIN)/python benchmarks/quality/headroom.py --others benchmarks/results/sota_lite.csv $(if $(WEIGHTS),--weights $(WEIGHTS))
 
 # Executes the notebook scripts notebooks/NN_*.py (percent format, the only source); the
 # executed notebooks go to notebooks/executed/ (git-ignored).

@@ -45,6 +45,7 @@ if __package__ in (None, ""):  # run as a script: make `benchmarks` importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from benchmarks.common import (  # noqa: E402
+    BUNDLED,
     RESULTS_DIR,
     command_line,
     environment,
@@ -326,6 +327,7 @@ def run(
     meshes=(),
     max_faces: int = protocol.MAX_FACES,
     others=None,
+    weights=None,
     name: str = "headroom",
     out_dir=RESULTS_DIR,
     echo=print,
@@ -343,7 +345,7 @@ def run(
         files = [(s, p) for s, p in files if p.name in set(meshes)]
     if not files:
         raise ValueError("no mesh to run (check --sets and --meshes)")
-    bundle = load_model()
+    bundle = load_model(weights)
     runner = Runner(bundle)
     start = time.perf_counter()
     rows = []
@@ -397,6 +399,7 @@ def run(
         sections=sections,
         intro=intro,
         command=command_line(),
+        weights=BUNDLED if weights is None else weights,
     )
     echo(sections[0][1])
     echo(f"wrote {path}")
@@ -415,6 +418,7 @@ def main(argv=None) -> None:
     )
     parser.add_argument("--max-faces", type=int, default=protocol.MAX_FACES)
     parser.add_argument("--others", default=None, help="a sota-lite CSV: rate denoise per shape")
+    parser.add_argument("--weights", default=None, help="weights file (default: bundled)")
     parser.add_argument("--name", default="headroom", help="report file stem")
     parser.add_argument("--out-dir", default=str(RESULTS_DIR), help="report folder")
     args = parser.parse_args(argv)
@@ -427,6 +431,7 @@ def main(argv=None) -> None:
         meshes=args.meshes,
         max_faces=args.max_faces,
         others=args.others,
+        weights=args.weights,
         name=args.name,
         out_dir=args.out_dir,
     )
