@@ -8,13 +8,42 @@ import jax
 import numpy as np
 import pytest
 
-from dmd_jax.protocol import shared_meshes_dir
+from dmd_jax.protocol import SHARED_MESHES_ENV, shared_meshes_dir
 
 jax.config.update("jax_enable_x64", True)
 
 REPO = Path(__file__).resolve().parents[1]
 # $DMD_JAX_SHARED_MESHES, else ../shared/meshes (`dmd_jax.protocol.shared_meshes_dir`).
 SHARED_MESHES = shared_meshes_dir()
+# Every skip for want of the shared meshes gives a reason that starts with this, so the
+# end of the run can count them (`pytest_terminal_summary`).
+NEEDS_SHARED = "needs the shared meshes"
+
+
+def skip_without_shared(missing: Path):
+    """Skips the calling test: `missing` (a file or folder of the shared meshes) is absent."""
+    pytest.skip(
+        f"{NEEDS_SHARED}: {missing} is absent (the public test meshes, ../shared/meshes "
+        f"beside the checkout; ${SHARED_MESHES_ENV} points elsewhere)"
+    )
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_terminal_summary(terminalreporter):
+    """After the run's summary (just above its counts): how many tests skipped for want of
+    the shared meshes."""
+    yield
+    skipped = terminalreporter.stats.get("skipped", [])
+    n = sum(
+        1
+        for report in skipped
+        if isinstance(report.longrepr, tuple) and NEEDS_SHARED in str(report.longrepr[2])
+    )
+    where = f"{SHARED_MESHES} found" if SHARED_MESHES.is_dir() else f"{SHARED_MESHES} absent"
+    terminalreporter.write_line(
+        f"{n} tests skipped for want of the shared meshes ({where}; "
+        f"${SHARED_MESHES_ENV} points elsewhere)"
+    )
 
 
 @pytest.fixture
@@ -25,7 +54,7 @@ def key():
 @pytest.fixture
 def shared_meshes() -> Path:
     if not SHARED_MESHES.is_dir():
-        pytest.skip(f"{SHARED_MESHES} is absent")
+        skip_without_shared(SHARED_MESHES)
     return SHARED_MESHES
 
 
@@ -33,7 +62,7 @@ def shared_mesh_path(name: str) -> Path:
     """Path of a file in ../shared/meshes, skipping the test when it is absent."""
     path = SHARED_MESHES / name
     if not path.is_file():
-        pytest.skip(f"{path} is absent")
+        skip_without_shared(path)
     return path
 
 

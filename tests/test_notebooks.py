@@ -14,6 +14,7 @@ import re
 from pathlib import Path
 
 import pytest
+from conftest import NEEDS_SHARED
 
 nbformat = pytest.importorskip("nbformat")
 nbclient = pytest.importorskip("nbclient")
@@ -96,9 +97,9 @@ HEAVY_NOTEBOOKS = {
 )
 def test_notebook_executes(name, tmp_path):
     if name in runner.NEEDS_WEIGHTS and (reason := runner.weights_available()):
-        pytest.skip(reason)
+        pytest.skip(f"{NEEDS_SHARED}: {reason}")
     if name in runner.NEEDS_SHARED and (reason := runner.shared_meshes_available()):
-        pytest.skip(reason)
+        pytest.skip(f"{NEEDS_SHARED}: {reason}")
     # Raises CellExecutionError, naming the cell, on any error.
     nb = runner.execute(_path(name), timeout=CELL_TIMEOUT_S, cwd=tmp_path)
     errors = [

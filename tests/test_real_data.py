@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import icosphere
+from conftest import icosphere, skip_without_shared
 from scipy.sparse.csgraph import connected_components
 
 from dmd_jax.data import real
@@ -54,7 +54,7 @@ def test_patches_are_connected_bounded_and_reindexed():
 def test_shared_training_folder_has_a_validation_split(shared_meshes):
     folder = shared_meshes / "train"
     if not folder.is_dir():
-        pytest.skip("shared/meshes/train is not present")
+        skip_without_shared(folder)
     val = real.validation_names(folder)
     n = len(real.mesh_files(folder, "all"))
     assert 0.1 < len(val) / n < 0.25
