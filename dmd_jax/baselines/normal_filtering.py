@@ -7,13 +7,18 @@
 * `gnf`: Zhang, Deng, Zhang, Bouaziz & Liu, "Guided mesh normal filtering", Pacific
   Graphics 2015 (local scheme with geometric neighbourhoods).
 
-All three move the vertices with Sun et al.'s update (`fit_vertices_to_normals`).
+All three move the vertices with Sun et al.'s update (`fit_vertices_to_normals`), for the
+papers' iteration counts (`vertex_iterations`), or with `vertex_update="solve"` with the
+converged fit of the normal-first head (`dmd_jax.vertex_update`, default settings; the
+count is then not used).
 Face neighbourhoods are the vertex-based 1-ring (faces sharing a vertex) unless said
 otherwise; GNF's filtering neighbourhood is geometric (face centroids within a radius,
 found with a KD-tree on the input mesh).
 """
 
 from __future__ import annotations
+
+from functools import partial
 
 import jax
 import jax.numpy as jnp
@@ -39,6 +44,27 @@ from dmd_jax.topology import (
     face_ring_pairs,
     vertex_corner_arrays,
 )
+from dmd_jax.vertex_update import solve_vertices_to_normals
+
+# How the vertices follow the filtered normals: the papers' Jacobi iterations, or the
+# converged fit (`dmd_jax.vertex_update`).
+VERTEX_UPDATES = ("jacobi", "solve")
+
+
+def _check_update(name: str, vertex_update) -> bool:
+    """Whether `vertex_update` asks for the converged fit; ValueError on another value."""
+    if vertex_update not in VERTEX_UPDATES:
+        raise ValueError(
+            f"{name}: vertex_update must be one of {VERTEX_UPDATES}, got {vertex_update!r}"
+        )
+    return vertex_update == "solve"
+
+
+def _fit(x, faces, n, cv, cf, free, n_vert, solve: bool):
+    """The vertex step: `n_vert` Jacobi iterations, or the converged fit (`solve`)."""
+    if solve:
+        return solve_vertices_to_normals(x, faces, n, free)
+    return fit_vertices_to_normals(x, faces, n, cv, cf, free, n_vert)
 
 
 def _i32(x) -> np.ndarray:
@@ -61,8 +87,8 @@ def _free_mask(faces, n_vertex, fix_boundary: bool, dtype):
 # --------------------------------------------------------------------------------------
 
 
-@jax.jit
-def _fefp_core(x, faces, ring_r, ring_s, cv, cf, free, threshold, n_normal, n_vertex_it):
+@partial(jax.jit, static_argnames=("solve",))
+def _fefp_core(x, faces, ring_r, ring_s, cv, cf, free, threshold, n_normal, n_vertex_it, solve):
     count_trace("fefp")
     n_face = faces.shape[0]
 
@@ -72,7 +98,7 @@ def _fefp_core(x, faces, ring_r, ring_s, cv, cf, free, threshold, n_normal, n_ve
         return weighted_normal_average(w, n, ring_r, ring_s, n_face)
 
     n = jax.lax.fori_loop(0, n_normal, normal_step, face_normals(x, faces))
-    return fit_vertices_to_normals(x, faces, n, cv, cf, free, n_vertex_it)
+    return _fit(x, faces, n, cv, cf, free, n_vertex_it, solve)
 
 
 def _fefp_pairs(faces, n_vertex: int, neighbourhood: str):
@@ -100,6 +126,7 @@ def fefp(
     vertex_iterations: int = 50,
     fix_boundary: bool = False,
     neighbourhood: str = "vertex",
+    vertex_update: str = "jacobi",
 ) -> np.ndarray:
     """Sun et al. (2007): thresholded normal averaging, then vertex fitting.
 
@@ -124,6 +151,8 @@ def fefp(
       fix_boundary: hold vertices on open boundaries in place.
       neighbourhood: `"vertex"` (faces sharing a vertex, the paper's), `"edge"`
         (faces sharing an edge) or `"meshlab"` (see above).
+      vertex_update: `"jacobi"` (the paper's `vertex_iterations` passes) or `"solve"`
+        (the converged fit, `dmd_jax.vertex_update`).
 
     Args:
       vertices: `[n_vertex, 3]` noisy positions (any frame).
@@ -137,6 +166,7 @@ def fefp(
             f"fefp: neighbourhood must be 'vertex', 'edge' or 'meshlab', got {neighbourhood!r}"
         )
     check_count("fefp", normal_iterations=normal_iterations, vertex_iterations=vertex_iterations)
+    solve = _check_update("fefp", vertex_update)
     if not (0.0 <= threshold < 1.0):
         raise ValueError(f"fefp: threshold must lie in [0, 1), got {threshold!r}")
 
@@ -155,6 +185,7 @@ def fefp(
             jnp.asarray(threshold, dt),
             jnp.asarray(normal_iterations, jnp.int32),
             jnp.asarray(vertex_iterations, jnp.int32),
+            solve=solve,
         )
 
     return run_in_canonical_frame(vertices, faces, core, name="fefp")
@@ -165,9 +196,22 @@ def fefp(
 # --------------------------------------------------------------------------------------
 
 
-@jax.jit
+@partial(jax.jit, static_argnames=("solve",))
 def _bnf_core(
-    x, faces, ring_r, ring_s, dual_a, dual_b, cv, cf, free, sigma_c, sigma_r, n_normal, n_vert
+    x,
+    faces,
+    ring_r,
+    ring_s,
+    dual_a,
+    dual_b,
+    cv,
+    cf,
+    free,
+    sigma_c,
+    sigma_r,
+    n_normal,
+    n_vert,
+    solve,
 ):
     count_trace("bnf")
     n_face = faces.shape[0]
@@ -185,7 +229,7 @@ def _bnf_core(
         return weighted_normal_average(w, n, ring_r, ring_s, n_face)
 
     n = jax.lax.fori_loop(0, n_normal, normal_step, face_normals(x, faces))
-    return fit_vertices_to_normals(x, faces, n, cv, cf, free, n_vert)
+    return _fit(x, faces, n, cv, cf, free, n_vert, solve)
 
 
 def bnf(
@@ -197,6 +241,7 @@ def bnf(
     normal_iterations: int = 20,
     vertex_iterations: int = 10,
     fix_boundary: bool = False,
+    vertex_update: str = "jacobi",
 ) -> np.ndarray:
     """Zheng et al. (2011), local scheme: bilateral filtering of face normals.
 
@@ -213,11 +258,14 @@ def bnf(
       normal_iterations: normal filtering passes.
       vertex_iterations: vertex fitting passes.
       fix_boundary: hold vertices on open boundaries in place.
+      vertex_update: `"jacobi"` (the paper's `vertex_iterations` passes) or `"solve"`
+        (the converged fit, `dmd_jax.vertex_update`).
 
     Returns:
       `[n_vertex, 3]` float64 denoised positions.
     """
     check_count("bnf", normal_iterations=normal_iterations, vertex_iterations=vertex_iterations)
+    solve = _check_update("bnf", vertex_update)
     check_positive("bnf", sigma_c=sigma_c, sigma_r=sigma_r)
 
     def core(v, f):
@@ -239,6 +287,7 @@ def bnf(
             jnp.asarray(sigma_r, dt),
             jnp.asarray(normal_iterations, jnp.int32),
             jnp.asarray(vertex_iterations, jnp.int32),
+            solve=solve,
         )
 
     return run_in_canonical_frame(vertices, faces, core, name="bnf")
@@ -357,8 +406,8 @@ def _guidance_normals(n, area, ring, patch, inner, dual):
     return mean[chosen]
 
 
-@jax.jit
-def _gnf_core(x, faces, ring, patch, inner, omega, dual, cv, cf, free, params, iters):
+@partial(jax.jit, static_argnames=("solve",))
+def _gnf_core(x, faces, ring, patch, inner, omega, dual, cv, cf, free, params, iters, solve):
     count_trace("gnf")
     om_r, om_s = omega
     sigma_s_factor, sigma_r = params
@@ -378,7 +427,7 @@ def _gnf_core(x, faces, ring, patch, inner, omega, dual, cv, cf, free, params, i
             * gaussian(_sq(g[om_r] - g[om_s]), sigma_r)
         )
         filtered = weighted_normal_average(w, n, om_r, om_s, n_face)
-        return fit_vertices_to_normals(y, faces, filtered, cv, cf, free, n_vert)
+        return _fit(y, faces, filtered, cv, cf, free, n_vert, solve)
 
     return jax.lax.fori_loop(0, n_normal, outer, x)
 
@@ -393,6 +442,7 @@ def gnf(
     normal_iterations: int = 20,
     vertex_iterations: int = 10,
     fix_boundary: bool = False,
+    vertex_update: str = "jacobi",
 ) -> np.ndarray:
     """Zhang et al. (2015), local scheme: joint bilateral filter guided by patch normals.
 
@@ -412,11 +462,14 @@ def gnf(
       normal_iterations: normal filtering passes (each followed by vertex updates).
       vertex_iterations: vertex updates per pass.
       fix_boundary: hold vertices on open boundaries in place.
+      vertex_update: `"jacobi"` (the paper's `vertex_iterations` per pass) or `"solve"`
+        (the converged fit after each pass, `dmd_jax.vertex_update`).
 
     Returns:
       `[n_vertex, 3]` float64 denoised positions.
     """
     check_count("gnf", normal_iterations=normal_iterations, vertex_iterations=vertex_iterations)
+    solve = _check_update("gnf", vertex_update)
     check_positive("gnf", radius=radius, sigma_s=sigma_s, sigma_r=sigma_r)
 
     def core(v, f):
@@ -439,6 +492,7 @@ def gnf(
             _free_mask(f, v.shape[0], fix_boundary, dt),
             (jnp.asarray(sigma_s, dt), jnp.asarray(sigma_r, dt)),
             (jnp.asarray(normal_iterations, jnp.int32), jnp.asarray(vertex_iterations, jnp.int32)),
+            solve=solve,
         )
 
     return run_in_canonical_frame(vertices, faces, core, name="gnf")
