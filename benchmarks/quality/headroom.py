@@ -135,8 +135,9 @@ class Runner:
         self.candidates = jax.jit(candidates)
         self.update = {"jacobi": jax.jit(jacobi), "solve": jax.jit(solve)}
 
-    def case(self, clean, noisy, faces) -> dict:
-        """Every error of one case, degrees; `field_*_index`: the best field's index."""
+    def case(self, clean, noisy, faces, network_only: bool = False) -> dict:
+        """Every error of one case, degrees; `field_*_index`: the best field's index.
+        With `network_only`, only `noisy` and `network_*` (the others NaN)."""
         import jax
         import jax.numpy as jnp
 
@@ -167,11 +168,19 @@ class Runner:
             out = self.update[update](xp, pad_faces, jnp.asarray(padded))
             return frame.invert(np.asarray(out[:n], np.float64))
 
+        row = {"noisy": err(noisy)}
+        if network_only:
+            for update in UPDATES:
+                bundle = self.bundle if update == "jacobi" else self.solve_bundle
+                row[f"network_{update}"] = err(denoise(noisy, faces, bundle))
+                for s in ("gt", "oracle", "field"):
+                    row[f"{s}_{update}"] = np.nan
+                row[f"field_{update}_index"] = -1
+            return row
         gt = face_normals_np(np.asarray(clean, np.float64), faces)
         cands = np.asarray(self.candidates(xp, graph))[:nf]  # [nf, k, 3]
         dots = np.einsum("fkc,fc->fk", cands, gt)
         oracle = cands[np.arange(nf), np.argmax(dots, axis=1)]
-        row = {"noisy": err(noisy)}
         for update in UPDATES:
             row[f"gt_{update}"] = err(moved(gt, update))
             row[f"oracle_{update}"] = err(moved(oracle, update))
@@ -183,7 +192,9 @@ class Runner:
         return row
 
 
-def evaluate(runner, path, mesh_set: str, conds, max_faces: int, echo=print) -> list[list]:
+def evaluate(
+    runner, path, mesh_set: str, conds, max_faces: int, network_only=False, echo=print
+) -> list[list]:
     """Rows (`CSV_HEADER` order) of one mesh file under every condition."""
     from dmd_jax.io import load_mesh
 
@@ -197,7 +208,7 @@ def evaluate(runner, path, mesh_set: str, conds, max_faces: int, echo=print) -> 
         seed = protocol.condition_seed(path.name, condition)
         c, noisy, f = case_mesh(clean, faces, condition, seed)
         c, noisy, f = np.asarray(c, np.float64), np.asarray(noisy, np.float64), np.asarray(f)
-        got = runner.case(c, noisy, f)
+        got = runner.case(c, noisy, f, network_only)
         rows.append(
             [mesh_set, path.name, int(f.shape[0]), condition.label, int(seed)]
             + [got[h] for h in CSV_HEADER[5:]]
@@ -328,6 +339,7 @@ def run(
     max_faces: int = protocol.MAX_FACES,
     others=None,
     weights=None,
+    network_only: bool = False,
     name: str = "headroom",
     out_dir=RESULTS_DIR,
     echo=print,
@@ -349,11 +361,19 @@ def run(
     runner = Runner(bundle)
     start = time.perf_counter()
     rows = []
+    env = environment(packages=("dmd_jax", "jax", "jaxlib", "numpy"))
     for i, (mesh_set, path) in enumerate(files, 1):
         echo(f"[{i}/{len(files)}] {mesh_set}: {path.name}")
-        rows += evaluate(runner, path, mesh_set, conds, max_faces, echo)
-    env = environment(packages=("dmd_jax", "jax", "jaxlib", "numpy"))
-    env["wall time"] = f"{time.perf_counter() - start:.0f} s"
+        rows += evaluate(runner, path, mesh_set, conds, max_faces, network_only, echo)
+        # The report so far after every mesh: a long run stopped early keeps its rows.
+        env["wall time"] = f"{time.perf_counter() - start:.0f} s, {i} of {len(files)} meshes"
+        path_md = _write(rows, env, bundle, others, max_faces, weights, name, out_dir)
+    echo(f"wrote {path_md}")
+    return path_md
+
+
+def _write(rows, env, bundle, others, max_faces, weights, name, out_dir):
+    """Writes `<name>.md` and `.csv` from the rows so far."""
     env["model"] = (
         f"preset {bundle.config.name}: jacobi = {bundle.config.model.vertex_iterations} "
         f"iterations; solve = tolerance {bundle.config.model.vertex_tolerance:g}, at most "
@@ -401,8 +421,6 @@ def run(
         command=command_line(),
         weights=BUNDLED if weights is None else weights,
     )
-    echo(sections[0][1])
-    echo(f"wrote {path}")
     return path
 
 
@@ -419,6 +437,11 @@ def main(argv=None) -> None:
     parser.add_argument("--max-faces", type=int, default=protocol.MAX_FACES)
     parser.add_argument("--others", default=None, help="a sota-lite CSV: rate denoise per shape")
     parser.add_argument("--weights", default=None, help="weights file (default: bundled)")
+    parser.add_argument(
+        "--network-only",
+        action="store_true",
+        help="only the default call with either update (the per-shape rating), no headroom",
+    )
     parser.add_argument("--name", default="headroom", help="report file stem")
     parser.add_argument("--out-dir", default=str(RESULTS_DIR), help="report folder")
     args = parser.parse_args(argv)
@@ -432,6 +455,7 @@ def main(argv=None) -> None:
         max_faces=args.max_faces,
         others=args.others,
         weights=args.weights,
+        network_only=args.network_only,
         name=args.name,
         out_dir=args.out_dir,
     )
