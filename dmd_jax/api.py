@@ -167,6 +167,8 @@ def denoise_with(
         if method not in baselines.LEARNED:
             raise ValueError(f"{method!r} is a classic filter and takes no weights")
         params = {**params, "weights": weights}
+    if iterations is not None and iterations > baselines.MAX_PASSES:
+        raise ValueError(f"iterations must be at most {baselines.MAX_PASSES}, got {iterations!r}")
     out = vertices
     for _ in range(1 if iterations is None else int(iterations)):
         out = baselines.run_baseline(method, out, faces, **params)

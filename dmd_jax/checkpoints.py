@@ -150,7 +150,7 @@ def read_weights_payload(path, *, fmt: str, versions: tuple[int, ...], kind: str
         ) from exc
     if not isinstance(payload, dict) or payload.get("format") != fmt:
         raise ValueError(f"{path}: not a {kind} weights file")
-    if payload.get("version") not in versions:
+    if type(payload.get("version")) is not int or payload["version"] not in versions:
         readable = " or ".join(str(v) for v in versions)
         raise ValueError(
             f"{path}: weights format version {payload.get('version')!r} is not supported "

@@ -15,6 +15,9 @@ seed, so the bundled model has never seen this shape or its category.
 from __future__ import annotations
 
 import json
+import os
+import shutil
+import tempfile
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -136,10 +139,66 @@ def run_demo(
     Returns:
       A `DemoResult`.
 
+    Every file is written into a hidden folder inside `out_dir` and moved into place at
+    the end: an error (a full disk, Ctrl-C) leaves no partial output, and with
+    `overwrite` the old outputs stay until the new ones are complete.
+
     Raises:
       FileExistsError: an output file exists and `overwrite` is False.
-      FileNotFoundError, ValueError: the weights cannot be loaded.
+      FileNotFoundError, ValueError: the weights cannot be loaded, or are one of the
+        demo's outputs (`check_demo_outputs`).
     """
+
+    out = Path(out_dir)
+    check_demo_outputs(out, weights, overwrite, render=render)
+    bundle = load_bundle(weights)
+    model = _describe(bundle, weights)
+    created = not out.exists()
+    out.mkdir(parents=True, exist_ok=True)
+    # Every file is written into a hidden folder inside `out` first and moved into place
+    # at the end, so a failure (a full disk) leaves none of them, old outputs intact.
+    stage = out / ".dmd-jax-demo.unused"
+    try:
+        stage = Path(tempfile.mkdtemp(prefix=".dmd-jax-demo.", dir=out))
+        result = _run(out, stage, bundle, model, render, echo)
+        for path in result.files.values():
+            os.replace(stage / path.name, out / path.name)
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        if created:
+            shutil.rmtree(out, ignore_errors=True)
+        raise
+    shutil.rmtree(stage, ignore_errors=True)
+    files = {k: out / p.name for k, p in result.files.items()}
+    return result._replace(files=files)
+
+
+def check_demo_outputs(out_dir, weights, overwrite: bool, *, render: bool = True) -> None:
+    """What would make `run_demo` fail to write or overwrite an input, before any work:
+    `out_dir` a file, an existing output without `overwrite`, the weights among the
+    outputs (with or without `overwrite`).
+
+    Raises:
+      FileExistsError: `out_dir` is a file, or an output exists and `overwrite` is False.
+      ValueError: `weights` is one of the files the demo writes.
+    """
+    from dmd_jax.io import same_file
+
+    out = Path(out_dir)
+    names = list(MESH_FILES.values()) + [METRICS_FILE] + ([RENDER_FILE] if render else [])
+    if out.exists() and not out.is_dir():
+        raise FileExistsError(f"{out}: exists and is not a directory")
+    if weights is not None and any(same_file(weights, out / n) for n in names):
+        raise ValueError(f"{weights}: the weights are one of the demo's outputs in {out}")
+    existing = [n for n in names if (out / n).exists()]
+    if existing and not overwrite:
+        raise FileExistsError(
+            f"{out}: {', '.join(existing)} already exist (pass --overwrite to replace them)"
+        )
+
+
+def _run(out, stage, bundle, model, render, echo) -> DemoResult:
+    """`run_demo`'s work, every file written into `stage`; `out` names the folder."""
     from dmd_jax import baselines, inference
     from dmd_jax.baselines.meshlab import pymeshlab_filter
     from dmd_jax.data import generate_shape
@@ -155,19 +214,6 @@ def run_demo(
         metrics_legend,
     )
     from dmd_jax.protocol import benchmark_noise
-
-    out = Path(out_dir)
-    names = list(MESH_FILES.values()) + [METRICS_FILE] + ([RENDER_FILE] if render else [])
-    if out.exists() and not out.is_dir():
-        raise FileExistsError(f"{out}: exists and is not a directory")
-    existing = [n for n in names if (out / n).exists()]
-    if existing and not overwrite:
-        raise FileExistsError(
-            f"{out}: {', '.join(existing)} already exist (pass --overwrite to replace them)"
-        )
-    bundle = load_bundle(weights)
-    model = _describe(bundle, weights)
-    out.mkdir(parents=True, exist_ok=True)
 
     start = time.perf_counter()
     clean, faces = generate_shape(DEMO_CATEGORY, DEMO_SEED, DEMO_INSTANCE)
@@ -205,7 +251,7 @@ def run_demo(
     files = {}
     meshes = {"clean": clean, "noisy": noisy} | {k: results[k][0] for k in results if k != "noisy"}
     for name, filename in MESH_FILES.items():
-        files[name] = save_mesh(out / filename, meshes[name], faces, overwrite=overwrite)
+        files[name] = save_mesh(stage / filename, meshes[name], faces)
     payload = {
         "mesh": {
             "category": DEMO_CATEGORY,
@@ -222,9 +268,7 @@ def run_demo(
     from dmd_jax.io import atomic_write
 
     text = json.dumps(payload, indent=2) + "\n"
-    files["metrics"] = atomic_write(
-        out / METRICS_FILE, lambda tmp: Path(tmp).write_text(text), overwrite=overwrite
-    )
+    files["metrics"] = atomic_write(stage / METRICS_FILE, lambda tmp: Path(tmp).write_text(text))
     if render:
         from dmd_jax.render import render_meshes, sharpest_face
 
@@ -237,14 +281,13 @@ def run_demo(
         ]
         files["render"] = render_meshes(
             [(meshes[k], faces) for k in panels],
-            out / RENDER_FILE,
+            stage / RENDER_FILE,
             titles=titles,
             face_values=values,
             elev=RENDER_ELEVATION,
             shaded_row=True,
             crop_face=sharpest_face(clean, faces, elev=RENDER_ELEVATION),
             panel_size=RENDER_PANEL_SIZE,
-            overwrite=overwrite,
         )
     echo("")
     echo(

@@ -79,7 +79,7 @@ def parse_memory(value) -> int:
                 "number of bytes"
             )
         size = float(m.group(1)) * _UNITS[m.group(2).lower()]
-    elif isinstance(value, int | float) and not isinstance(value, bool):
+    elif isinstance(value, int | float | np.integer | np.floating) and not isinstance(value, bool):
         size = float(value)
     else:
         raise ValueError(f"max_memory must be a number of bytes or a string, got {value!r}")

@@ -38,8 +38,32 @@ _TITLE_IN = 0.3  # inches of title strip above the first row
 _BAR_IN = 0.62  # inches of colour-bar strip under the values row
 
 
+# The camera angles `render_meshes`, `sharpest_face` and the HTML viewer take, in
+# degrees: a turn either way is every view there is; NaN or 1e20 is a mistake.
+MAX_VIEW_DEGREES = 360.0
+
+
+def check_view(elev, azim) -> None:
+    """Refuses camera angles that are not finite numbers within ±`MAX_VIEW_DEGREES`.
+
+    Raises:
+      ValueError: naming `elev` or `azim` and the value.
+    """
+    for name, value in (("elev", elev), ("azim", azim)):
+        try:
+            ok = abs(float(value)) <= MAX_VIEW_DEGREES  # False for NaN
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise ValueError(
+                f"{name} must be an angle from -{MAX_VIEW_DEGREES:g} to {MAX_VIEW_DEGREES:g} "
+                f"degrees, got {value!r}"
+            )
+
+
 def _camera(elev: float, azim: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(towards the viewer, screen right, screen up) unit vectors, Z-up world."""
+    check_view(elev, azim)
     e, a = math.radians(elev), math.radians(azim)
     view = np.array([math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)])
     right = np.array([-math.sin(a), math.cos(a), 0.0])

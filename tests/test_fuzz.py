@@ -207,6 +207,112 @@ def test_token_soups(folder, case):
     check_loader(folder, *case)
 
 
+# --------------------------------------------------------------------------------------
+# The per-format readers and writers of dmd_jax.io (issue 56): PLY headers whose lines
+# are duplicated, dropped or swapped (a property or element declared twice must be
+# refused, never read as one of them), big-endian and mixed-list binary PLY, and the
+# writers at any scale and offset (an STL float32 cannot hold is refused, never written).
+# --------------------------------------------------------------------------------------
+
+
+def _binary_ply(order: str, mixed: bool) -> bytes:
+    import struct
+
+    v, f = tetrahedron()
+    head = (
+        f"ply\nformat binary_{'little' if order == '<' else 'big'}_endian 1.0\n"
+        f"element vertex {len(v)}\nproperty double x\nproperty double y\nproperty double z\n"
+        f"element face {len(f) - int(mixed)}\nproperty list uchar int vertex_indices\n"
+        "end_header\n"
+    ).encode()
+    body = b"".join(struct.pack(order + "3d", *p) for p in np.asarray(v, float))
+    faces = [list(x) for x in f]
+    if mixed:  # a quad and triangles: the record-by-record path
+        faces = [[0, 1, 2, 3]] + faces[2:]
+    body += b"".join(struct.pack(order + "B" + "i" * len(x), len(x), *x) for x in faces)
+    return head + body
+
+
+PLY_SEEDS = SEEDS[".ply"] + [_binary_ply(o, m) for o in "<>" for m in (False, True)]
+
+
+@st.composite
+def ply_header_edits(draw):
+    """A PLY seed whose header lines are duplicated, dropped or swapped."""
+    data = draw(st.sampled_from(PLY_SEEDS))
+    end = data.index(b"end_header")
+    lines = data[:end].split(b"\n")[:-1]
+    for _ in range(draw(st.integers(1, 3))):
+        i = draw(st.integers(1, len(lines) - 1))
+        op = draw(st.sampled_from(["duplicate", "drop", "swap"]))
+        if op == "duplicate":
+            lines.insert(i, lines[i])
+        elif op == "drop" and len(lines) > 2:
+            del lines[i]
+        else:
+            j = draw(st.integers(1, len(lines) - 1))
+            lines[i], lines[j] = lines[j], lines[i]
+    return b"\n".join(lines) + b"\n" + data[end:]
+
+
+def test_binary_ply_seeds_load(folder):
+    v, f = tetrahedron()
+    for data in PLY_SEEDS[-4:]:
+        check_loader(folder, ".ply", data)
+    path = folder / "be.ply"
+    path.write_bytes(_binary_ply(">", False))
+    np.testing.assert_array_equal(load_mesh(path)[0], v)
+
+
+@FEW
+@given(data=ply_header_edits())
+def test_ply_header_edits(folder, data):
+    check_loader(folder, ".ply", data)
+    head = data[: data.index(b"end_header")].decode()
+    per: dict[str, list[str]] = {}
+    elements, current = [], None
+    for ln in head.splitlines():
+        if ln.startswith("element"):
+            current = ln.split()[1]
+            elements.append(current)
+        elif ln.startswith("property") and current is not None:
+            per.setdefault(current, []).append(ln.split()[-1])
+    twice = len(set(elements)) < len(elements) or any(len(set(p)) < len(p) for p in per.values())
+    if twice:  # a repeated element or property is never read as one of them
+        with pytest.raises(ValueError, match="twice|header line"):
+            load_mesh(folder / "fuzz.ply")
+
+
+@FEW
+@given(
+    suffix=st.sampled_from([".obj", ".off", ".ply", ".stl"]),
+    scale=st.sampled_from([1e-30, 1e-6, 1.0, 1e6, 1e30, 1e300]),
+    offset=st.sampled_from([0.0, 1e3, 1e6, -1e9, 1e40]),
+)
+def test_writers_round_trip_or_refuse(folder, suffix, scale, offset):
+    """`save_mesh` writes what `load_mesh` reads back (exactly, or for STL within 1e-3
+    of the median edge), or refuses with a `ValueError` naming the file."""
+    from dmd_jax.io import save_mesh
+
+    v, f = tetrahedron()
+    v = np.asarray(v, float) * scale + offset
+    path = folder / f"w{suffix}"
+    if not np.isfinite(v).all() or np.ptp(v, axis=0).max() == 0:
+        return
+    try:
+        save_mesh(path, v, f, overwrite=True)
+    except ValueError as exc:
+        assert f"w{suffix}" in str(exc)
+        return
+    back, faces = load_mesh(path)
+    if suffix != ".stl":
+        np.testing.assert_array_equal(back, v)
+        return
+    assert np.isfinite(back).all() and len(back) == len(v)
+    edge = np.median(np.linalg.norm(v[f] - np.roll(v[f], 1, axis=1), axis=2))
+    assert np.abs(np.sort(back, axis=0) - np.sort(v, axis=0)).max() <= 1e-3 * edge
+
+
 def test_every_seventh_prefix(folder):
     for suffix, files in SEEDS.items():
         for data in files:

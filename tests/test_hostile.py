@@ -638,8 +638,16 @@ def test_case14_huge_noise_level_does_not_blame_the_output(tmp_path, capsys):
     code, _, err = run(
         capsys, "add-noise", tmp_path / "in.off", "-o", tmp_path / "noisy.off", "--level", "1e308"
     )
+    assert code == 2  # beyond add-noise's bound (issue 56), before any work
+    _one_line_error(err, "--level must be from 0 to 1000, got 1e+308")
+    assert "noisy.off" not in err and not (tmp_path / "noisy.off").exists()
+    # Within the bound, noise on a mesh near float64's limit still overflows: said so.
+    save_mesh(tmp_path / "huge.off", TET_V * 1e306, TET_F)
+    code, _, err = run(
+        capsys, "add-noise", tmp_path / "huge.off", "-o", tmp_path / "noisy.off", "--level", "500"
+    )
     assert code == 2
-    _one_line_error(err, "--level 1e+308", "beyond float64's range")
+    _one_line_error(err, "--level 500", "beyond float64's range")
     assert "noisy.off" not in err and not (tmp_path / "noisy.off").exists()
 
 

@@ -32,7 +32,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from dmd_jax.baselines._common import default_params
+from dmd_jax.baselines._common import MAX_COUNT, MAX_PASSES, default_params
 from dmd_jax.baselines.bilateral_mesh import bmd
 from dmd_jax.baselines.cascaded_regression import cnr
 from dmd_jax.baselines.l0_minimization import l0
@@ -89,6 +89,8 @@ def run_baseline(name: str, vertices, faces, **params) -> np.ndarray:
 __all__ = [
     "DEFAULTS",
     "LEARNED",
+    "MAX_COUNT",
+    "MAX_PASSES",
     "REGISTRY",
     "bmd",
     "bnf",

@@ -76,11 +76,27 @@ def check_positive(name: str, **values) -> None:
             raise ValueError(f"{name}: {key} must be a finite number > 0, got {val!r}")
 
 
+# The most iterations any count parameter of a classic filter takes. The papers' settings
+# stay below 100; 10,000 passes over a million-face mesh already take hours, and a count
+# past it is a typo, refused before any work rather than run for days.
+MAX_COUNT = 10_000
+# The most whole-filter passes `dmd_jax.denoise_with(method, iterations=...)` (and
+# `dmd-jax denoise --iterations`) runs of a classic filter, each with its own inner
+# iterations: a thousand repeats of any filter have long converged.
+MAX_PASSES = 1_000
+
+
 def check_count(name: str, **values) -> None:
-    """Raises `ValueError` unless every value is an integer >= 0."""
+    """Raises `ValueError` unless every value is an integer from 0 to `MAX_COUNT`."""
     for key, val in values.items():
-        if isinstance(val, bool) or int(val) != val or val < 0:
-            raise ValueError(f"{name}: {key} must be an integer >= 0, got {val!r}")
+        try:
+            ok = not isinstance(val, bool) and int(val) == val and 0 <= val <= MAX_COUNT
+        except (TypeError, ValueError, OverflowError):
+            ok = False
+        if not ok:
+            raise ValueError(
+                f"{name}: {key} must be an integer from 0 to {MAX_COUNT:,}, got {val!r}"
+            )
 
 
 def float_dtype():

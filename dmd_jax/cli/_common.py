@@ -115,9 +115,11 @@ def _load_input(path):
 def _check_output(output, inputs, overwrite: bool, *, parents: bool = False, suffixes=None) -> None:
     """Everything that would make writing `output` fail, checked before any work.
 
-    The format (`suffixes`), `-` (no stdout output), the input itself or a hard link to
-    it, a directory, an existing file without --overwrite, a missing folder (created
-    later with `parents`, see `_make_parent`), and a folder one may not write in.
+    The format (`suffixes`), `-` (no stdout output), the input itself, through links or
+    a hard link (with or without --overwrite), a symbolic link to nothing, a directory,
+    an existing file without --overwrite, a missing folder (created later with
+    `parents`, see `_make_parent`), a name too long for the file system, and a folder
+    one may not write in.
     """
     import os
     from pathlib import Path
@@ -129,12 +131,14 @@ def _check_output(output, inputs, overwrite: bool, *, parents: bool = False, suf
         raise ValueError(
             f"{output}: unknown mesh format {out.suffix!r}; use one of {', '.join(suffixes)}"
         )
+    from dmd_jax.io import name_max, same_file
+
     for src in [inputs] if isinstance(inputs, (str, Path)) else inputs:
-        same = Path(src).resolve() == out.resolve()
-        if not same and out.exists() and Path(src).exists():
-            same = os.path.samefile(src, out)  # a hard link to the input
-        if same:
+        # The same path once links are followed, or a hard link to the input.
+        if same_file(src, out):
             raise ValueError(f"{output}: the output path is the input file; choose another")
+    if out.is_symlink() and not os.path.exists(out):
+        raise ValueError(f"{output}: is a symbolic link to nothing (or a loop); remove it first")
     if out.is_dir():
         raise ValueError(f"{output}: is a directory; give a file name")
     if out.exists() and not overwrite:
@@ -148,9 +152,19 @@ def _check_output(output, inputs, overwrite: bool, *, parents: bool = False, suf
                 f"{folder}: output directory does not exist (pass --parents to create it)"
             )
         while not folder.exists():  # the folder that will hold the new ones
+            if folder.is_symlink():
+                raise ValueError(f"{folder}: is a symbolic link to nothing (or a loop)")
             folder = folder.parent
         if not folder.is_dir():
             raise NotADirectoryError(f"{folder}: is not a directory")
+    # Checked now, not found by the write after the work: the file system's limit on a
+    # name (an atomic write's temporary name is cut to fit it, see dmd_jax.io).
+    size, limit = len(out.name.encode("utf-8", "surrogateescape")), name_max(folder)
+    if size > limit:
+        raise ValueError(
+            f"{output}: the file name is too long ({size} bytes; the file system takes at "
+            f"most {limit})"
+        )
     if not os.access(folder, os.W_OK | os.X_OK):
         raise PermissionError(f"{output}: cannot write in {folder} (permission denied)")
 
@@ -166,10 +180,11 @@ def _in_gt_order(v, f, gt_v, gt_f, path, gt_path):
     """The vertices of `path` in the ground truth's vertex order, or a clear error.
 
     The metrics compare vertex i with vertex i. A mesh with the ground truth's faces is
-    taken as it is; one with the same number of faces but another vertex numbering (an
-    STL output, which renumbers its vertices, or a mesh reordered by another tool) is
-    matched through its faces, corner by corner, or else through identical positions,
-    with a note; anything else is refused, naming what differs.
+    taken as it is, and so, with a note, is one listing the same faces in another order
+    (or with their corners rotated); one with the same number of faces but another vertex
+    numbering (an STL output, which renumbers its vertices, or a mesh reordered by another
+    tool) is matched through its faces, corner by corner, or else through identical
+    positions, with a note; anything else is refused, naming what differs.
     """
     import numpy as np
 
@@ -184,6 +199,17 @@ def _in_gt_order(v, f, gt_v, gt_f, path, gt_path):
         if (perm[gt_f] == f).all() and (np.sort(perm) == np.arange(len(v))).all():
             _note(f"{path}: vertices matched to {gt_path} through the faces (another vertex order)")
             return v[perm]
+        # The same triangles listed in another order, or with their corners rotated or
+        # reversed: the metrics go vertex by vertex over the ground truth's faces, so the
+        # vertices are taken as they are; a note says what differed.
+        if np.array_equal(
+            np.unique(np.sort(f, axis=1), axis=0), np.unique(np.sort(gt_f, axis=1), axis=0)
+        ):
+            _note(
+                f"{path}: the same faces as {gt_path} in another order (or with their "
+                "corners rotated or reversed); scored vertex by vertex on the ground truth's faces"
+            )
+            return v
         # Or the very same points, listed in another order (and faces with them).
         order_v, order_gt = np.lexsort(v.T[::-1]), np.lexsort(gt_v.T[::-1])
         if (v[order_v] == gt_v[order_gt]).all() and len(np.unique(v, axis=0)) == len(v):
@@ -199,3 +225,121 @@ def _in_gt_order(v, f, gt_v, gt_f, path, gt_path):
             "which keeps the input's order)"
         )
     raise ValueError(f"{path}: vertex/face correspondence with {gt_path} is required ({counts})")
+
+
+# --------------------------------------------------------------------------------------
+# Bounds and refusals shared by the subcommands (docs/refusals.md lists every one)
+# --------------------------------------------------------------------------------------
+
+# `--max-memory` below this is refused: the network's compiled programs and XLA's
+# working memory alone take about this much (`memory_plan.RUNTIME_BYTES`, measured).
+MIN_MAX_MEMORY = 512 * 2**20
+# `add-noise --level`: a thousand times the bounding box (or the mean edge) wipes out any
+# mesh already; past it the noise only overflows float64.
+MAX_NOISE_LEVEL = 1000.0
+# `render`: panels side by side (inputs, plus the ground truth).
+MAX_PANELS = 32
+# Counts of `make-dataset`, `train`, `train-cnr`: far above every preset and study, low
+# enough that a typo (an extra three zeros) is refused rather than run for days.
+MAX_PER_CATEGORY = 10_000
+MAX_WORKERS = 256
+MIN_VERTICES = 4  # a tetrahedron
+MAX_VERTICES = 10_000_000
+MAX_EVAL_MESHES = 10_000
+MAX_CNR = {
+    "--steps": 10_000_000,
+    "--draws": 1_000,
+    "--faces-per-mesh": 1_000_000,
+    "--batch-size": 1_000_000,
+    "--stages": 16,
+    "--vertex-iterations": 10_000,
+    "--eval-meshes": MAX_EVAL_MESHES,
+    "--max-meshes": 1_000_000,
+}
+MAX_CNR_HIDDEN = (16, 4096)  # layers, units per layer
+
+
+def check_range(flag: str, value, low, high) -> None:
+    """Refuses `value` outside `[low, high]` (NaN included), naming `flag`.
+
+    Raises:
+      ValueError: `"{flag} must be from {low} to {high}, got {value}"`.
+    """
+    import math
+
+    if value is None:
+        return
+    number = float(value)
+    if math.isnan(number) or not low <= number <= high:
+
+        def shown(x):
+            return f"{x:g}" if isinstance(x, float) else str(x)
+
+        raise ValueError(f"{flag} must be from {shown(low)} to {shown(high)}, got {shown(value)}")
+
+
+def check_local_path(flag: str, value) -> None:
+    """Refuses a URL where a local file or folder is expected (`--weights` etc.): the
+    message says so, instead of "no such file"."""
+    import re
+
+    if value is not None and re.match(r"[A-Za-z][A-Za-z0-9+.-]*://", str(value)):
+        raise ValueError(
+            f"{flag} {value}: is a URL; dmd_jax reads local files only (download it first, "
+            "e.g. with curl -LO, and pass the file)"
+        )
+
+
+def check_weights_path(flag: str, value) -> None:
+    """A `--weights`-like argument, checked before any work: not a URL, and, unless it
+    is a checkpoint folder, a regular file one can read (a symlink loop, a FIFO or a
+    missing file is named now, not after the mesh was read)."""
+    from pathlib import Path
+
+    from dmd_jax.io import check_readable_file
+
+    if value is None:
+        return
+    check_local_path(flag, value)
+    p = Path(value)
+    if not p.is_dir():
+        check_readable_file(p, "weights file")
+
+
+class output_lock:  # noqa: N801  (used as a function: `with output_lock(folder):`)
+    """Holds an exclusive lock on the folder a run writes (`flock` on the folder
+    itself: nothing is written, and the lock goes with the process however it ends).
+
+    A second run that would write the same folder at the same time is refused.
+
+    Raises:
+      ValueError: another process holds the lock.
+    """
+
+    def __init__(self, folder):
+        self.folder = folder
+        self.fd = None
+
+    def __enter__(self):
+        import fcntl
+        import os
+
+        self.fd = os.open(self.folder, os.O_RDONLY)
+        try:
+            fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(self.fd)
+            self.fd = None
+            raise ValueError(
+                f"{self.folder}: another dmd-jax run is writing this folder now; wait for it "
+                "to finish or choose another output folder"
+            ) from None
+        return self
+
+    def __exit__(self, *exc):
+        import os
+
+        if self.fd is not None:
+            os.close(self.fd)  # releases the lock
+            self.fd = None
+        return False

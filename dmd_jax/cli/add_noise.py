@@ -4,7 +4,14 @@ from __future__ import annotations
 
 import argparse
 
-from dmd_jax.cli._common import MESH_SUFFIXES, _check_output, _load_input, _make_parent
+from dmd_jax.cli._common import (
+    MAX_NOISE_LEVEL,
+    MESH_SUFFIXES,
+    _check_output,
+    _load_input,
+    _make_parent,
+    check_range,
+)
 from dmd_jax.constants import NOISE_KINDS
 
 
@@ -14,6 +21,9 @@ def _cmd_add_noise(args: argparse.Namespace) -> int:
     from dmd_jax.api import add_noise
     from dmd_jax.io import save_mesh
 
+    if not -(2**63) <= args.seed < 2**63:  # jax.random.PRNGKey takes a 64-bit signed seed
+        raise ValueError(f"--seed must lie in [-2**63, 2**63), got {args.seed}")
+    check_range("--level", args.level, 0, MAX_NOISE_LEVEL)
     _check_output(
         args.output, args.input, args.overwrite, parents=args.parents, suffixes=MESH_SUFFIXES
     )

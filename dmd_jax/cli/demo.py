@@ -6,9 +6,20 @@ import argparse
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from dmd_jax.demo import run_demo
+    import contextlib
+    import os
 
-    run_demo(args.out, weights=args.weights, overwrite=args.overwrite, render=not args.no_render)
+    from dmd_jax.cli._common import check_weights_path, output_lock
+    from dmd_jax.demo import check_demo_outputs, run_demo
+
+    check_weights_path("--weights", args.weights)
+    check_demo_outputs(args.out, args.weights, args.overwrite, render=not args.no_render)
+    with contextlib.ExitStack() as stack:
+        if os.path.isdir(args.out):  # two runs writing one folder at once: refused
+            stack.enter_context(output_lock(args.out))
+        run_demo(
+            args.out, weights=args.weights, overwrite=args.overwrite, render=not args.no_render
+        )
     return 0
 
 

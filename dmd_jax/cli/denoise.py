@@ -170,10 +170,11 @@ def _cmd_denoise(args: argparse.Namespace) -> int:
             Path(args.out).mkdir(parents=True, exist_ok=True)
             stack.enter_context(output_lock(args.out))
         weights = args.weights
-        if args.method == "dmd" and args.out is not None:
+        if args.method == "dmd":
             from dmd_jax.checkpoints import load_model
 
-            weights = load_model(weights)  # once for every mesh
+            # Once for every mesh, and before any: unreadable weights are refused first.
+            weights = load_model(weights)
         t_all = time.perf_counter()
         failed, done = _denoise_all(args, pairs, weights, extra, denoise_with, save_mesh)
     many = args.out is not None

@@ -4,15 +4,25 @@ from __future__ import annotations
 
 import argparse
 
+from dmd_jax.cli._common import _check_output, check_local_path, check_range
+
 
 def _cmd_export_weights(args: argparse.Namespace) -> int:
-    import json
     import platform
     from pathlib import Path
 
     from dmd_jax.checkpoints import load_params, load_weights, save_weights
-    from dmd_jax.policy import trained_policy
+    from dmd_jax.policy import MAX_PASSES_LIMIT, MAX_RELAX_STEPS, trained_policy
 
+    # Everything the flags can get wrong, before any file is read.
+    meta_edits = _meta(args.meta)
+    check_range("--max-passes", args.max_passes, 1, MAX_PASSES_LIMIT)
+    check_range("--relax-steps", args.relax_steps, 0, MAX_RELAX_STEPS)
+    check_local_path("checkpoint", args.checkpoint)
+    check_local_path("--policy-from", args.policy_from)
+    inputs = [args.checkpoint] + ([args.policy_from] if args.policy_from else [])
+    # The output is never one of the inputs, --overwrite or not.
+    _check_output(args.output, inputs, args.overwrite)
     source = Path(args.checkpoint)
     if source.is_file():
         # A weights file: the same params with a newly fitted inference policy.
@@ -34,8 +44,7 @@ def _cmd_export_weights(args: argparse.Namespace) -> int:
         policy = load_weights(args.policy_from).policy
         meta["policy_from"] = str(args.policy_from)
     policy = _edited_policy(policy, args)
-    if args.meta:
-        meta.update(json.loads(args.meta))
+    meta.update(meta_edits)
     path = save_weights(args.output, params, cfg, meta, policy=policy, overwrite=args.overwrite)
     print(
         f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB): "
@@ -43,6 +52,30 @@ def _cmd_export_weights(args: argparse.Namespace) -> int:
         + f" of {args.checkpoint}, preset {cfg.name}"
     )
     return 0
+
+
+def _meta(text: str | None) -> dict:
+    """`--meta`: a JSON object of finite values, or a one-line error naming the flag."""
+    import json
+
+    if not text:
+        return {}
+
+    def refuse_constant(name):
+        raise ValueError(f"--meta: {name} is not JSON (store a string or null instead)")
+
+    try:
+        value = json.loads(text, parse_constant=refuse_constant)
+    except RecursionError:
+        raise ValueError("--meta: the JSON is nested too deeply") from None
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"--meta is not valid JSON ({exc})") from None
+    if not isinstance(value, dict):
+        raise ValueError(
+            f'--meta must be a JSON object such as \'{{"note": "..."}}\', got a '
+            f"{type(value).__name__}"
+        )
+    return value
 
 
 def _edited_policy(policy, args: argparse.Namespace):

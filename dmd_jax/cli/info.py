@@ -9,6 +9,10 @@ def _cmd_info(args: argparse.Namespace) -> int:
     import jax
 
     import dmd_jax
+    from dmd_jax.cli._common import check_weights_path
+
+    if getattr(args, "weights", None) not in (None, "bundled"):
+        check_weights_path("--weights", args.weights)
 
     print(f"dmd_jax {dmd_jax.__version__}, jax {jax.__version__}, devices {jax.devices()}")
     if getattr(args, "preset", None) is not None:

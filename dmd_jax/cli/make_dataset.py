@@ -4,32 +4,67 @@ from __future__ import annotations
 
 import argparse
 
+from dmd_jax.cli._common import (
+    MAX_PER_CATEGORY,
+    MAX_VERTICES,
+    MAX_WORKERS,
+    MIN_VERTICES,
+    check_range,
+    output_lock,
+)
+
+
+def _check_args(args: argparse.Namespace) -> None:
+    """The counts' bounds, and an --out that is not the --from-folder, before any work."""
+    import os
+
+    check_range("--per-category", args.per_category, 1, MAX_PER_CATEGORY)
+    check_range("--workers", args.workers, 1, MAX_WORKERS)
+    check_range("--min-vertices", args.min_vertices, MIN_VERTICES, MAX_VERTICES)
+    check_range("--max-vertices", args.max_vertices, MIN_VERTICES, MAX_VERTICES)
+    check_range("--intra-fraction", args.intra_fraction, 0, 1)
+    if args.from_folder is not None:
+        out, src = os.path.realpath(args.out), os.path.realpath(args.from_folder)
+        # --overwrite empties --out: never the input folder, nor one holding or inside it.
+        if out == src or src.startswith(out + os.sep) or out.startswith(src + os.sep):
+            raise ValueError(
+                f"--out {args.out}: is, holds or lies inside the input folder --from-folder "
+                f"{args.from_folder}; write the dataset elsewhere"
+            )
+
 
 def _cmd_make_dataset(args: argparse.Namespace) -> int:
+    import contextlib
+    import os
     import time
 
     from dmd_jax.data.dataset import build_dataset
+
+    _check_args(args)
 
     def names(text):
         # None: the option was not given; "" gives (): e.g. --test-inter "" holds out nothing.
         return None if text is None else tuple(x.strip() for x in text.split(",") if x.strip())
 
     start = time.perf_counter()
-    ds = build_dataset(
-        args.out,
-        from_folder=args.from_folder,
-        per_category=args.per_category,
-        categories=names(args.categories),
-        test_inter=names(args.test_inter),
-        remesh=args.remesh,
-        seed=args.seed,
-        intra_fraction=args.intra_fraction,
-        workers=args.workers,
-        min_vertices=args.min_vertices,
-        max_vertices=args.max_vertices,
-        progress=not args.no_progress,
-        overwrite=args.overwrite,
-    )
+    with contextlib.ExitStack() as stack:
+        if os.path.isdir(args.out):  # two runs filling one folder at once: refused
+            stack.enter_context(output_lock(args.out))
+        ds = build_dataset(
+            args.out,
+            from_folder=args.from_folder,
+            per_category=args.per_category,
+            categories=names(args.categories),
+            test_inter=names(args.test_inter),
+            remesh=args.remesh,
+            seed=args.seed,
+            intra_fraction=args.intra_fraction,
+            workers=args.workers,
+            min_vertices=args.min_vertices,
+            max_vertices=args.max_vertices,
+            progress=not args.no_progress,
+            overwrite=args.overwrite,
+        )
     counts = ds.counts()
     skipped = len(ds.manifest.get("skipped", []))
     print(

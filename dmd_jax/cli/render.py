@@ -4,7 +4,14 @@ from __future__ import annotations
 
 import argparse
 
-from dmd_jax.cli._common import _check_output, _in_gt_order, _load_input, _make_parent
+from dmd_jax.cli._common import (
+    MAX_PANELS,
+    _check_output,
+    _in_gt_order,
+    _load_input,
+    _make_parent,
+    check_range,
+)
 
 
 def _cmd_render(args: argparse.Namespace) -> int:
@@ -17,7 +24,15 @@ def _cmd_render(args: argparse.Namespace) -> int:
         raise ValueError(f"{args.output}: write a .png (static picture) or .html (3-D page)")
     if args.range is not None and not args.range[0] < args.range[1]:
         raise ValueError(f"--range needs LOW < HIGH, got {args.range[0]:g} {args.range[1]:g}")
-    from dmd_jax.render import MAX_PANEL_SIZE
+    if args.range is not None:
+        # Degrees of normal error: 0 to 180, both ends finite.
+        check_range("--range", args.range[0], -180, 180)
+        check_range("--range", args.range[1], -180, 180)
+    from dmd_jax.render import MAX_PANEL_SIZE, MAX_VIEW_DEGREES
+
+    check_range("--elev", args.elev, -MAX_VIEW_DEGREES, MAX_VIEW_DEGREES)
+    check_range("--azim", args.azim, -MAX_VIEW_DEGREES, MAX_VIEW_DEGREES)
+    check_range("number of panels", len(args.inputs) + bool(args.gt), 1, MAX_PANELS)
 
     if not 0 < args.panel_size <= MAX_PANEL_SIZE:  # NaN fails too
         raise ValueError(

@@ -89,6 +89,16 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
     import jax
 
+    from dmd_jax.cli._common import MAX_EVAL_MESHES, check_local_path, check_range
+
+    check_range("--eval-meshes", args.eval_meshes, 0, MAX_EVAL_MESHES)
+    for flag, value in (
+        ("--data", args.data),
+        ("--init-from", args.init_from),
+        ("--real-meshes", args.real_meshes),
+        ("--workdir", args.workdir),
+    ):
+        check_local_path(flag, value)
     # Before anything touches a device: the device list then spans every process.
     distributed = _distributed_args(args)
     if distributed is not None:

@@ -7,10 +7,24 @@ import sys
 
 
 def _cmd_train_cnr(args: argparse.Namespace) -> int:
+    import os
     import shlex
 
     from dmd_jax.baselines.cascaded_regression import train_main
+    from dmd_jax.cli._common import MAX_CNR, MAX_CNR_HIDDEN, check_range
 
+    # Every count bounded before any work (docs/refusals.md).
+    for flag, most in MAX_CNR.items():
+        low = 0 if flag in ("--vertex-iterations", "--eval-meshes") else 1
+        check_range(flag, getattr(args, flag[2:].replace("-", "_")), low, most)
+    check_range("--hidden (layers)", len(args.hidden), 1, MAX_CNR_HIDDEN[0])
+    for width in args.hidden:
+        check_range("--hidden", width, 1, MAX_CNR_HIDDEN[1])
+    check_range("--lr", args.lr, 1e-12, 10.0)
+    out, data = os.path.realpath(args.out), os.path.realpath(args.data)
+    if out == data or out.startswith(data + os.sep):
+        # Its meshes are the inputs: the weights never go in among them.
+        raise ValueError(f"--out {args.out}: lies inside --data {args.data}; write it elsewhere")
     train_main(args, "dmd-jax " + " ".join(shlex.quote(a) for a in sys.argv[1:]))
     return 0
 

@@ -14,11 +14,18 @@ from pathlib import Path
 
 import numpy as np
 
-from dmd_jax.io._files import atomic_write, check_readable_file, write_text_atomic
+from dmd_jax.io._files import (
+    atomic_write,
+    check_readable_file,
+    is_temp_name,
+    name_max,
+    same_file,
+    write_text_atomic,
+)
 from dmd_jax.io.obj import _read_obj, _write_obj
 from dmd_jax.io.off import _read_off, _write_off
 from dmd_jax.io.ply import PlyHeader, _read_ply, _write_ply, read_ply_header
-from dmd_jax.io.stl import _merge_identical_vertices, _read_stl, _write_stl
+from dmd_jax.io.stl import _merge_identical_vertices, _read_stl, _write_stl, check_float32
 from dmd_jax.mesh import validate_mesh
 
 __all__ = [
@@ -26,8 +33,11 @@ __all__ = [
     "PlyHeader",
     "atomic_write",
     "check_readable_file",
+    "is_temp_name",
     "load_mesh",
+    "name_max",
     "read_ply_header",
+    "same_file",
     "save_mesh",
     "write_text_atomic",
 ]
@@ -108,11 +118,15 @@ def save_mesh(path, vertices, faces, *, overwrite: bool = False, protect=()) -> 
     float64 values, at any scale. STL stores a float32 triangle soup (the format
     allows nothing else): coordinates are rounded to float32, and vertex order, unused
     vertices and the sharing of vertices are lost (`load_mesh` merges identical points
-    again, see there).
+    again, see there). An STL is refused, not rounded silently, when float32 cannot hold
+    the mesh: coordinates beyond its range, or rounding that would move vertices by more
+    than `stl.STL_ROUNDING_TOLERANCE` of the median edge length (a small part at survey
+    coordinates, ~1e6).
 
     Raises:
       FileExistsError: `path` exists and `overwrite` is False.
-      ValueError: unknown extension, `path` in `protect`, or an invalid mesh.
+      ValueError: unknown extension, `path` in `protect`, an invalid mesh, or an STL that
+        float32 cannot hold.
     """
     path = Path(path)
     if path.suffix.lower() not in SUPPORTED_EXTENSIONS:
@@ -121,6 +135,8 @@ def save_mesh(path, vertices, faces, *, overwrite: bool = False, protect=()) -> 
             + ", ".join(SUPPORTED_EXTENSIONS)
         )
     v, f = validate_mesh(vertices, faces, name=str(path))
+    if path.suffix.lower() == ".stl":
+        check_float32(str(path), v, f)
     writer = _WRITERS[path.suffix.lower()]
 
     def write(tmp):

@@ -4,6 +4,7 @@ row writer of the text formats, and the checked read and atomic write of a file.
 from __future__ import annotations
 
 import os
+import re
 import stat
 import tempfile
 from pathlib import Path
@@ -70,6 +71,53 @@ def check_readable_file(path, what: str = "mesh file") -> None:
         raise ValueError(f"{path}: is {kind}; save the {what} to a regular file first")
 
 
+# mkstemp's random part: 8 characters of this alphabet (CPython's tempfile).
+_TEMP_NAME = re.compile(r"\.(?P<head>.*)\.[a-z0-9_]{8}(?P<suffix>\.[^.]*)?", re.IGNORECASE)
+
+
+def name_max(folder) -> int:
+    """The longest file name, in bytes, the file system of `folder` takes (255 if unknown)."""
+    try:
+        return int(os.pathconf(folder, "PC_NAME_MAX"))
+    except (OSError, ValueError):
+        return 255
+
+
+def temp_prefix(path: Path) -> str:
+    """The prefix of `atomic_write`'s temporary file for `path`: `.NAME.`, with NAME cut
+    so the temporary name (prefix, 8 random characters, suffix) fits the file system's
+    limit: any name the system takes can be written."""
+    room = name_max(path.parent if path.parent.is_dir() else ".") - 2 - 8 - len(path.suffix)
+    name = path.name
+    while len(name.encode("utf-8", "surrogateescape")) > room:
+        name = name[:-1]
+    return f".{name}."
+
+
+def is_temp_name(name: str) -> bool:
+    """Whether `name` is (or looks like) a temporary file of `atomic_write`: what an
+    interrupted run can leave, never a finished output (folder mode skips them)."""
+    m = _TEMP_NAME.fullmatch(name)
+    if m is None:
+        return False
+    head, suffix = m.group("head"), m.group("suffix") or ""
+    # `.NAME.XXXXXXXX.SUF` where NAME ends in .SUF, or was cut to fit the file system.
+    # A cut NAME leaves the temporary name within a character of the limit (255).
+    return head.lower().endswith(suffix.lower()) or len(name.encode("utf-8", "replace")) >= 250
+
+
+def same_file(a, b) -> bool:
+    """Whether paths `a` and `b` name the same file: the same path once links are
+    followed, or hard links to one file. Never raises (a symlink loop is just a path)."""
+    try:
+        if os.path.exists(a) and os.path.exists(b) and os.path.samefile(a, b):
+            return True
+    except OSError:
+        pass
+    # os.path.realpath never raises on a loop (Path.resolve does before Python 3.13).
+    return os.path.realpath(a) == os.path.realpath(b)
+
+
 def atomic_write(path, write_fn, *, overwrite: bool = False, protect=()) -> Path:
     """Writes a file by `write_fn(tmp_path)` then renames it into place.
 
@@ -81,15 +129,13 @@ def atomic_write(path, write_fn, *, overwrite: bool = False, protect=()) -> Path
     """
     path = Path(path)
     for p in protect:
-        if Path(p).exists() and path.exists() and os.path.samefile(p, path):
-            raise ValueError(f"{path}: refusing to overwrite the input file")
-        if Path(p).resolve() == path.resolve():
+        if same_file(p, path):
             raise ValueError(f"{path}: refusing to overwrite the input file")
     if path.exists() and not overwrite:
         raise FileExistsError(f"{path}: already exists (pass overwrite=True / --overwrite)")
     if not path.parent.is_dir():
         raise FileNotFoundError(f"{path.parent}: output directory does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=temp_prefix(path), suffix=path.suffix, dir=path.parent)
     os.close(fd)
     try:
         write_fn(tmp)

@@ -66,7 +66,7 @@ def read_ply_header(data: bytes, name: str) -> PlyHeader:
 
     Raises:
       ValueError: not PLY, no `end_header`, an unknown keyword, type or format, a count
-        that is not a non-negative integer.
+        that is not a non-negative integer, an element or a property declared twice.
     """
     data = data.removeprefix(_BOM)
     if not re.match(rb"ply[ \t]*\r?\n", data):
@@ -94,10 +94,20 @@ def read_ply_header(data: bytes, name: str) -> PlyHeader:
                 raise ValueError(
                     bad + f"an element needs a name and a count >= 0, got {line.strip()[:60]!r}"
                 )
+            if any(e.name == parts[1] for e in elements):
+                # Two `vertex` elements: which one is the mesh would be a guess.
+                raise ValueError(bad + f"element {parts[1][:30]!r} is declared twice")
             elements.append(_PlyElement(parts[1], int(parts[2]), []))
         elif parts[0] == "property":
             if not elements:
                 raise ValueError(bad + "a property before any element")
+            prop = parts[-1]
+            if any(p.name == prop for p in elements[-1].properties):
+                # Read by name, a repeated property would silently be one of its columns.
+                raise ValueError(
+                    bad + f"property {prop[:30]!r} appears twice in element "
+                    f"{elements[-1].name[:30]!r}"
+                )
             if len(parts) == 5 and parts[1] == "list":
                 count_t, item_t = _PLY_TYPES.get(parts[2]), _PLY_TYPES.get(parts[3])
                 if count_t is None or item_t is None or count_t[0] == "f":

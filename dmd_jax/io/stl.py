@@ -77,6 +77,49 @@ def _merge_identical_vertices(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
     return v[first[order]], rank[inverse.reshape(-1)].reshape(f.shape)
 
 
+# The most float32's rounding may move a vertex, as a fraction of the mesh's median edge
+# length, before an STL output is refused: a thousandth keeps every feature the mesh
+# resolves (rounding at the unit scale moves ~1e-7 of it; at a 1e6 offset, ~0.03 units).
+STL_ROUNDING_TOLERANCE = 1e-3
+
+
+def check_float32(name: str, v: np.ndarray, f: np.ndarray) -> None:
+    """Refuses a mesh STL's float32 cannot store: beyond float32's range, or so far from
+    the origin for its size that rounding to float32 would move its vertices by more
+    than `STL_ROUNDING_TOLERANCE` of its median edge length (survey coordinates).
+
+    Args:
+      name: the output, named in the error.
+      v: `[n_vertex, 3]` float64 positions.
+      f: `[n_face, 3]` vertex indices.
+
+    Raises:
+      ValueError: saying which, and that PLY, OBJ and OFF keep float64.
+    """
+    largest = float(np.abs(v).max()) if v.size else 0.0
+    limit = float(np.finfo(np.float32).max)
+    keep = "save it as .ply, .obj or .off instead (float64, exact)"
+    if largest > limit:
+        raise ValueError(
+            f"{name}: STL stores float32, whose largest value is {limit:.4g}; this mesh "
+            f"has coordinates up to {largest:.4g}: {keep}"
+        )
+    moved = float(np.abs(v.astype(np.float32).astype(np.float64) - v).max()) if v.size else 0.0
+    if moved == 0.0:
+        return
+    corners = v[f]
+    edges = np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).ravel()
+    edges = edges[edges > 0]
+    median = float(np.median(edges)) if edges.size else 0.0
+    if moved > STL_ROUNDING_TOLERANCE * median:
+        raise ValueError(
+            f"{name}: STL stores float32, which would move vertices by up to {moved:.3g} at "
+            f"these coordinates (up to {largest:.4g}), more than "
+            f"{STL_ROUNDING_TOLERANCE:g} of the median edge length {median:.3g}: {keep}, "
+            "or move the mesh near the origin first"
+        )
+
+
 def _write_stl(tmp, v: np.ndarray, f: np.ndarray) -> None:
     """Binary STL through trimesh (float32 coordinates, a triangle soup)."""
     import trimesh
