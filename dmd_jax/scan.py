@@ -188,19 +188,14 @@ def render_depth(vertices, faces, basis: np.ndarray, resolution: int) -> DepthMa
     bary = np.zeros((nx * ny, 3))
     zf = z[faces]
     ends = np.cumsum(counts)
-    start = 0
-    while start < faces.shape[0]:
-        done = ends[start - 1] if start else 0
-        stop = int(np.searchsorted(ends, done + _CHUNK_CANDIDATES, side="right"))
-        stop = max(stop, start + 1)
-        idx = np.arange(start, stop)
-        cnt = counts[idx]
-        total = int(cnt.sum())
-        start = stop
-        if total == 0:
-            continue
-        fid = np.repeat(idx, cnt)
-        local = np.arange(total) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+    starts = ends - counts
+    total = int(ends[-1]) if ends.size else 0
+    # Candidates are numbered face by face; each chunk is a range of those numbers, so a
+    # face larger than a chunk (a big triangle at a high resolution) is split too.
+    for c0 in range(0, total, _CHUNK_CANDIDATES):
+        cand = np.arange(c0, min(c0 + _CHUNK_CANDIDATES, total))
+        fid = np.searchsorted(ends, cand, side="right")
+        local = cand - starts[fid]
         px = x0[fid] + local % width[fid]
         py = y0[fid] + local // width[fid]
         ax, ay = a[fid, 0] - px, a[fid, 1] - py
