@@ -1,71 +1,136 @@
 """The compiled forward passes of a trained DMD-Net, one per model config.
 
 Configs are frozen and hashable, so a config is its own cache key: every `denoise` call
-(and every patch of one) with the same config reuses one jitted function, and XLA
+(and every patch of one) with the same config reuses one program object, and XLA
 compiles it once per padded shape.
 
 * `predictor`: the whole network on a whole mesh.
 * `patch_predictor`: the network on a patch, every per-mesh pool (the transformer's
   `W_tf`, the STN's) given from outside (`DMDNet(pooled=...)`).
 * `pool_predictor`: the network up to some pools only, for the patch path's first sweeps.
+
+Each is a `Program`: a jitted function whose compiled executables are kept by input
+shapes, in this process and in the on-disk cache of `dmd_jax.compile_cache`, so a new
+process on a mesh of a shape bucket seen before loads the executable instead of
+tracing, lowering and compiling the network again (`docs/cold-start.md`).
 """
 
 from __future__ import annotations
 
+import threading
 from functools import lru_cache
 
 import jax
 
+from dmd_jax import compile_cache
 from dmd_jax.config import ExperimentConfig, ModelConfig
+
+# JAX's persistent cache for the other (small) programs of a call: configured here, on
+# the import of the first module that compiles the network, never at `import dmd_jax`.
+compile_cache.configure_jax()
+
+
+class Program:
+    """A jitted function whose executables are looked up by input signature.
+
+    Calls with the shapes and dtypes of an earlier call run that call's executable;
+    a new signature is loaded from the on-disk cache (`compile_cache.executable`) or
+    compiled and stored there. With the cache off (`DMD_JAX_COMPILE_CACHE=0`) or
+    several devices (patches on several devices, each executable bound to one), calls
+    go to `jax.jit` as they are. Either way the same compiled program runs: results are
+    bit-identical.
+
+    Args:
+      name: the program's kind (part of its cache key).
+      fn: the function to jit.
+      identity: what else selects the program (its model config, its options).
+    """
+
+    def __init__(self, name: str, fn, identity: str):
+        self.name = name
+        self.jitted = jax.jit(fn)
+        self.identity = identity
+        self._compiled: dict = {}
+        self._lock = threading.Lock()
+
+    def __call__(self, *args):
+        if jax.local_device_count() > 1 or compile_cache.store() is None:
+            return self.jitted(*args)
+        return self.compiled(*args)(*args)
+
+    def compiled(self, *args):
+        """The executable for `args`' signature (arrays or `jax.ShapeDtypeStruct`s)."""
+        sig = compile_cache.signature(args)
+        found = self._compiled.get(sig)
+        if found is None:
+            with self._lock:  # patch threads: one compile per signature
+                found = self._compiled.get(sig)
+                if found is None:
+                    found = compile_cache.executable(self.name, self.jitted, args, self.identity)
+                    self._compiled[sig] = found
+        return found
+
+    def lower(self, *args):
+        """`jax.jit(fn).lower(*args)`, whose `.compile()` goes through the cache."""
+        return _Lowered(self, args)
+
+
+class _Lowered:
+    """`Program.lower`'s result: `compile()` returns the cached executable."""
+
+    def __init__(self, program: Program, args):
+        self._program = program
+        self._args = args
+
+    def compile(self):
+        return self._program.compiled(*self._args)
 
 
 def _model_config(config: ExperimentConfig | ModelConfig) -> ModelConfig:
     return config.model if isinstance(config, ExperimentConfig) else config
 
 
-def predictor(config: ExperimentConfig | ModelConfig):
-    """`predict(params, noisy, graph) -> [n_vertex, 3]`, jitted, for `config`'s network."""
+def predictor(config: ExperimentConfig | ModelConfig) -> Program:
+    """`predict(params, noisy, graph) -> [n_vertex, 3]`, compiled, for `config`'s network."""
     return _predictor(_model_config(config))
 
 
 @lru_cache(maxsize=8)
-def _predictor(config: ModelConfig):
+def _predictor(config: ModelConfig) -> Program:
     from dmd_jax.model import DMDNet
 
     model = DMDNet(config)
 
-    @jax.jit
     def predict(params, noisy, graph):
         out, _, _ = model.apply({"params": params}, noisy, graph, deterministic=True)
         return out
 
-    return predict
+    return Program("predict", predict, repr(config))
 
 
-def patch_predictor(config: ExperimentConfig | ModelConfig):
-    """`predict(params, noisy, graph, pooled) -> [n_vertex, 3]`, jitted: every per-mesh
+def patch_predictor(config: ExperimentConfig | ModelConfig) -> Program:
+    """`predict(params, noisy, graph, pooled) -> [n_vertex, 3]`, compiled: every per-mesh
     pool given (`DMDNet(pooled=...)`)."""
     return _patch_predictor(_model_config(config))
 
 
 @lru_cache(maxsize=8)
-def _patch_predictor(config: ModelConfig):
+def _patch_predictor(config: ModelConfig) -> Program:
     from dmd_jax.model import DMDNet
 
     model = DMDNet(config)
 
-    @jax.jit
     def predict(params, noisy, graph, pooled):
         out, _, _ = model.apply({"params": params}, noisy, graph, deterministic=True, pooled=pooled)
         return out
 
-    return predict
+    return Program("patch", predict, repr(config))
 
 
 @lru_cache(maxsize=8)
-def pool_predictor(config: ModelConfig, names: tuple[str, ...]):
-    """`pools(params, noisy, graph, pooled) -> {name: pool}`, jitted: the forward pass up
-    to the pools `names` (earlier stages' pools given).
+def pool_predictor(config: ModelConfig, names: tuple[str, ...]) -> Program:
+    """`pools(params, noisy, graph, pooled) -> {name: pool}`, compiled: the forward pass
+    up to the pools `names` (earlier stages' pools given).
 
     Only the pools are returned, so XLA drops everything that does not feed them (the
     denoiser, the vertex update).
@@ -74,7 +139,6 @@ def pool_predictor(config: ModelConfig, names: tuple[str, ...]):
 
     model = DMDNet(config)
 
-    @jax.jit
     def pools(params, noisy, graph, pooled):
         _, state = model.apply(
             {"params": params},
@@ -87,7 +151,7 @@ def pool_predictor(config: ModelConfig, names: tuple[str, ...]):
         found = dict(_find_sown(state["intermediates"]))
         return {name: found[name][0] for name in names}  # row 0: the patch's graph
 
-    return pools
+    return Program("pools", pools, repr((config, names)))
 
 
 def _find_sown(tree):

@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dmd_jax import compile_cache
 from dmd_jax.config import ModelConfig
 from dmd_jax.forward import patch_predictor
 from dmd_jax.graph import (
@@ -149,7 +150,9 @@ def network_bytes_per_vertex(config: ModelConfig) -> int:
     output) by its padded vertex count. Memory is linear in size (the `small` preset's
     temporaries were 5.2 kB per padded vertex at 57k and at 524k padded vertices), so
     this scales; the fixed part inflates it slightly at the probe's size, on the safe
-    side. Cached per config (one compilation, about a second).
+    side. Cached per config (one compilation, about a second), in this process and
+    on disk (`compile_cache.remembered`: a new process neither traces nor loads the
+    probe).
 
     Args:
       config: the model config.
@@ -157,6 +160,14 @@ def network_bytes_per_vertex(config: ModelConfig) -> int:
     Returns:
       Bytes per padded vertex.
     """
+    return int(
+        compile_cache.remembered(
+            "network-bytes", repr(config), lambda: _measured_bytes_per_vertex(config)
+        )
+    )
+
+
+def _measured_bytes_per_vertex(config: ModelConfig) -> int:
     x, graph = _probe_graph()
     noisy = pad_vertex_array(x.astype(np.float32), graph.n_vertex)
     predict = patch_predictor(config)

@@ -2,13 +2,19 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import jax
 import numpy as np
 import pytest
 
-from dmd_jax.protocol import SHARED_MESHES_ENV, shared_meshes_dir
+# The suite never writes compiled programs into the user's cache directory: the cache is
+# off unless a run sets DMD_JAX_COMPILE_CACHE (tests/test_compile_cache.py gives its
+# processes temporary directories). Set before any dmd_jax module configures JAX.
+os.environ.setdefault("DMD_JAX_COMPILE_CACHE", "0")
+
+from dmd_jax.protocol import SHARED_MESHES_ENV, shared_meshes_dir  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 

@@ -1,0 +1,279 @@
+"""The on-disk compilation cache (`dmd_jax.compile_cache`, `dmd_jax.forward.Program`).
+
+The store is checked directly (checksums, atomic writes, the bound), and end to end in
+fresh processes, the way a user meets it: a first process compiles and stores, a second
+loads, both give the same bits as a process without the cache; two processes writing
+at once, and damaged entries, leave a cache that still works.
+
+The test suite runs with the cache off (`tests/conftest.py` sets
+`DMD_JAX_COMPILE_CACHE=0`); every process here gets its own temporary directory.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dmd_jax import compile_cache
+from dmd_jax.compile_cache import ENV, ENV_MAX_MB, EntryStore
+
+REPO = Path(__file__).resolve().parents[1]
+
+# One fresh process: the test preset's network (small: compiles in seconds) through
+# `forward.predictor` on an icosphere, twice in a row (the second call must not load or
+# compile again), then (with a second argument) the patch program through
+# `.lower().compile()` as `memory_plan` uses it. Prints the cache events and writes the
+# outputs.
+PROGRAM = r"""
+import collections, json, sys
+import jax, numpy as np, trimesh
+from jax import monitoring
+from dmd_jax import compile_cache, forward
+from dmd_jax.config import preset
+from dmd_jax.graph import build_mesh_graph, pad_mesh_graph, padded_sizes_for, with_ell_layout
+from dmd_jax.model import init_params
+
+events = collections.Counter()
+monitoring.register_event_listener(lambda e, **kw: events.__setitem__(e, events[e] + 1))
+cfg = preset("test").model
+params = init_params(cfg, jax.random.PRNGKey(0))
+s = trimesh.creation.icosphere(subdivisions=2)
+v, f = np.asarray(s.vertices, np.float32), np.asarray(s.faces, np.int32)
+graph = with_ell_layout(pad_mesh_graph(build_mesh_graph(f, len(v)), padded_sizes_for(
+    build_mesh_graph(f, len(v)))))
+noisy = np.zeros((graph.n_vertex, 3), np.float32)
+noisy[: len(v)] = v + 0.01 * np.sin(7 * v)
+predict = forward.predictor(cfg)
+out = np.asarray(predict(params, noisy, graph))
+again = np.asarray(predict(params, noisy, graph))
+patch = len(sys.argv) > 2
+if patch:
+    compiled = forward.patch_predictor(cfg).lower(params, noisy, graph, {}).compile()
+np.save(sys.argv[1], np.stack([out, again]))
+print(json.dumps({
+    "hit": events[compile_cache.HIT_EVENT],
+    "miss": events[compile_cache.MISS_EVENT],
+    "jax_hit": events["/jax/compilation_cache/cache_hits"],
+    "has_memory": patch and compiled.memory_analysis() is not None,
+}))
+"""
+
+
+def run_program(
+    tmp_path: Path, name: str, cache, *, extra_env=None, wait: bool = True, patch: bool = False
+):
+    """Runs `PROGRAM` in a fresh process with `DMD_JAX_COMPILE_CACHE=cache` (None: unset).
+
+    Returns the `Popen` when `wait` is False, else `(events, outputs)`.
+    """
+    env = {k: v for k, v in os.environ.items() if k not in (ENV, ENV_MAX_MB)}
+    env.update({"XDG_CACHE_HOME": str(tmp_path / "xdg"), "HOME": str(tmp_path / "home")})
+    if cache is not None:
+        env[ENV] = str(cache)
+    env.update(extra_env or {})
+    out = tmp_path / f"{name}.npy"
+    script = tmp_path / "program.py"
+    script.write_text(PROGRAM)
+    proc = subprocess.Popen(
+        [sys.executable, str(script), str(out), *(["patch"] if patch else [])],
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    if not wait:
+        return proc, out
+    return finish(proc, out)
+
+
+def finish(proc, out: Path):
+    stdout, stderr = proc.communicate(timeout=600)
+    assert proc.returncode == 0, stderr[-3000:]
+    return json.loads(stdout.strip().splitlines()[-1]), np.load(out)
+
+
+def entries(path: Path) -> list[Path]:
+    return sorted(path.rglob("*.bin")) if path.exists() else []
+
+
+# ---------------------------------------------------------------- settings, the store
+
+
+def test_settings_read_the_environment(monkeypatch, tmp_path):
+    monkeypatch.delenv(ENV_MAX_MB, raising=False)
+    for off in ("0", "off", "False", " no "):
+        monkeypatch.setenv(ENV, off)
+        assert compile_cache.settings().path is None
+        assert compile_cache.store() is None
+    monkeypatch.setenv(ENV, str(tmp_path / "here"))
+    assert compile_cache.settings() == (tmp_path / "here", compile_cache.DEFAULT_MAX_MB * 2**20)
+    # Unset: the platform's user cache directory ($XDG_CACHE_HOME on Linux).
+    monkeypatch.delenv(ENV)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    if sys.platform.startswith("linux"):
+        assert compile_cache.settings().path == tmp_path / "xdg" / "dmd_jax" / "jax"
+    monkeypatch.setenv(ENV_MAX_MB, "1.5")
+    assert compile_cache.settings().max_bytes == int(1.5 * 2**20)
+    for bad in ("0", "-3", "lots"):
+        monkeypatch.setenv(ENV_MAX_MB, bad)
+        with pytest.raises(ValueError, match=ENV_MAX_MB):
+            compile_cache.settings()
+
+
+def test_store_round_trip_and_damaged_entries(tmp_path):
+    store = EntryStore(tmp_path / "s", 10_000)
+    assert store.get("absent") is None
+    store.put("a", b"payload one")
+    assert store.get("a") == b"payload one"
+    store.put("a", b"payload two")  # replaced whole
+    assert store.get("a") == b"payload two"
+    (file,) = entries(tmp_path)
+    for damage in (
+        lambda b: b[:-1] + bytes([b[-1] ^ 1]),  # a flipped bit in the payload
+        lambda b: b[: len(b) // 2],  # a truncated write
+        lambda b: b"",  # an empty file
+        lambda b: b"garbage" + b[7:],  # a foreign header
+    ):
+        store.put("a", b"payload two")
+        file.write_bytes(damage(file.read_bytes()))
+        assert store.get("a") is None  # a miss: the program is compiled again
+        assert not file.exists()  # and the damaged entry is gone
+    with pytest.raises(ValueError, match="cache key"):
+        store.get("../escape")
+    assert not list((tmp_path / "s").glob(".tmp-*"))  # no temporary file left behind
+
+
+def test_store_is_bounded_oldest_first(tmp_path):
+    store = EntryStore(tmp_path, 3 * 1024 + 3 * 24)  # three 1 KiB entries and headers
+    for k, name in enumerate("abc"):
+        store.put(name, bytes([k]) * 1024)
+        os.utime(tmp_path / f"{name}.bin", (1000 + k, 1000 + k))
+    assert store.get("a") is not None  # reading "a" makes "b" the oldest
+    store.put("d", b"d" * 1024)
+    assert [p.stem for p in entries(tmp_path)] == ["a", "c", "d"]
+    assert store.size() <= store.max_bytes
+    store.put("huge", b"x" * 10_000)  # larger than the bound: not stored, nothing evicted
+    assert [p.stem for p in entries(tmp_path)] == ["a", "c", "d"]
+
+
+def test_remembered_values_are_computed_once(monkeypatch, tmp_path):
+    calls = []
+
+    def compute():
+        calls.append(1)
+        return {"bytes": 123}
+
+    monkeypatch.setenv(ENV, str(tmp_path))
+    assert compile_cache.remembered("probe", "config-a", compute) == {"bytes": 123}
+    assert compile_cache.remembered("probe", "config-a", compute) == {"bytes": 123}
+    assert len(calls) == 1
+    compile_cache.remembered("probe", "config-b", compute)  # another identity: its own
+    assert len(calls) == 2
+    monkeypatch.setenv(ENV, "0")  # off: computed every time, nothing written
+    compile_cache.remembered("probe", "config-a", compute)
+    assert len(calls) == 3
+    assert len(entries(tmp_path)) == 2
+
+
+@pytest.mark.slow
+def test_memory_plan_measure_is_kept(monkeypatch, tmp_path):
+    from dmd_jax import memory_plan
+    from dmd_jax.config import preset
+
+    cfg = preset("test").model
+    measured = memory_plan._measured_bytes_per_vertex(cfg)
+    monkeypatch.setenv(ENV, str(tmp_path))
+    memory_plan.network_bytes_per_vertex.cache_clear()
+    assert memory_plan.network_bytes_per_vertex(cfg) == measured
+    assert any(p.name.startswith("network-bytes-") for p in entries(tmp_path))
+    memory_plan.network_bytes_per_vertex.cache_clear()
+    monkeypatch.setattr(memory_plan, "_measured_bytes_per_vertex", lambda c: 1 / 0)
+    assert memory_plan.network_bytes_per_vertex(cfg) == measured  # read, not measured
+    memory_plan.network_bytes_per_vertex.cache_clear()
+
+
+def test_program_sources_cover_the_network():
+    names = {p.name for p in compile_cache.program_sources()}
+    assert {"forward.py", "model.py", "ops.py", "geometry.py", "graph.py"} <= names
+    folders = {p.parent.name for p in compile_cache.program_sources()}
+    assert "train.py" not in names and "cli" not in folders
+
+
+# ---------------------------------------------------------------- fresh processes
+
+
+@pytest.mark.slow
+def test_second_process_loads_and_results_are_bit_identical(tmp_path):
+    cache = tmp_path / "cache"
+    plain_events, plain = run_program(tmp_path, "plain", "0", patch=True)
+    assert plain_events["miss"] == plain_events["hit"] == 0
+    assert not (tmp_path / "xdg").exists() and not (tmp_path / "home").exists()  # opt-out
+    first_events, first = run_program(tmp_path, "first", cache, patch=True)
+    assert first_events["miss"] == 2 and first_events["hit"] == 0  # predict and patch
+    assert first_events["has_memory"]
+    stored = entries(cache / "programs")
+    assert len(stored) == 2
+    assert entries(cache / "xla")  # JAX's cache holds the small programs
+    second_events, second = run_program(tmp_path, "second", cache, patch=True)
+    assert second_events["hit"] == 2 and second_events["miss"] == 0
+    assert second_events["has_memory"]  # memory_plan's measure works on a loaded program
+    # The same bits with and without the cache, loaded or compiled, first call or second.
+    for out in (first, second):
+        np.testing.assert_array_equal(out, plain)
+    np.testing.assert_array_equal(plain[0], plain[1])
+
+
+@pytest.mark.slow
+def test_default_directory_is_the_user_cache(tmp_path):
+    events, _ = run_program(tmp_path, "default", None)
+    assert events["miss"] == 1
+    where = tmp_path / "xdg" / "dmd_jax" / "jax"
+    if sys.platform.startswith("linux"):
+        assert len(entries(where / "programs")) == 1
+
+
+@pytest.mark.slow
+def test_concurrent_processes_and_damaged_entries(tmp_path):
+    cache = tmp_path / "cache"
+    _, plain = run_program(tmp_path, "plain", "0")
+    # Two processes fill one empty cache at the same time.
+    running = [run_program(tmp_path, f"p{k}", cache, wait=False) for k in range(2)]
+    for proc, out in running:
+        _, result = finish(proc, out)
+        np.testing.assert_array_equal(result, plain)
+    assert not list(cache.rglob(".tmp-*"))
+    events, result = run_program(tmp_path, "after", cache)
+    assert events["hit"] == 1 and events["miss"] == 0  # whole entries, loadable
+    np.testing.assert_array_equal(result, plain)
+    # Every entry damaged: recompiled (not fatal), and written again whole.
+    for file in entries(cache):
+        data = file.read_bytes()
+        file.write_bytes(data[: len(data) // 2])
+    events, result = run_program(tmp_path, "damaged", cache)
+    assert events["miss"] == 1 and events["hit"] == 0
+    np.testing.assert_array_equal(result, plain)
+    events, result = run_program(tmp_path, "healed", cache)
+    assert events["hit"] == 1 and events["miss"] == 0
+    assert events["jax_hit"] > 0
+    np.testing.assert_array_equal(result, plain)
+
+
+@pytest.mark.slow
+def test_bound_holds_across_processes(tmp_path):
+    cache = tmp_path / "cache"
+    # A bound below one network executable: the small programs are kept, bounded; the
+    # network is compiled each time and its results do not change.
+    _, plain = run_program(tmp_path, "plain", "0")
+    for name in ("one", "two"):
+        events, result = run_program(tmp_path, name, cache, extra_env={ENV_MAX_MB: "0.05"})
+        assert events["hit"] == 0 and events["miss"] == 1
+        np.testing.assert_array_equal(result, plain)
+        for part in ("programs", "xla"):
+            assert sum(p.stat().st_size for p in entries(cache / part)) <= 0.05 * 2**20
