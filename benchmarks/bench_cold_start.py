@@ -1,0 +1,377 @@
+"""Cold start of `dmd-jax denoise`: a new process, its compiles, and the cache (issue 58).
+
+Every row is a fresh process running the CLI (`python -m dmd_jax.cli denoise`, what the
+`dmd-jax` script runs) on a noisy mesh of about 80k faces, timed from the outside
+(the whole process: Python, imports, reading, the call, writing) and by the time the
+CLI itself reports for the call:
+
+* `cold first`: an empty compilation cache (a new machine, or a new version).
+* `cold second`: a new process on a *different* mesh, with the cache the first left.
+  When the two meshes fall in the same shape bucket (`graph.fine_padded_sizes_for`),
+  the network's programs are loaded from the cache; a mesh in another bucket pays the
+  network's compile again (both pairs are measured).
+* `cache off`: `DMD_JAX_COMPILE_CACHE=0`, every process compiles (as before the cache).
+* `bnf`: the library's bilateral normal filter, also cold, in the same conditions.
+* `warm`: the same `denoise` and `bnf` calls in one process, after a first call
+  (median of the repeats; what the README's speed table measures).
+
+Repeats are interleaved (every row once, then again), each cold first call with a new
+empty cache directory under `out/`; medians, min-max. `--profile` adds the breakdown of
+one cold call and one second call (imports, weights, reading, tracing, lowering, XLA
+compile per program, the rest of the call), written to the same report and quoted in
+`docs/cold-start.md`.
+
+Meshes are made here, under `out/cold_start/` (never committed): Gaussian noise along
+the normals, 0.3 mean edge lengths, seed 1, on `../shared/meshes` (`train/` meshes of
+70-100k faces, `armadillo.obj`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))
+
+from benchmarks.common import (  # noqa: E402
+    RESULTS_DIR,
+    environment,
+    markdown_table,
+    write_report,
+)
+
+OUT = HERE.parent / "out" / "cold_start"
+# (first mesh, second mesh): the same shape bucket, then another bucket.
+PAIRS = (
+    ("train/common3d_igea.ply", "train/common3d_ogre.ply"),
+    ("armadillo.obj", "train/common3d_igea.ply"),
+)
+
+# One process: the stages of a cold `denoise` call, timed, with JAX's compile events.
+PROFILE = r"""
+import collections, json, logging, re, sys, time
+t0 = time.perf_counter()
+import jax
+t_jax = time.perf_counter()
+from jax import monitoring
+durations = collections.defaultdict(float)
+counts = collections.Counter()
+monitoring.register_event_duration_secs_listener(
+    lambda e, d, **kw: durations.__setitem__(e, durations[e] + d))
+monitoring.register_event_listener(lambda e, **kw: counts.__setitem__(e, counts[e] + 1))
+jax.config.update("jax_log_compiles", True)
+compiles = []
+class Log(logging.Handler):
+    def emit(self, record):
+        m = re.match(r"Finished XLA compilation of (.*) in ([0-9.]+) sec", record.getMessage())
+        if m:
+            compiles.append((m.group(1), float(m.group(2))))
+for name in ("jax._src.interpreters.pxla", "jax._src.dispatch", "jax._src.pjit",
+             "jax._src.compiler"):
+    logger = logging.getLogger(name)
+    logger.addHandler(Log())
+    logger.propagate = False
+import dmd_jax.api, dmd_jax.inference, dmd_jax.io
+t_import = time.perf_counter()
+from dmd_jax.checkpoints import load_pretrained
+bundle = load_pretrained()
+t_weights = time.perf_counter()
+v, f = dmd_jax.io.load_mesh(sys.argv[1])
+t_read = time.perf_counter()
+out = dmd_jax.inference.denoise(v, f, bundle)
+t_call = time.perf_counter()
+by_name = collections.defaultdict(list)
+for name, sec in compiles:
+    by_name[name].append(sec)
+print(json.dumps({
+    "import_jax": t_jax - t0, "import_dmd_jax": t_import - t_jax,
+    "weights": t_weights - t_import, "read": t_read - t_weights, "call": t_call - t_read,
+    "durations": durations, "counts": counts,
+    "compiles": {k: [len(s), sum(s)] for k, s in by_name.items()},
+}))
+"""
+
+# One process: `denoise` and `bnf` warm (after a first call of each), interleaved.
+WARM = r"""
+import json, sys, time
+import dmd_jax.inference, dmd_jax.io
+from dmd_jax.baselines import bnf
+from dmd_jax.checkpoints import load_pretrained
+bundle = load_pretrained()
+v, f = dmd_jax.io.load_mesh(sys.argv[1])
+dmd_jax.inference.denoise(v, f, bundle)
+bnf(v, f)
+times = {"denoise": [], "bnf": []}
+for _ in range(int(sys.argv[2])):
+    t = time.perf_counter(); dmd_jax.inference.denoise(v, f, bundle)
+    times["denoise"].append(time.perf_counter() - t)
+    t = time.perf_counter(); bnf(v, f)
+    times["bnf"].append(time.perf_counter() - t)
+print(json.dumps(times))
+"""
+
+
+def noisy_mesh(shared: Path, name: str) -> Path:
+    """`name` under `shared` with the benchmark's noise, as an OBJ under `OUT`."""
+    out = OUT / (Path(name).stem + "_noisy.obj")
+    if not out.is_file():
+        OUT.mkdir(parents=True, exist_ok=True)
+        subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "dmd_jax.cli",
+                "add-noise",
+                str(shared / name),
+                "-o",
+                str(out),
+                "--level",
+                "0.3",
+                "--units",
+                "edge",
+                "--direction",
+                "normal",
+                "--seed",
+                "1",
+                "--overwrite",
+            ],
+            check=True,
+            capture_output=True,
+        )
+    return out
+
+
+def mesh_facts(path: Path) -> dict:
+    """Faces, vertices and the whole-mesh path's padded shapes of a mesh."""
+    from dmd_jax.graph import with_aggregation_layout
+    from dmd_jax.inference import whole_mesh_graph
+    from dmd_jax.io import load_mesh
+
+    v, f = load_mesh(path)
+    g = with_aggregation_layout(whole_mesh_graph(f, v.shape[0], "segment_sum"), "auto")
+    width = None if g.vertex_ell is None else g.vertex_ell.neighbours.shape[1]
+    return {
+        "faces": int(f.shape[0]),
+        "vertices": int(v.shape[0]),
+        "bucket": (g.n_vertex, g.n_face, g.vertex_senders.shape[0], g.face_senders.shape[0], width),
+    }
+
+
+def env_with(cache) -> dict:
+    env = dict(os.environ)
+    env["DMD_JAX_COMPILE_CACHE"] = str(cache)
+    return env
+
+
+def run_cli(mesh: Path, cache, method: str = "dmd") -> dict:
+    """One `denoise` process: its wall time and the time it reports for the call."""
+    out = OUT / "result.obj"
+    start = time.perf_counter()
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "dmd_jax.cli",
+            "denoise",
+            str(mesh),
+            "-o",
+            str(out),
+            "--overwrite",
+            "--method",
+            method,
+        ],
+        env=env_with(cache),
+        capture_output=True,
+        text=True,
+    )
+    wall = time.perf_counter() - start
+    if done.returncode:
+        raise RuntimeError(done.stderr[-2000:])
+    reported = re.search(r" in ([0-9.]+) s -> ", done.stdout)
+    return {"wall": wall, "reported": float(reported.group(1))}
+
+
+def run_script(script: str, *args, cache="0") -> dict:
+    done = subprocess.run(
+        [sys.executable, "-c", script, *map(str, args)],
+        env=env_with(cache),
+        capture_output=True,
+        text=True,
+    )
+    if done.returncode:
+        raise RuntimeError(done.stderr[-2000:])
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def med(xs) -> float:
+    xs = sorted(xs)
+    n = len(xs)
+    return xs[n // 2] if n % 2 else 0.5 * (xs[n // 2 - 1] + xs[n // 2])
+
+
+def cell(xs) -> str:
+    return f"{med(xs):.2f} ({min(xs):.2f}-{max(xs):.2f})"
+
+
+def load_average() -> str:
+    try:
+        return " ".join(f"{x:.2f}" for x in os.getloadavg())
+    except OSError:
+        return "n/a"
+
+
+def profile_rows(report: dict) -> list[list[str]]:
+    d, c = report["durations"], report["counts"]
+    compile_total = d.get("/jax/core/compile/backend_compile_duration", 0.0)
+    trace = d.get("/jax/core/compile/jaxpr_trace_duration", 0.0)
+    lower = d.get("/jax/core/compile/jaxpr_to_mlir_module_duration", 0.0)
+    retrieve = d.get("/jax/compilation_cache/cache_retrieval_time_sec", 0.0)
+    rows = [
+        ["import jax", f"{report['import_jax']:.2f}"],
+        ["import dmd_jax (inference, Flax)", f"{report['import_dmd_jax']:.2f}"],
+        ["weights (read, check by tracing the model's init)", f"{report['weights']:.2f}"],
+        ["read the mesh", f"{report['read']:.2f}"],
+        ["the `denoise` call", f"{report['call']:.2f}"],
+        ["  of it, and of the weights: tracing (jaxpr)", f"{trace:.2f}"],
+        ["  lowering to MLIR", f"{lower:.2f}"],
+        ["  XLA compile, all programs", f"{compile_total:.2f}"],
+        ["  JAX persistent cache reads", f"{retrieve:.2f}"],
+        [
+            "  programs compiled by XLA (or loaded by JAX's cache)",
+            str(sum(n for n, _ in report["compiles"].values())),
+        ],
+        [
+            "  network executables loaded / compiled (dmd_jax cache)",
+            f"{c.get('/dmd_jax/compile_cache/executable_hit', 0)} / "
+            f"{c.get('/dmd_jax/compile_cache/executable_miss', 0)}",
+        ],
+    ]
+    top = sorted(report["compiles"].items(), key=lambda kv: -kv[1][1])[:4]
+    for name, (n, sec) in top:
+        rows.append([f"  XLA compile of {name} ({n}x)", f"{sec:.2f}"])
+    return rows
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--repeat", type=int, default=3, help="interleaved repeats (default 3)")
+    p.add_argument("--shared", type=Path, default=None, help="the shared meshes folder")
+    p.add_argument("--profile", action="store_true", help="add the cold call's breakdown")
+    p.add_argument("--name", default="cold_start", help="report name under results/")
+    args = p.parse_args(argv)
+    from dmd_jax.protocol import shared_meshes_dir
+
+    shared = args.shared or shared_meshes_dir()
+    meshes = {name: noisy_mesh(shared, name) for pair in PAIRS for name in pair}
+    facts = {name: mesh_facts(path) for name, path in meshes.items()}
+    loads = [load_average()]
+    rows: dict[tuple, dict[str, list[float]]] = {}
+
+    def add(key, result):
+        for k, v in result.items():
+            rows.setdefault(key, {}).setdefault(k, []).append(v)
+
+    warm: dict[str, list[float]] = {}
+    for rep in range(args.repeat):
+        for k, (first, second) in enumerate(PAIRS):
+            cache = OUT / f"cache-{k}-{rep}"
+            shutil.rmtree(cache, ignore_errors=True)
+            add(("cold first", first, k), run_cli(meshes[first], cache))
+            add(("cold second", second, k), run_cli(meshes[second], cache))
+            shutil.rmtree(cache, ignore_errors=True)
+        second = PAIRS[0][1]
+        add(("cache off", second, 0), run_cli(meshes[second], "0"))
+        add(("bnf", second, 0), run_cli(meshes[second], "0", method="bnf"))
+        for key, times in run_script(WARM, meshes[second], 3).items():
+            warm.setdefault(key, []).extend(times)
+        loads.append(load_average())
+    profiles = {}
+    if args.profile:
+        first, second = PAIRS[0]
+        cache = OUT / "cache-profile"
+        shutil.rmtree(cache, ignore_errors=True)
+        profiles["cold first call (empty cache)"] = run_script(PROFILE, meshes[first], cache=cache)
+        profiles["second process (warm cache, other mesh)"] = run_script(
+            PROFILE, meshes[second], cache=cache
+        )
+        profiles["cache off"] = run_script(PROFILE, meshes[second], cache="0")
+        shutil.rmtree(cache, ignore_errors=True)
+        loads.append(load_average())
+
+    table = []
+    for (what, name, pair), r in rows.items():
+        fx = facts[name]
+        table.append(
+            [
+                what,
+                f"{Path(name).name} ({fx['faces']:,} faces)",
+                pair + 1,
+                cell(r["reported"]),
+                cell(r["wall"]),
+            ]
+        )
+    for what, key in (("warm, in-process", "denoise"), ("warm bnf, in-process", "bnf")):
+        name = PAIRS[0][1]
+        table.append(
+            [what, f"{Path(name).name} ({facts[name]['faces']:,} faces)", "", cell(warm[key]), ""]
+        )
+    bucket_rows = [
+        [
+            Path(n).name,
+            f"{fx['faces']:,}",
+            f"{fx['vertices']:,}",
+            " / ".join(map(str, fx["bucket"])),
+        ]
+        for n, fx in facts.items()
+    ]
+    sections = [
+        (
+            "Cold and warm calls",
+            markdown_table(
+                ["call", "mesh", "pair", "time reported by the CLI, s", "whole process wall, s"],
+                table,
+            )
+            + "\n\nMedian (min-max) of the repeats. Pair 1 shares a shape bucket, pair 2 does "
+            "not (table below). Load average (1, 5, 15 min) before and after each repeat: "
+            + "; ".join(loads)
+            + ".",
+        ),
+        (
+            "Shape buckets of the meshes",
+            markdown_table(
+                [
+                    "mesh",
+                    "faces",
+                    "vertices",
+                    "padded vertices / faces / vertex edges / face edges, ELL width",
+                ],
+                bucket_rows,
+            ),
+        ),
+    ]
+    for title, report in profiles.items():
+        sections.append(
+            (f"Breakdown: {title}", markdown_table(["stage", "s"], profile_rows(report)))
+        )
+    env = environment()
+    write_report(
+        RESULTS_DIR / f"{args.name}.md",
+        title="Cold start of dmd-jax denoise (issue 58)",
+        env=env,
+        sections=sections,
+        intro=__doc__.split("\n\n")[0],
+    )
+    print((RESULTS_DIR / f"{args.name}.md").read_text())
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
