@@ -14,24 +14,29 @@ rings, decays by about `1 − λ` per step for the small eigenvalues `λ` of `D�
 Iterated to the end, `E` alone is ill-posed. It is homogeneous, so shrinking the mesh
 lowers it whenever the target normals are not exactly integrable (always, for predicted
 normals), and it does not see a vertex sliding within the planes of its faces, so
-vertices drift tangentially and triangles fold. Measured on a noisy icosphere and CAD part
-with target normals perturbed by 8° per face, 300 Jacobi steps or an isotropic Tikhonov
-solve of weight 1e-4 end at 13-45° mean normal error, where 10 steps give 5°. Here the
-fit keeps each vertex near its start *in the tangent plane* and lets it move freely
-along its normal:
+vertices drift tangentially and triangles fold. Measured on the meshes of
+`tests/test_vertex_update.py` with target normals perturbed by 8° per face
+(`benchmarks/results/vertex_update_sweep.md`), 300 Jacobi steps end at 14.5-22° mean
+normal error and an isotropic Tikhonov solve of weight 1e-4 at 43-51°, where 10 steps
+give 5-10°. Here the fit keeps each vertex near its start *in the tangent plane* and
+lets it move freely along its normal:
 
     x* = argmin_x  E(x) / 6 + ½ Σ_i |F_i| (x_i − x⁰_i)ᵀ T_i (x_i − x⁰_i),
     T_i = μ_n m_i m_iᵀ + μ_t (I − m_i m_iᵀ),
 
 with `m_i` the unit mean of the target normals at vertex `i`, `μ_n = normal_weight`
 (default 1e-3: smooth normal displacements up to about `1 / sqrt(μ_n)` ≈ 30 rings long
-are undone; the shrinking mode is held) and `μ_t = tangent_weight` (default 0.1: holds
-the vertex in its tangent plane, where `E` is blind, about as stiffly as a face holds
-it along its normal, `2/3` per face). The weights are relative to the per-face stiffness
-of `E / 6`, so they are free of the mesh's scale and resolution. On those test cases the
-solve ends at or below 10 Jacobi steps with perturbed normals (5.0-5.4° against
-5.0-9.8°) and near the exact shape with exact normals (0.07-0.47° against 1.0-7.9°),
-with no face flipped against its target (`tests/test_vertex_update.py` checks both).
+are undone; the shrinking mode is held) and `μ_t = tangent_weight` (default 0.03: holds
+the vertex in its tangent plane, where `E` is blind). The weights are relative to the
+per-face stiffness of `E / 6` (`2/3` per face along its normal), so they are free of the
+mesh's scale and resolution. In that sweep, with noise along the normals the solve ends
+near the exact shape with exact normals (0.06-0.47° against 0.94-8.13° for 10 Jacobi
+steps) and near or below 10 Jacobi steps with perturbed ones (5.3-5.9° against
+5.1-10.1°), turning no face against its target; with tangential noise (scanner,
+isotropic) and perturbed normals it ends at 8.4-11.8° against 8.6-13.7° (worse in one
+case of six: the CAD part under scanner noise, 9.1° against 8.7°). A tangent
+weight of 0.1 holds tangential noise in place (9.4-13.9° there), 0.01 starts to fold
+faces under noise along the normals (5-6 faces).
 
 The normal equations `(M + W) d = −M x⁰` for the displacement `d = x − x⁰` (`M = ∇E/6`
 as a linear map, `W` the block diagonal `|F_i| T_i`) are symmetric positive definite.
@@ -64,7 +69,7 @@ from dmd_jax.geometry import dot3, safe_normalize
 
 # Defaults (see the module docstring; `ModelConfig.vertex_*` carries them for the model).
 NORMAL_WEIGHT = 1e-3
-TANGENT_WEIGHT = 0.1
+TANGENT_WEIGHT = 0.03
 TOLERANCE = 1e-4
 MAX_ITERATIONS = 200
 

@@ -518,7 +518,7 @@ _LATER_MODEL_FIELDS = {
     "vertex_tolerance": 1e-4,
     "vertex_max_iterations": 200,
     "vertex_normal_weight": 1e-3,
-    "vertex_tangent_weight": 0.1,
+    "vertex_tangent_weight": 0.03,
 }
 
 

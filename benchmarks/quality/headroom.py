@@ -377,7 +377,9 @@ def _write(rows, env, bundle, others, max_faces, weights, name, out_dir):
     env["model"] = (
         f"preset {bundle.config.name}: jacobi = {bundle.config.model.vertex_iterations} "
         f"iterations; solve = tolerance {bundle.config.model.vertex_tolerance:g}, at most "
-        f"{bundle.config.model.vertex_max_iterations} iterations"
+        f"{bundle.config.model.vertex_max_iterations} iterations, normal weight "
+        f"{bundle.config.model.vertex_normal_weight:g}, tangent weight "
+        f"{bundle.config.model.vertex_tangent_weight:g}"
     )
     env["policy"] = bundle.policy.describe("=")
     sections = [

@@ -216,7 +216,7 @@ class ModelConfig(_ConfigMixin):
     vertex_tolerance: float = _static(1e-4)
     vertex_max_iterations: int = _static(200)
     vertex_normal_weight: float = _static(1e-3)
-    vertex_tangent_weight: float = _static(0.1)
+    vertex_tangent_weight: float = _static(0.03)
     filter_iterations: int = _static(60)
     head_consistency: bool = _static(False)
     taubin_iterations: int = _static(0)
