@@ -361,3 +361,36 @@ def test_two_step_filters_take_the_converged_fit():
     assert not ((face_normals_np(converged, f) * face_normals_np(v, f)).sum(1) <= 0).any()
     with pytest.raises(ValueError, match="vertex_update"):
         bnf(x0, f, vertex_update="cg")
+
+
+# --------------------------------------------------------------------------------------
+# The headroom report's per-shape rating (benchmarks/quality/headroom.py)
+# --------------------------------------------------------------------------------------
+
+
+def test_headroom_rates_the_default_call_per_shape(tmp_path):
+    from benchmarks.quality import headroom
+    from dmd_jax import protocol
+
+    assert set(protocol.QUALITY_CONDITIONS) <= set(headroom.conditions())
+    others = tmp_path / "others.csv"
+    others.write_text(
+        "set,mesh,level,noise,method,normal_deg\n"
+        "val,a.ply,0.1,gaussian,bnf,4.0\nval,a.ply,0.1,gaussian,gnf,2.0\n"
+        "val,a.ply,0.1,gaussian,dmd,1.0\nval,b.ply,0.1,gaussian,bnf,8.0\n"
+    )
+    best = headroom.read_others(others)
+    assert best == {("val", "a.ply", "0.1"): 2.0, ("val", "b.ply", "0.1"): 8.0}
+    col = {h: i for i, h in enumerate(headroom.CSV_HEADER)}
+
+    def row(mesh, jacobi, solve):
+        r = [np.nan] * len(headroom.CSV_HEADER)
+        r[:5] = ["val", mesh, 10, "0.1", 0]
+        r[col["network_jacobi"]], r[col["network_solve"]] = jacobi, solve
+        return r
+
+    table = headroom.decision_table([row("a.ply", 2.0, 1.0), row("b.ply", 16.0, 8.0)], best)
+    # jacobi: ratios 1 and 2 (geometric mean 1.414, worst b); solve: 0.5 and 1 (0.707).
+    first = next(line for line in table.splitlines() if "| 0.1 |" in line)
+    assert "1.414" in first and "2.00 (b.ply)" in first and "0.707" in first
+    assert "2 of 2" in first.split("|")[-2]
