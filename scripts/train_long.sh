@@ -23,4 +23,5 @@ WIDE='noise.edge_levels=[0.05,0.1,0.1,0.15,0.2,0.2,0.25,0.3,0.3,0.4,0.5,0.6,0.8,
 "${TRAIN[@]}" --workdir "$OUT/ft" --init-from dmd_jax/weights/dmd_small.msgpack \
   --set train.steps="$STEPS" train.lr=2e-4 train.eval_every=500 train.ckpt_every=100 \
   "${LAST_FINETUNE[@]}" train.seed=11 "$WIDE" model.vertex_update=solve \
+  model.vertex_tangent_weight=0.1 \
   noise.p_scanner=0.25 data.stress_copies=2 data.scan_views=1 data.scan_resolution=64
