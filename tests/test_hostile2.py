@@ -260,8 +260,19 @@ def test_family7_errors_are_one_line_and_early(tmp_path, case):
     found.run(tmp_path)
 
 
+def test_family7_max_memory_takes_numpy_numbers():
+    from dmd_jax.memory_plan import parse_memory
+
+    for value in (np.int64(8 * 10**9), np.uint64(8 * 10**9), np.float32(8e9), np.int32(10**9)):
+        assert parse_memory(value) == int(value)
+    for bad in (np.bool_(True), np.float64("nan"), np.int64(0)):
+        with pytest.raises(ValueError, match="max_memory"):
+            parse_memory(bad)
+
+
+@pytest.mark.slow  # a network run: ~25 s with its compilation
 @pytest.mark.parametrize("kind", ["int64", "uint64", "float32"])
-def test_family7_max_memory_takes_numpy_numbers(tmp_path, kind):
+def test_family7_denoise_takes_numpy_max_memory(tmp_path, kind):
     hc._f7_numpy_memory(kind)(tmp_path)
 
 

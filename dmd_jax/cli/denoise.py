@@ -164,6 +164,8 @@ def _cmd_denoise(args: argparse.Namespace) -> int:
         else:
             extra["presmooth"] = "rule"
     pairs = _denoise_inputs(args)
+    if args.out is None:  # one file: refused by its size before the weights are read too
+        _check_size(pairs[0][0] if pairs else args.input[0], extra.get("max_memory"))
     with contextlib.ExitStack() as stack:
         if args.out is not None and pairs:
             # Two runs writing one folder at once would replace each other's outputs.
