@@ -48,3 +48,14 @@ def test_scan_meshes_are_open_range_images_with_views():
 def test_generated_set_bounds(field, value):
     with pytest.raises(ValueError, match=field):
         DataConfig(**{field: value})
+
+
+def test_real_mesh_folder_skips_temporary_files(tmp_path):
+    from dmd_jax.data.real import mesh_files
+    from dmd_jax.io import save_mesh
+
+    sphere = trimesh.creation.icosphere(1)
+    save_mesh(tmp_path / "a.obj", sphere.vertices, sphere.faces)
+    # What an interrupted atomic write leaves beside its output.
+    (tmp_path / ".b.obj.1a2b3c4d.obj").write_text("v 0 0 0\n")
+    assert [p.name for p in mesh_files(tmp_path, "all")] == ["a.obj"]

@@ -33,7 +33,7 @@ from scipy.sparse.csgraph import breadth_first_order
 
 from dmd_jax.data.repair import decimate
 from dmd_jax.io import SUPPORTED_EXTENSIONS as MESH_SUFFIXES
-from dmd_jax.io import load_mesh
+from dmd_jax.io import is_temp_name, load_mesh
 from dmd_jax.topology import face_adjacency_matrix
 
 VALIDATION_FRACTION = 0.15
@@ -52,7 +52,12 @@ def mesh_files(folder, split: str) -> list[Path]:
     folder = Path(folder)
     if not folder.is_dir():
         raise FileNotFoundError(f"{folder}: no such mesh folder")
-    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in MESH_SUFFIXES)
+    # A writer's temporary file (an interrupted run's) is never a mesh of the set.
+    files = sorted(
+        p
+        for p in folder.iterdir()
+        if p.suffix.lower() in MESH_SUFFIXES and p.is_file() and not is_temp_name(p.name)
+    )
     if split == "all":
         return files
     return [p for p in files if is_validation(p.name) == (split == "val")]
