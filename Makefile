@@ -39,7 +39,7 @@ bench: $(STAMP)
 	$(MAKE) bench-inference bench-training bench-cold
 
 # Cold start (issue 58): fresh dmd-jax denoise processes with an empty, then a filled
-# compilation cache, beside bnf; cold_start.md (about 6 minutes on 2 idle cores).
+# compilation cache, beside bnf; cold_start.md (14 minutes on 2 cores at load average 9-17).
 .PHONY: bench-cold
 bench-cold: $(STAMP)
 	$(BIN)/python benchmarks/bench_cold_start.py --repeat 3 --profile
