@@ -1,5 +1,6 @@
-"""Synthetic vertex noise with explicit PRNG keys: Gaussian, uniform, gamma, impulse.
+"""Synthetic vertex noise with explicit PRNG keys: Gaussian, uniform, gamma, impulse, scanner.
 
+For the paper's four kinds (`PAPER_NOISE_KINDS`),
 `add_noise_jax(key, vertices, faces, kind, level)` adds `level · X` to every coordinate,
 with `level` measured in one of two units (`dmd_jax.add_noise(seed, ...)` is the NumPy
 version, with an integer seed):
