@@ -53,8 +53,8 @@ iterations (the unrolled Jacobi update stores every step). The derivative is tha
 the exact solution; with the default tolerance the forward result is within a few 1e-4
 of it (relative residual), so the two agree to that accuracy.
 
-Cost per iteration: one matrix product (three gathers of the faces' corners, one sorted
-segment sum onto the vertices, as one Jacobi step) and two inner products; 23-78
+Cost per iteration: one matrix product (one gather of the faces' corners, one segment
+sum onto the vertices, as in one Jacobi step) and two inner products; 23-78
 iterations at the default tolerance on the test meshes, 56 on a 100k-face grid with the
 bundled network's normals (`benchmarks/results/vertex_update.md`: 0.175 of the default
 `denoise` call there).
