@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dmd_jax.checkpoints import as_bundle
+from dmd_jax.consistency import exact_tolerance, exact_vertices, oriented_faces, scale_groups
 from dmd_jax.encoding import mesh_frame
 from dmd_jax.forward import predictor
 from dmd_jax.graph import (
@@ -87,6 +88,13 @@ class DenoiseInfo:
       patch_size, patches, largest_padded_vertices, halo_rings, devices: for the patch
         path, the owned vertices per patch, patches run over every pass, the largest
         padded patch, the halo depth in rings and the devices used; else None.
+      flipped_faces: faces whose winding was flipped to agree with their component's
+        (`consistency.oriented_faces`; the returned mesh keeps the caller's faces).
+      exact_vertices: vertices of exactly flat faces, creases and corners held where
+        they are (`consistency.exact_vertices`; 0 on a noisy mesh).
+      scale_groups: runs of components of very different sizes
+        (`consistency.scale_groups`); the other fields are those of the largest's run,
+        but `flipped_faces` and `exact_vertices`, summed.
 
     Its `repr` is a summary of at most `INFO_REPR_MAX` characters (fields that are None
     left out, arrays shown by shape, long sequences by length); every field stays
@@ -106,6 +114,9 @@ class DenoiseInfo:
     largest_padded_vertices: int | None = None
     halo_rings: int | None = None
     devices: int | None = None
+    flipped_faces: int = 0
+    exact_vertices: int = 0
+    scale_groups: int = 1
 
     def __repr__(self) -> str:
         parts = (
@@ -128,8 +139,9 @@ def whole_mesh_graph(faces: np.ndarray, n_vertex: int, aggregation: str):
     return with_aggregation_layout(graph, aggregation)
 
 
-def _denoise_whole(v, f, bundle, policy: DenoisePolicy, aggregation: str):
-    """The whole mesh at once; float64 positions in the input frame and the passes run."""
+def _denoise_whole(v, f, bundle, policy: DenoisePolicy, aggregation: str, held=None):
+    """The whole mesh at once; float64 positions in the input frame and the passes run
+    (`held`: vertices kept where they are, `policy.run_passes`)."""
     # The padded graph does not change between passes: build it (edge lists, ELL
     # tables) and move it to the device once, not once per pass.
     graph = whole_mesh_graph(f, v.shape[0], aggregation)
@@ -145,7 +157,7 @@ def _denoise_whole(v, f, bundle, policy: DenoisePolicy, aggregation: str):
         noisy = pad_vertex_array(x.astype(np.float32), n_padded)
         return np.asarray(predict(bundle.params, jnp.asarray(noisy), graph)[:n], np.float64)
 
-    x, done = run_passes(one_pass, x, policy)
+    x, done = run_passes(one_pass, x, policy, held)
     return frame.invert(x), done
 
 
@@ -264,8 +276,7 @@ def denoise(
             "denoise needs faces: pass denoise(vertices, faces) or a mesh object with "
             ".vertices and .faces (e.g. a trimesh.Trimesh)"
         )
-    from dmd_jax.presmooth import MAX_STEPS, laplacian_steps
-    from dmd_jax.relax import relax_tangential
+    from dmd_jax.presmooth import MAX_STEPS
 
     # Every count is checked before any work.
     if iterations is not None:
@@ -289,24 +300,24 @@ def denoise(
     referenced = _referenced(v, f)
     if referenced is not None:
         used, v, f = referenced
-    x, centre, scale = _prenormalised(v)
-    pre = presmooth_plan(run, x, f, presmooth)
-    if pre.steps:
-        x = laplacian_steps(x, f, pre.steps)
-    memory = plan(bundle.config.model, x.shape[0], f.shape[0], max_memory, patch_size)
-    extra = {}
-    if memory.whole:
-        x, passes = _denoise_whole(x, f, bundle, run, aggregation)
+    args = (bundle, run, presmooth, aggregation, max_memory, patch_size, devices, progress)
+    groups = scale_groups(v, f)
+    if groups is None:
+        out, fields = _denoise_referenced(v, f, in_dtype, *args)
     else:
-        x, stats = denoise_patches(
-            x, f, bundle, run, aggregation, memory.budget, patch_size, devices, progress
-        )
-        passes = stats.passes
-        extra = stats._asdict()
-        del extra["passes"]
-    if run.relax_steps:
-        x = relax_tangential(x, f, run.relax_steps)
-    out = x * scale + centre
+        # Parts of very different sizes: one run each, in its own frame.
+        out, runs = np.empty_like(v), []
+        for group in groups:
+            index = np.cumsum(group) - 1
+            faces_of = f[group[f[:, 0]]]
+            out[group], part = _denoise_referenced(v[group], index[faces_of], in_dtype, *args)
+            runs.append(part)
+        fields = {
+            **runs[0],
+            "flipped_faces": sum(r["flipped_faces"] for r in runs),
+            "exact_vertices": sum(r["exact_vertices"] for r in runs),
+            "scale_groups": len(runs),
+        }
     out_dtype = np.float32 if in_dtype == np.float32 else np.float64
     if referenced is not None:
         full = np.array(vertices, dtype=out_dtype, copy=True)
@@ -315,15 +326,59 @@ def denoise(
     out = out.astype(out_dtype, copy=False)
     if not return_info:
         return out
-    info = DenoiseInfo(
+    unused = 0 if referenced is None else int((~used).sum())
+    return out, DenoiseInfo(
+        **fields, relax_steps=run.relax_steps, unused_vertices=unused, policy=run
+    )
+
+
+def _denoise_referenced(
+    v, f, in_dtype, bundle, run, presmooth, aggregation, max_memory, patch_size, devices, progress
+):
+    """`denoise` of a mesh whose every vertex is referenced, in one frame: its winding
+    made consistent and its exact vertices (to the precision of `in_dtype`, the caller's
+    number format) held (`dmd_jax.consistency`).
+
+    Returns:
+      `[n_vertex, 3]` float64 positions in the input frame, and the `DenoiseInfo` fields
+      of the run (but `relax_steps`, `unused_vertices` and `policy`).
+    """
+    from dmd_jax.presmooth import laplacian_steps
+    from dmd_jax.relax import relax_tangential
+
+    f, flipped = oriented_faces(f, v.shape[0])
+    x, centre, scale = _prenormalised(v)
+    held = exact_vertices(x, f, exact_tolerance(in_dtype, v, f))
+    if not held.any():
+        held = None  # a noisy mesh: every path exactly as without the test
+    pre = presmooth_plan(run, x, f, presmooth, free=None if held is None else ~held)
+    if pre.steps:
+        start, x = x, laplacian_steps(x, f, pre.steps)
+        if held is not None:
+            x[held] = start[held]
+    memory = plan(bundle.config.model, x.shape[0], f.shape[0], max_memory, patch_size)
+    extra = {}
+    if memory.whole:
+        x, passes = _denoise_whole(x, f, bundle, run, aggregation, held)
+    else:
+        x, stats = denoise_patches(
+            x, f, bundle, run, aggregation, memory.budget, patch_size, devices, progress, held
+        )
+        passes = stats.passes
+        extra = stats._asdict()
+        del extra["passes"]
+    if run.relax_steps:
+        start, x = x, relax_tangential(x, f, run.relax_steps)
+        if held is not None:
+            x[held] = start[held]
+    fields = dict(
         path="whole" if memory.whole else "patches",
         budget_bytes=memory.budget,
         passes=passes,
         presmooth_steps=pre.steps,
         roughness=pre.roughness,
-        relax_steps=run.relax_steps,
-        unused_vertices=0 if referenced is None else int((~used).sum()),
-        policy=run,
+        flipped_faces=flipped,
+        exact_vertices=0 if held is None else int(held.sum()),
         **extra,
     )
-    return out, info
+    return x * scale + centre, fields

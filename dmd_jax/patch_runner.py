@@ -64,6 +64,7 @@ def denoise_patches(
     patch_size: int | None = None,
     devices=None,
     progress: bool | None = None,
+    held: np.ndarray | None = None,
 ) -> tuple[np.ndarray, PatchStats]:
     """Denoises `v` (float64, input frame) patch by patch; returns float64 positions in
     the input frame and how it ran.
@@ -78,6 +79,7 @@ def denoise_patches(
       patch_size: owned vertices per patch, forced; None sizes them from `budget`.
       devices: devices to spread the patches over (default `jax.local_devices()`).
       progress: a tqdm bar over the patches (None: when stderr is a terminal).
+      held: `[n_vertex]` bool, vertices kept where they are (`policy.run_passes`).
     """
     cfg = bundle.config.model
     frame = lean_mesh_frame(cfg.encoding, v, f)
@@ -97,7 +99,7 @@ def denoise_patches(
         patches_run += runner.patches_run
         return out
 
-    x, done = run_passes(one_pass, x, policy)
+    x, done = run_passes(one_pass, x, policy, held)
     stats = PatchStats(
         passes=done,
         patch_size=runner.patch_size,

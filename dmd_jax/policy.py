@@ -257,7 +257,11 @@ PRESMOOTH_RULE = "rule"
 
 
 def presmooth_plan(
-    policy: DenoisePolicy, vertices: np.ndarray, faces: np.ndarray, steps: int | str | None
+    policy: DenoisePolicy,
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    steps: int | str | None,
+    free: np.ndarray | None = None,
 ) -> PresmoothPlan:
     """How many pre-smoothing steps to run: `steps` if given, else the policy's rule
     (`steps=PRESMOOTH_RULE` or None).
@@ -267,6 +271,8 @@ def presmooth_plan(
       vertices: `[n_vertex, 3]` noisy positions (any frame: the roughness is scale free).
       faces: `[n_face, 3]` faces.
       steps: a caller's fixed step count, `PRESMOOTH_RULE`, or None.
+      free: `[n_vertex]` bool, the vertices that may move (`presmooth.roughness`), or
+        None for all.
     """
     from dmd_jax import presmooth
 
@@ -276,19 +282,24 @@ def presmooth_plan(
         return PresmoothPlan(check_count("presmooth", steps, most=presmooth.MAX_STEPS), None)
     if not policy.presmooths:
         return PresmoothPlan(0, None)
-    rough = presmooth.roughness(vertices, faces)
+    rough = presmooth.roughness(vertices, faces, free=free)
     return PresmoothPlan(
         presmooth.steps_for(rough, policy.presmooth_start, policy.presmooth_per_step), rough
     )
 
 
 def run_passes(
-    one_pass: Callable[[np.ndarray], np.ndarray], x: np.ndarray, policy: DenoisePolicy
+    one_pass: Callable[[np.ndarray], np.ndarray],
+    x: np.ndarray,
+    policy: DenoisePolicy,
+    held: np.ndarray | None = None,
 ) -> tuple[np.ndarray, int]:
     """Applies `one_pass` (positions -> positions, frame units) as the policy says.
 
     Up to `policy.max_passes` times, stopping after a pass whose mean vertex move is at
-    most `policy.pass_tolerance` (tolerance 0: every one of them).
+    most `policy.pass_tolerance` (tolerance 0: every one of them). Vertices of `held`
+    (`[n_vertex]` bool, `consistency.exact_vertices`) are put back where they were after
+    every pass, before the move is measured.
 
     Returns:
       The positions and the number of passes run.
@@ -302,6 +313,8 @@ def run_passes(
         out = one_pass(x)
         if not np.all(np.isfinite(out)):
             raise ValueError("the network produced non-finite vertices (broken weights?)")
+        if held is not None:
+            out[held] = x[held]
         moved = float(np.linalg.norm(out - x, axis=1).mean()) if len(out) else 0.0
         x, done = out, done + 1
     return x, done

@@ -81,12 +81,17 @@ def _edge_pairs(faces: np.ndarray, n_vertex: int) -> tuple[np.ndarray, np.ndarra
     return owner[same], owner[same + 1]
 
 
-def roughness(vertices, faces) -> float:
+def roughness(vertices, faces, free=None) -> float:
     """The median angle, in degrees, between the normals of faces sharing an edge.
 
     Args:
       vertices: `[n_vertex, 3]` positions in any frame.
       faces: `[n_face, 3]` vertex indices.
+      free: `[n_vertex]` bool, or None for all: only pairs of faces whose every vertex
+        is free count. `denoise` leaves out the exact vertices of a clean part's flats,
+        creases and corners (`consistency.exact_vertices`): the dihedral angles of faces
+        anchored on them (90° all over a coarse box, 60° at a cone's rim) are the
+        part's shape, not noise.
 
     Returns:
       The median over edge-adjacent face pairs whose faces both have an area (over a
@@ -96,6 +101,10 @@ def roughness(vertices, faces) -> float:
     v = np.asarray(vertices, np.float64)
     f = np.asarray(faces)
     a, b = _edge_pairs(f, v.shape[0])
+    if free is not None:
+        loose = np.asarray(free, bool)[f].all(axis=1)
+        keep = loose[a] & loose[b]
+        a, b = a[keep], b[keep]
     na, nb = face_normals_np(v, f[a]), face_normals_np(v, f[b])
     ok = (np.abs(na).sum(axis=1) > 0) & (np.abs(nb).sum(axis=1) > 0)
     if not ok.any():
