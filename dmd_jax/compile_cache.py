@@ -26,8 +26,18 @@ entry that vanishes under a reader (another process evicted it) is a miss. Every
 carries a checksum: a damaged one (a full disk, a killed writer on a filesystem without
 atomic rename, bit rot) is deleted and the program compiled again, never loaded.
 
-Entries are executables: like JAX's own cache, the directory must be trusted (anyone
-who can write there can run code as you).
+Trusted: entries are executables (the network's are `pickle`d by
+`jax.experimental.serialize_executable`, the only way JAX reloads an executable without
+tracing), so anyone who can write there can run code as you. The store therefore creates
+its directories with mode 0o700, and reads or writes an entry only while the entry's
+directory (`programs/`, `xla/`) and the entry file itself are owned by the current user
+(`os.getuid()`) and not writable by group or others. Otherwise it warns once per
+directory (`UserWarning`, naming the directory and the reason) and the call compiles as
+with the cache off; results are the same. Checking the entry's own directory suffices: a
+directory this user owns and no one else may write cannot have its entries replaced,
+and one swapped in by someone else is not owned by this user. On platforms without
+`os.getuid` (Windows) neither check runs and the directories get the platform's default
+permissions (the user's cache directory is private there by default).
 
 The JAX side is configured when `dmd_jax.forward` is imported (no file is touched
 then), so `import dmd_jax` stays light; a process that set
@@ -40,9 +50,11 @@ import hashlib
 import os
 import pickle
 import platform
+import stat
 import tempfile
 import threading
 import time
+import warnings
 from pathlib import Path
 from typing import NamedTuple
 
@@ -106,11 +118,72 @@ def settings() -> Settings:
     return Settings(Path(raw).expanduser(), max_bytes)
 
 
+def _uid() -> int | None:
+    """The current user's id; None where the platform has none (Windows: no checks)."""
+    getuid = getattr(os, "getuid", None)
+    return None if getuid is None else getuid()
+
+
+def _stat(target: Path | int) -> os.stat_result:
+    """`os.stat` of a directory or of an open entry's file descriptor (the trust checks'
+    only look at ownership and mode)."""
+    return os.stat(target)
+
+
+def _distrust(st: os.stat_result, uid: int, what: str) -> str | None:
+    """Why `st` (of `what`) is not trusted by user `uid`, or None when it is."""
+    if st.st_uid != uid:
+        return f"{what} is owned by uid {st.st_uid}, not by the current user (uid {uid})"
+    if st.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
+        return f"{what} is writable by group or others (mode {stat.S_IMODE(st.st_mode):o})"
+    return None
+
+
+_warned: set[str] = set()
+_warn_lock = threading.Lock()
+
+
+def _warn_once(path: Path, reason: str) -> None:
+    """One `UserWarning` per directory and process: the cache is not used there."""
+    with _warn_lock:
+        if str(path) in _warned:
+            return
+        _warned.add(str(path))
+    warnings.warn(
+        f"dmd_jax compile cache: not using {path}: {reason}; compiling without the cache "
+        f"(make it private, `chmod 700`, or set {ENV} to another directory or to 0)",
+        UserWarning,
+        stacklevel=3,
+    )
+
+
+def _private_dir(path: Path) -> None:
+    """Creates `path` and its missing parents with mode 0o700 (existing ones untouched).
+
+    Raises:
+      OSError: a directory could not be created.
+    """
+    missing = []
+    while not os.path.lexists(path) and path.parent != path:
+        missing.append(path)
+        path = path.parent
+    for folder in reversed(missing):
+        try:
+            folder.mkdir(mode=0o700)
+        except FileExistsError:  # another process made it meanwhile: checked on use
+            continue
+        if _uid() is not None:
+            os.chmod(folder, 0o700)  # the umask may narrow mkdir's mode, never widen it
+
+
 class EntryStore:
     """A bounded directory of checksummed entries, shared safely between processes.
 
+    Entries are read and written only while the directory (and, to read, the entry
+    file) belongs to the current user and no one else may write it (`trusted`).
+
     Args:
-      path: the directory (created on the first write).
+      path: the directory (created with mode 0o700 on the first write).
       max_bytes: the bound on the entries' total size.
     """
 
@@ -118,18 +191,58 @@ class EntryStore:
         self.path = Path(path)
         self.max_bytes = int(max_bytes)
 
+    def problem(self) -> str | None:
+        """Why the directory is not trusted, or None (trusted, absent, or no `os.getuid`).
+
+        An absent directory is trusted: the store creates it private.
+        """
+        uid = _uid()
+        if uid is None:
+            return None
+        try:
+            st = _stat(self.path)
+        except FileNotFoundError:
+            return None
+        except OSError as err:
+            return f"the directory cannot be checked ({err.strerror})"
+        if not stat.S_ISDIR(st.st_mode):
+            return "it is not a directory"
+        return _distrust(st, uid, "the directory")
+
+    def trusted(self) -> bool:
+        """Whether entries may be read and written here; warns once when not."""
+        reason = self.problem()
+        if reason is not None:
+            _warn_once(self.path, reason)
+        return reason is None
+
     def _file(self, key: str) -> Path:
         if not key or not all(c.isalnum() or c in "-_" for c in key):
             raise ValueError(f"a cache key is letters, digits, '-' and '_', got {key!r}")
         return self.path / f"{key}{_SUFFIX}"
 
     def get(self, key: str) -> bytes | None:
-        """The payload stored under `key`, or None (absent or damaged: then deleted)."""
+        """The payload stored under `key`, or None: absent, damaged (then deleted), or
+        not trusted (the directory, or the entry owned by another user or writable by
+        group or others: left alone, with a warning)."""
         file = self._file(key)
+        if not self.trusted():
+            return None
         try:
-            data = file.read_bytes()
+            fd = os.open(file, os.O_RDONLY | getattr(os, "O_BINARY", 0))
         except (FileNotFoundError, IsADirectoryError, PermissionError):
             return None
+        with os.fdopen(fd, "rb") as fh:
+            uid = _uid()
+            # The open file's own status: the entry checked is the entry read.
+            reason = None if uid is None else _distrust(_stat(fd), uid, f"entry {file.name}")
+            if reason is not None:
+                _warn_once(self.path, reason)
+                return None
+            try:
+                data = fh.read()
+            except IsADirectoryError:
+                return None
         head = len(_MAGIC) + _DIGEST
         payload = data[head:]
         if (
@@ -148,8 +261,9 @@ class EntryStore:
     def put(self, key: str, payload: bytes) -> None:
         """Stores `payload` under `key` (atomically), then evicts beyond the bound.
 
-        A payload larger than the whole bound is not stored. Write errors (a read-only
-        or full disk) are ignored: the cache only saves time.
+        A payload larger than the whole bound is not stored, nor one for a directory
+        that is not `trusted`. Write errors (a read-only or full disk) are ignored: the
+        cache only saves time. Entries are created with mode 0o600 (`mkstemp`).
         """
         file = self._file(key)
         if len(payload) + len(_MAGIC) + _DIGEST > self.max_bytes:
@@ -157,7 +271,9 @@ class EntryStore:
         digest = hashlib.blake2b(payload, digest_size=_DIGEST).digest()
         tmp = None
         try:
-            self.path.mkdir(parents=True, exist_ok=True)
+            _private_dir(self.path)
+            if not self.trusted():  # checked once it exists: someone else's is refused
+                return
             fd, tmp = tempfile.mkstemp(prefix=".tmp-", dir=self.path)
             with os.fdopen(fd, "wb") as out:
                 out.write(_MAGIC + digest + payload)
@@ -223,9 +339,14 @@ _jax_configured = False
 
 
 def store() -> EntryStore | None:
-    """The executables' store under the current settings, or None when switched off."""
+    """The executables' store under the current settings, or None when switched off or
+    not trusted (`EntryStore.trusted`, which warns once): then calls compile as with the
+    cache off."""
     s = settings()
-    return None if s.path is None else EntryStore(s.path / "programs", s.max_bytes)
+    if s.path is None:
+        return None
+    entries = EntryStore(s.path / "programs", s.max_bytes)
+    return entries if entries.trusted() else None
 
 
 def configure_jax() -> bool:
@@ -237,7 +358,8 @@ def configure_jax() -> bool:
 
     Returns:
       Whether this call (or an earlier one) turned JAX's cache on here; False when the
-      cache is off or the process had set `jax_compilation_cache_dir` itself.
+      cache is off, its `xla/` directory is not trusted (`EntryStore.trusted`, which
+      warns), or the process had set `jax_compilation_cache_dir` itself.
     """
     global _jax_configured
     with _lock:
@@ -250,10 +372,15 @@ def configure_jax() -> bool:
 
         if jax.config.jax_compilation_cache_dir:  # the caller's own cache: keep it
             return False
+        xla = EntryStore(s.path / "xla", s.max_bytes)
+        # Checked here too: where JAX's internals differ (`_install_jax_store`), JAX's own
+        # cache reads the directory without the store's checks.
+        if not xla.trusted():
+            return False
         jax.config.update("jax_compilation_cache_dir", str(s.path / "xla"))
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
         jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-        _install_jax_store(EntryStore(s.path / "xla", s.max_bytes))
+        _install_jax_store(xla)
         _jax_configured = True
         return True
 
@@ -495,6 +622,8 @@ def remembered(name: str, identity: str, compute):
 
 
 def _load(entries: EntryStore, key: str):
+    # `entries.get` returns a payload only from a trusted directory and entry file: the
+    # one place this package unpickles, and only what `_save` below pickled.
     payload = entries.get(key)
     if payload is None:
         return None

@@ -3,7 +3,9 @@
 The store is checked directly (checksums, atomic writes, the bound), and end to end in
 fresh processes, the way a user meets it: a first process compiles and stores, a second
 loads, both give the same bits as a process without the cache; two processes writing
-at once, and damaged entries, leave a cache that still works.
+at once, and damaged entries, leave a cache that still works. The trust boundary is
+checked on the store with a tiny jitted function: private directories, and no entry
+loaded from a directory or file another user owns or may write.
 
 The test suite runs with the cache off (`tests/conftest.py` sets
 `DMD_JAX_COMPILE_CACHE=0`); every process here gets its own temporary directory.
@@ -197,6 +199,162 @@ def test_memory_plan_measure_is_kept(monkeypatch, tmp_path):
     monkeypatch.setattr(memory_plan, "_measured_bytes_per_vertex", lambda c: 1 / 0)
     assert memory_plan.network_bytes_per_vertex(cfg) == measured  # read, not measured
     memory_plan.network_bytes_per_vertex.cache_clear()
+
+
+# ---------------------------------------------------------------- the trust boundary
+
+posix_only = pytest.mark.skipif(
+    not hasattr(os, "getuid"), reason="no os.getuid: the trust checks do not run"
+)
+
+
+def mode(path: Path) -> int:
+    return path.stat().st_mode & 0o777
+
+
+def tiny_program():
+    """A small jitted function, its argument and its output (a fresh trace each call)."""
+    import jax
+    import jax.numpy as jnp
+
+    x = np.linspace(0.0, 1.0, 7, dtype=np.float32)
+    jitted = jax.jit(lambda v: jnp.sin(v) * 2.0 + 1.0)
+    return jitted, x, np.asarray(jitted(x))
+
+
+def spy_loads(monkeypatch) -> list:
+    """Records every `_load` (an entry read from the store, then deserialised)."""
+    loads = []
+    real = compile_cache._load
+
+    def load(entries, key):
+        loads.append(real(entries, key))
+        return loads[-1]
+
+    monkeypatch.setattr(compile_cache, "_load", load)
+    return loads
+
+
+def cache_warnings(record, where: Path) -> list[str]:
+    return [
+        str(w.message)
+        for w in record
+        if issubclass(w.category, UserWarning) and str(where) in str(w.message)
+    ]
+
+
+@posix_only
+def test_directories_are_created_private(tmp_path):
+    (tmp_path / "home").mkdir(mode=0o755)
+    os.chmod(tmp_path / "home", 0o755)
+    root = tmp_path / "home" / "new" / "cache"
+    for part in ("programs", "xla"):
+        EntryStore(root / part, 10_000).put("k", b"payload")
+        assert mode(root / part) == 0o700
+        assert mode(root / part / "k.bin") == 0o600  # mkstemp's mode, kept by the rename
+    assert mode(root) == mode(root.parent) == 0o700  # every level the store made
+    assert mode(tmp_path / "home") == 0o755  # an existing parent is left as it was
+    old = os.umask(0o002)  # a permissive umask does not widen the mode
+    try:
+        EntryStore(tmp_path / "wide" / "programs", 10_000).put("k", b"payload")
+    finally:
+        os.umask(old)
+    assert mode(tmp_path / "wide") == mode(tmp_path / "wide" / "programs") == 0o700
+
+
+@posix_only
+@pytest.mark.parametrize("shared", [0o770, 0o707])
+def test_group_or_world_writable_directory_is_refused(monkeypatch, tmp_path, shared):
+    root = tmp_path / "cache"
+    monkeypatch.setenv(ENV, str(root))
+    jitted, x, want = tiny_program()
+    loads = spy_loads(monkeypatch)
+    compile_cache.executable("tiny", jitted, (x,), "trust")  # stored
+    compile_cache.executable("tiny", jitted, (x,), "trust")  # and loadable
+    assert len(loads) == 2 and loads[0] is None and loads[1] is not None
+    programs = root / "programs"
+    (entry,) = entries(programs)
+    before = entry.read_bytes(), entry.stat().st_mtime_ns
+    os.chmod(programs, shared)
+    loads.clear()
+    with pytest.warns(UserWarning) as record:
+        assert compile_cache.store() is None  # the network's programs: as with the cache off
+        compiled = compile_cache.executable("tiny", jitted, (x,), "trust")
+        np.testing.assert_array_equal(np.asarray(compiled(x)), want)
+        store = EntryStore(programs, 10_000)
+        assert store.get(entry.stem) is None  # the store itself refuses to read
+        store.put("other", b"payload")  # and to write
+    assert loads == []  # nothing was loaded
+    assert (entry.read_bytes(), entry.stat().st_mtime_ns) == before
+    assert [p.name for p in programs.iterdir()] == [entry.name]
+    (message,) = cache_warnings(record, programs)  # once, naming the directory
+    assert f"writable by group or others (mode {shared:o})" in message
+
+
+@posix_only
+def test_entry_of_another_user_is_not_loaded(monkeypatch, tmp_path):
+    root = tmp_path / "cache"
+    monkeypatch.setenv(ENV, str(root))
+    jitted, x, want = tiny_program()
+    loads = spy_loads(monkeypatch)
+    compile_cache.executable("tiny", jitted, (x,), "owner")
+    (entry,) = entries(root / "programs")
+    real_stat = compile_cache._stat
+
+    def other_users_entry(target):
+        st = real_stat(target)
+        if isinstance(target, int):  # the open entry file (the directory is a path)
+            fields = list(st)
+            fields[4] = os.getuid() + 1  # st_uid
+            return os.stat_result(fields)
+        return st
+
+    monkeypatch.setattr(compile_cache, "_stat", other_users_entry)
+    loads.clear()
+    with pytest.warns(UserWarning) as record:
+        for _ in range(2):
+            compiled = compile_cache.executable("tiny", jitted, (x,), "owner")
+            np.testing.assert_array_equal(np.asarray(compiled(x)), want)
+    assert loads == [None, None]  # read, refused, compiled instead: never deserialised
+    (message,) = cache_warnings(record, root / "programs")
+    assert f"entry {entry.name} is owned by uid {os.getuid() + 1}" in message
+    # A group-writable entry (the directory private) is refused the same way.
+    monkeypatch.setattr(compile_cache, "_stat", real_stat)
+    monkeypatch.setattr(compile_cache, "_warned", set())
+    (entry,) = entries(root / "programs")  # rewritten by this user: loads again
+    assert compile_cache.executable("tiny", jitted, (x,), "owner") is not None
+    assert loads[-1] is not None
+    os.chmod(entry, 0o660)
+    with pytest.warns(UserWarning, match="is writable by group or others"):
+        compile_cache.executable("tiny", jitted, (x,), "owner")
+    assert loads[-1] is None
+
+
+@posix_only
+def test_directory_of_another_user_is_refused(monkeypatch, tmp_path):
+    root = tmp_path / "cache"
+    monkeypatch.setenv(ENV, str(root))
+    calls = []
+    assert compile_cache.remembered("v", "id", lambda: calls.append(1) or 7) == 7
+    monkeypatch.setattr(compile_cache, "_uid", lambda: os.getuid() + 1)
+    with pytest.warns(UserWarning, match="is owned by uid") as record:
+        assert compile_cache.store() is None
+        assert compile_cache.remembered("v", "id", lambda: calls.append(1) or 7) == 7
+    assert len(calls) == 2  # computed again: the stored value was not read
+    assert len(cache_warnings(record, root / "programs")) == 1
+    # JAX's persistent cache is not pointed at an untrusted `xla/` either (checked where
+    # this process has no JAX cache of its own: the suite's default, the cache off).
+    import jax
+
+    if jax.config.jax_compilation_cache_dir:
+        return
+    (root / "xla").mkdir(mode=0o700)
+    updates = []
+    monkeypatch.setattr(jax.config, "update", lambda *a: updates.append(a))
+    monkeypatch.setattr(compile_cache, "_jax_configured", False)
+    with pytest.warns(UserWarning, match="xla"):
+        assert compile_cache.configure_jax() is False
+    assert updates == []
 
 
 def test_program_sources_cover_the_network():
