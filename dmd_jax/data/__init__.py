@@ -2,9 +2,10 @@
 
 `shapes` generates the categories (the project's stand-in for ShapeNet, which cannot be
 downloaded here); `repair` cleans, remeshes, decimates and checks meshes, for the
-generator and for meshes read from disk; `dataset` writes and reads datasets with the
-paper's train / test-intra / test-inter splits, and indexes or converts folders of
-meshes laid out as `category/*.obj|off|ply` (ShapeNetCore's layout included).
+generator and for meshes read from disk; `store` is the on-disk format (manifest, the
+paper's train / test-intra / test-inter splits, reading); `dataset` writes procedural
+datasets and `folders` indexes or converts folders of meshes laid out as
+`category/*.obj|off|ply` (ShapeNetCore's layout included).
 """
 
 from dmd_jax.data.dataset import (
