@@ -7,7 +7,8 @@ A fresh process that runs the network must otherwise trace, lower and compile it
   its model config, its input shapes and dtypes, the package's source, JAX's version
   and the machine. A hit is loaded without tracing, lowering or compiling
   (`executable`).
-* **JAX's persistent compilation cache** for every other jitted program (the small
+* **JAX's persistent compilation cache** (opt-in: `DMD_JAX_COMPILE_CACHE_XLA=1`, see
+  `ENV_XLA`) for every other jitted program (the small
   eager ones of the frame, the policy, the weights' check), with no minimum compile
   time, so the small programs are kept too. JAX keys those by their lowered module:
   tracing still runs, compiling does not.
@@ -62,6 +63,11 @@ from typing import NamedTuple
 ENV = "DMD_JAX_COMPILE_CACHE"
 # The environment variable bounding the cache directory, in MiB.
 ENV_MAX_MB = "DMD_JAX_COMPILE_CACHE_MAX_MB"
+# JAX's own persistent cache (`xla/`) is opt-in: with jaxlib 0.10.2 a program JAX loaded
+# from it and then serialised again fails at run time ("Function ... not found"), which
+# several concurrent runs here hit, and caching the small programs saved no measurable time
+# (docs/cold-start.md). `DMD_JAX_COMPILE_CACHE_XLA=1` turns it on.
+ENV_XLA = "DMD_JAX_COMPILE_CACHE_XLA"
 # The default bound: the bundled model's whole-mesh and patch programs for a few dozen
 # shape buckets (about 2-5 MiB each, measured in docs/cold-start.md).
 DEFAULT_MAX_MB = 512
@@ -358,15 +364,16 @@ def configure_jax() -> bool:
 
     Returns:
       Whether this call (or an earlier one) turned JAX's cache on here; False when the
-      cache is off, its `xla/` directory is not trusted (`EntryStore.trusted`, which
-      warns), or the process had set `jax_compilation_cache_dir` itself.
+      cache is off, `DMD_JAX_COMPILE_CACHE_XLA` is not set to 1 (`ENV_XLA`), its
+      `xla/` directory is not trusted (`EntryStore.trusted`, which warns), or the
+      process had set `jax_compilation_cache_dir` itself.
     """
     global _jax_configured
     with _lock:
         if _jax_configured:
             return True
         s = settings()
-        if s.path is None:
+        if s.path is None or os.environ.get(ENV_XLA, "").strip().lower() not in _ON - {""}:
             return False
         import jax
 

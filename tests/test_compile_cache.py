@@ -352,9 +352,27 @@ def test_directory_of_another_user_is_refused(monkeypatch, tmp_path):
     updates = []
     monkeypatch.setattr(jax.config, "update", lambda *a: updates.append(a))
     monkeypatch.setattr(compile_cache, "_jax_configured", False)
+    monkeypatch.setenv(compile_cache.ENV_XLA, "1")
     with pytest.warns(UserWarning, match="xla"):
         assert compile_cache.configure_jax() is False
     assert updates == []
+
+
+@pytest.mark.parametrize("value", [None, "", "0", "no"])
+def test_jax_persistent_cache_is_opt_in(tmp_path, monkeypatch, value):
+    """JAX's own cache stays off unless DMD_JAX_COMPILE_CACHE_XLA=1 (docs/cold-start.md)."""
+    import jax
+
+    monkeypatch.setenv(compile_cache.ENV, str(tmp_path / "cache"))
+    if value is None:
+        monkeypatch.delenv(compile_cache.ENV_XLA, raising=False)
+    else:
+        monkeypatch.setenv(compile_cache.ENV_XLA, value)
+    updates = []
+    monkeypatch.setattr(jax.config, "update", lambda *a: updates.append(a))
+    monkeypatch.setattr(compile_cache, "_jax_configured", False)
+    assert compile_cache.configure_jax() is False
+    assert updates == [] and not (tmp_path / "cache" / "xla").exists()
 
 
 def test_program_sources_cover_the_network():
@@ -378,7 +396,8 @@ def test_second_process_loads_and_results_are_bit_identical(tmp_path):
     assert first_events["has_memory"]
     stored = entries(cache / "programs")
     assert len(stored) == 2
-    assert entries(cache / "xla")  # JAX's cache holds the small programs
+    # JAX's own cache is opt-in (DMD_JAX_COMPILE_CACHE_XLA): nothing of it is written.
+    assert not (cache / "xla").exists() or not entries(cache / "xla")
     second_events, second = run_program(tmp_path, "second", cache, patch=True)
     assert second_events["hit"] == 2 and second_events["miss"] == 0
     assert second_events["has_memory"]  # memory_plan's measure works on a loaded program
