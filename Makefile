@@ -36,7 +36,13 @@ bench: $(STAMP)
 	GLIBC_TUNABLES=glibc.malloc.hugetlb=1 $(BIN)/python benchmarks/bench_aggregation.py
 	$(BIN)/python benchmarks/bench_aggregation.py --name aggregation_default_malloc \
 		--sizes 100000 300000 1000000 --widths 64 --methods ell --meshes
-	$(MAKE) bench-inference bench-training bench-cold
+	$(MAKE) bench-inference bench-training bench-cold bench-vertex-update
+
+# The normal-first head's vertex update, Jacobi steps and the converged solve, against the
+# whole default denoise call at 100k faces in the same process (vertex_update.md; issue 57).
+.PHONY: bench-vertex-update
+bench-vertex-update: $(STAMP)
+	$(BIN)/python benchmarks/bench_vertex_update.py
 
 # Cold start (issue 58): fresh dmd-jax denoise processes with an empty, then a filled
 # compilation cache, beside bnf; cold_start.md (14 minutes on 2 cores at load average 9-17).
