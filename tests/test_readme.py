@@ -330,6 +330,37 @@ def test_quality_table_matches_sota_lite():
     assert shown >= {(s, lv) for s in ("shared", "val") for lv in ("0.1", "0.2", "0.3")}
 
 
+def per_shape_rows(path: Path) -> dict:
+    """`{(set, condition): (geometric mean, worst ratio (mesh))}` of a sota-lite report's
+    per-shape table."""
+    text = path.read_text()
+    table = text[text.index("## Per shape") :].split("\n## ", 1)[0]
+    rows = {}
+    for line in table.splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if line.startswith("| ") and len(cells) == 7 and cells[0] not in ("set", "---"):
+            rows[cells[0], cells[1]] = (cells[3], cells[6])
+    return rows
+
+
+def test_scan_and_stress_rows_match_reports():
+    """The README's scan and stress rows are the per-shape figures of the committed
+    reports (geometric mean per set, the worse of the two sets' worst ratios)."""
+    scan = per_shape_rows(RESULTS / "sota_lite_scan.md")
+    stress = per_shape_rows(RESULTS / "sota_lite_stress.md")
+    expected = []
+    for cond in ("scanner 0.3", "scanner 0.5", "scanner 0.8", "scan 0.15", "scan 0.5"):
+        shared, val = scan["shared", cond], scan["val", cond]
+        worst = max((shared, val), key=lambda r: number(r[1].split()[0]))[1]
+        expected.append(f"| {cond} | {shared[0]} | {val[0]} | {worst} |")
+    for cond, label in (("0.1", "Gaussian 0.1"), ("clean", "clean")):
+        mean, worst = stress["stress", cond]
+        expected.append(f"| stress shapes, {label} | {mean} | | {worst} |")
+    lines = section("Quality").splitlines()
+    for row in expected:
+        assert row in lines, f"README lacks the row {row}"
+
+
 def test_where_it_loses_matches_results():
     cases = sota_lite_cases()
     # Per mesh: how many meshes some other method wins, and the most any one method wins.
@@ -480,6 +511,10 @@ def test_every_decimal_is_checked():
     # and the demo's sentence (checked by test_demo_figures).
     for path in (
         RESULTS / "sota_lite.md",
+        RESULTS / "sota_lite_scan.md",
+        RESULTS / "sota_lite_stress.md",
+        RESULTS / "headroom_shared.md",
+        RESULTS / "cold_start.md",
         candidate_mean_report(),
         RESULTS / "inference.md",
         RESULTS / "no_harm.md",
