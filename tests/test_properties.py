@@ -136,9 +136,9 @@ def check_translation_and_scale_equivariance(bundle, mesh, transform):
     v, f = mesh
     scale = transform[0]
     base = inference.denoise(v, f, bundle)
-    if np.abs(base - v).max() == 0:
-        # A mesh drawn without jitter is a clean flat: its vertices are held exactly
-        # (`dmd_jax.consistency`), and must be at any scale and offset too (below).
+    if np.abs(base - v).max() <= 1e-9 * _extent(v):
+        # A mesh drawn without jitter is a clean flat: its vertices are held (to float64
+        # rounding of the frame, `dmd_jax.consistency`), at any scale and offset too.
         assert _is_flat(v)
     else:
         # Not vacuous: these weights move vertices by 1.7-8 % of the extent (measured).
