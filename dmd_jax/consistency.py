@@ -15,7 +15,11 @@ Three properties of the input that the result must not silently depend on (issue
   pre-smoothing's roughness reads only the faces that touch another vertex. The network
   was never trained to keep such meshes unchanged (fans of valence 100, tiny solids of
   a dozen faces, 1:50 plates: its head tilts their normals by 4–45°); the certificate
-  makes the answer exact where the input already is.
+  makes the answer exact where the input already is. A free vertex whose neighbours
+  are all exact is exact too when it is the **tip of a solid** (`closed_tips`): every
+  face around it folds back by more than 90° onto the face across its far edge, as at a
+  pyramid's apex. A spike on a flat, outward or inward, never folds (its faces rise
+  less than 90° from the flat around it), so it stays free and is denoised.
 * **One winding** (`oriented_faces`): faces whose winding disagrees with their
   neighbours' across a manifold edge are flipped, per connected component, keeping the
   winding of the majority of its faces (a consistent mesh is returned as it is; a
@@ -128,7 +132,47 @@ def exact_vertices(
         rep = cn[np.minimum(head[cv], cv.size - 1)]
         assigned |= open_ & _coplanar(cn, rep, tolerance)
     left = np.bincount(cv, weights=~assigned, minlength=n_vertex) > 0
-    return touches & ~left
+    held = touches & ~left
+    return held | closed_tips(f, normals, held)
+
+
+def closed_tips(faces: np.ndarray, normals: np.ndarray, held: np.ndarray) -> np.ndarray:
+    """Free vertices that are the tip of a solid whose every other vertex is held.
+
+    A vertex is a tip when it has at least three faces, each neighbour is held, and
+    each face around it meets the face across its far edge (the edge opposite the
+    vertex) at a fold of more than 90° (negative dot product of the normals): the
+    surface closes behind the tip, as a pyramid's sides close on its base. A spike
+    on a held flat fails the test (its faces tilt less than 90° from the flat beyond
+    its ring), and so does a vertex on an open boundary (a far edge with no face).
+
+    Args:
+      faces: `[n_face, 3]` consistently wound faces.
+      normals: `[n_face, 3]` unit face normals (zero for degenerate faces).
+      held: `[n_vertex]` bool, the vertices already held.
+
+    Returns:
+      `[n_vertex]` bool, the tips (disjoint from `held`).
+    """
+    f = np.asarray(faces, np.int64)
+    n_vertex = held.shape[0]
+    # Corner (j, i) of face j at vertex f[j, i]; its far edge joins the other two.
+    p, q = f[:, [1, 2, 0]].ravel(), f[:, [2, 0, 1]].ravel()
+    owner = np.repeat(np.arange(f.shape[0]), 3)
+    key = np.minimum(p, q) * n_vertex + np.maximum(p, q)
+    order = np.argsort(key, kind="stable")
+    ks = key[order]
+    pair = np.flatnonzero((ks[:-1] == ks[1:]) & np.r_[True, ks[1:-1] != ks[:-2]])
+    pair = pair[(pair + 2 >= ks.size) | (ks[np.minimum(pair + 2, ks.size - 1)] != ks[pair])]
+    across = np.full(key.size, -1)
+    across[order[pair]] = owner[order[pair + 1]]
+    across[order[pair + 1]] = owner[order[pair]]
+    fold = np.einsum("ij,ij->i", normals[owner], normals[np.maximum(across, 0)]) < 0
+    ok = (across >= 0) & fold & held[p] & held[q]
+    corner = f.ravel()
+    count = np.bincount(corner, minlength=n_vertex)
+    bad = np.bincount(corner, weights=~ok, minlength=n_vertex)
+    return (count >= 3) & (bad == 0) & ~held
 
 
 def oriented_faces(faces: np.ndarray, n_vertex: int) -> tuple[np.ndarray, int]:

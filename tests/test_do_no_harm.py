@@ -41,11 +41,42 @@ def _mesh(m):
     return np.asarray(m.vertices, np.float64), np.asarray(m.faces)
 
 
+def pyramid(sides: int = 4, height: float = 0.7):
+    """A pyramid of `sides` triangles on a fanned `sides`-gon base: 2·sides − 2 faces."""
+    t = np.linspace(0, 2 * np.pi, sides, endpoint=False)
+    v = np.concatenate([np.c_[np.cos(t), np.sin(t), 0 * t], [[0.0, 0.0, height]]])
+    base = [[0, i + 1, i] for i in range(1, sides - 1)]
+    side = [[i, (i + 1) % sides, sides] for i in range(sides)]
+    return v, np.array(base + side)
+
+
+def spiked_disc(height: float):
+    """A flat disc (a centre, 7 then 14 vertices on two rings: no three of the first
+    ring collinear) whose centre is moved by `height` along the normal."""
+    t1 = 2 * np.pi * np.arange(7) / 7
+    t2 = 2 * np.pi * np.arange(14) / 14
+    v = np.concatenate(
+        [
+            [[0.0, 0.0, height]],
+            np.c_[np.cos(t1), np.sin(t1), 0 * t1],
+            np.c_[2 * np.cos(t2), 2 * np.sin(t2), 0 * t2],
+        ]
+    )
+    r1 = lambda i: 1 + i % 7  # noqa: E731
+    r2 = lambda i: 8 + i % 14  # noqa: E731
+    f = [[0, r1(i), r1(i + 1)] for i in range(7)]
+    for i in range(7):
+        f += [[r1(i), r2(2 * i), r2(2 * i + 1)], [r1(i), r2(2 * i + 1), r2(2 * i + 2)]]
+        f += [[r1(i), r2(2 * i + 2), r1(i + 1)]]
+    return v, np.array(f), 0
+
+
 CLEAN = {
     "fan disc, valence 128": lambda: fan_disc(128),
     "cone, 64 sections": lambda: _mesh(trimesh.creation.cone(radius=1.0, height=2.0, sections=64)),
     "cube": lambda: _mesh(trimesh.creation.box(extents=(1, 1, 1))),
     "thin plate 100:1": lambda: _mesh(trimesh.creation.box(extents=(10, 10, 0.1))),
+    "pyramid, 6 faces": pyramid,
 }
 
 
@@ -71,13 +102,14 @@ def test_the_stress_family_comes_out_unchanged(bundle, name):
     assert mean_normal_change(v, out, f) <= CLEAN_BOUND
 
 
-def test_the_cli_leaves_a_clean_part_unchanged(tmp_path):
+@pytest.mark.parametrize("name", ["fan disc", "pyramid"])
+def test_the_cli_leaves_a_clean_part_unchanged(tmp_path, name):
     from dmd_jax.cli import main
     from dmd_jax.io import load_mesh, save_mesh
 
-    v, f = fan_disc(128)
-    save_mesh(tmp_path / "disc.ply", v, f)
-    assert main(["denoise", str(tmp_path / "disc.ply"), "-o", str(tmp_path / "out.ply")]) == 0
+    v, f = fan_disc(128) if name == "fan disc" else pyramid()
+    save_mesh(tmp_path / "part.ply", v, f)
+    assert main(["denoise", str(tmp_path / "part.ply"), "-o", str(tmp_path / "out.ply")]) == 0
     out, faces = load_mesh(tmp_path / "out.ply")
     assert mean_normal_change(v, out, faces) <= CLEAN_BOUND
 
@@ -88,6 +120,29 @@ def test_a_noisy_mesh_has_no_exact_vertex_and_runs_as_before():
     assert not exact_vertices(noisy, f).any()
     assert not exact_vertices(v, f).any()  # a clean smooth sphere: no two faces coplanar
     assert oriented_faces(f, len(v))[1] == 0
+
+
+@pytest.mark.parametrize("sides", [3, 4, 5, 8])
+@pytest.mark.parametrize("height", [0.05, 0.7, 20.0, -0.7])
+def test_a_solid_tip_is_held_and_comes_out_unchanged(bundle, sides, height):
+    v, f = pyramid(sides, height)
+    if height < 0:
+        f = f[:, ::-1]  # the apex below the base: wound outward again
+    assert trimesh.Trimesh(v, f, process=False).is_volume
+    held = exact_vertices(v, f)
+    assert held[-1] == (sides > 3)  # a triangular base has no coplanar pair: nothing held
+    if sides > 3:
+        np.testing.assert_allclose(denoise(v, f, bundle), v, rtol=0, atol=1e-9 * abs(height))
+
+
+@pytest.mark.parametrize("height", [0.3, -0.3, 2.0])
+def test_a_spike_on_a_flat_is_no_tip_and_is_denoised(bundle, height):
+    v, f, centre = spiked_disc(height)
+    held = exact_vertices(v, f)
+    assert not held[centre] and held.sum() == len(v) - 1
+    out = denoise(v, f, bundle)
+    assert abs(out[centre, 2]) < 0.5 * abs(height)  # pulled back toward the flat
+    np.testing.assert_allclose(np.delete(out, centre, 0), np.delete(v, centre, 0), atol=1e-12)
 
 
 def test_exact_vertices_against_a_brute_force_plane_count():
