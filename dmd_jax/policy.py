@@ -283,9 +283,10 @@ def presmooth_plan(
     if not policy.presmooths:
         return PresmoothPlan(0, None)
     rough = presmooth.roughness(vertices, faces, free=free)
-    return PresmoothPlan(
-        presmooth.steps_for(rough, policy.presmooth_start, policy.presmooth_per_step), rough
-    )
+    steps = presmooth.steps_for(rough, policy.presmooth_start, policy.presmooth_per_step)
+    if steps and presmooth.bend_share(vertices, faces, free=free) < presmooth.MIN_BEND_SHARE:
+        steps = 0  # a coarse convex solid's dihedrals, not noise: nothing to pre-smooth
+    return PresmoothPlan(steps, rough)
 
 
 def run_passes(

@@ -9,7 +9,7 @@ from conftest import icosphere
 
 from dmd_jax import baselines, load_pretrained
 from dmd_jax.inference import denoise
-from dmd_jax.presmooth import MAX_STEPS, laplacian_steps, roughness, steps_for
+from dmd_jax.presmooth import MAX_STEPS, bend_share, laplacian_steps, roughness, steps_for
 
 
 def _noisy_sphere(sigma: float, seed: int = 0):
@@ -133,3 +133,50 @@ def test_denoise_rejects_bad_presmooth(bundle, bad):
     v, f = icosphere(1)
     with pytest.raises((ValueError, TypeError), match="presmooth"):
         denoise(v, f, bundle, presmooth=bad)
+
+
+def _convex_solids():
+    octa = (
+        [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]],
+        [[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4], [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]],
+    )
+    tetra = (
+        [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]],
+        [[0, 2, 1], [0, 1, 3], [1, 2, 3], [0, 3, 2]],
+    )
+    ico = trimesh.creation.icosphere(0)
+    return {
+        "tetrahedron": tetra,
+        "octahedron": octa,
+        "icosahedron": (ico.vertices, ico.faces),
+    }
+
+
+def test_bend_share_against_a_brute_force_count():
+    rng = np.random.default_rng(3)
+    v, f = icosphere(2)
+    x = v + 0.02 * rng.standard_normal(v.shape)
+    m = trimesh.Trimesh(x, f, process=False)
+    bent = m.face_adjacency_angles > np.radians(1.0)
+    convex = m.face_adjacency_convex[bent].mean()  # trimesh's own test of each edge
+    assert bend_share(x, f) == pytest.approx(min(convex, 1 - convex))
+    assert bend_share(v, f) == 0.0  # a clean sphere bends one way only
+    assert bend_share(v, f[:1]) == 0.5  # no pair: nothing to tell
+
+
+@pytest.mark.parametrize("name", ["tetrahedron", "octahedron", "icosahedron"])
+def test_a_coarse_convex_solid_is_not_smoothed_to_a_point(bundle, name):
+    v, f = (np.asarray(a) for a in _convex_solids()[name])
+    v = v.astype(np.float64)
+    assert roughness(v, f) > bundle.policy.presmooth_start  # the rule alone would smooth it
+    assert bend_share(v, f) == 0.0
+    out, info = denoise(v, f, bundle, return_info=True)
+    assert info.presmooth_steps == 0
+    assert np.ptp(out, axis=0).max() > 0.9 * np.ptp(v, axis=0).max()  # was 0.001 (octahedron)
+
+
+@pytest.mark.parametrize("level", [0.3, 0.6, 1.0])
+def test_noise_bends_both_ways(level):
+    v, f = icosphere(3)
+    x = v + level * 0.05 * np.random.default_rng(0).standard_normal(v.shape)
+    assert bend_share(x, f) > 0.3
