@@ -12,7 +12,6 @@ from __future__ import annotations
 import dataclasses
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from dmd_jax.checkpoints import as_bundle
@@ -148,14 +147,19 @@ def _denoise_whole(v, f, bundle, policy: DenoisePolicy, aggregation: str, held=N
     edges = undirected_vertex_edges(graph)
     frame = mesh_frame(bundle.config.model.encoding, v, f, edges=edges)
     x = frame.apply(v)
-    graph = jax.tree.map(jnp.asarray, graph)
+    # `device_put`, not `jnp.asarray`: the same transfer without a copy program per
+    # array shape, each traced and compiled in a fresh process (docs/cold-start.md).
+    graph = jax.tree.map(jax.device_put, graph)
     predict = predictor(bundle.config)
     n, n_padded = v.shape[0], graph.n_vertex
 
     def one_pass(x):
-        # As training pads the noisy positions: float32, zeros on padding rows.
+        # As training pads the noisy positions: float32, zeros on padding rows. The
+        # padding is cut on the host (a device slice is a program per padded shape).
         noisy = pad_vertex_array(x.astype(np.float32), n_padded)
-        return np.asarray(predict(bundle.params, jnp.asarray(noisy), graph)[:n], np.float64)
+        return np.asarray(predict(bundle.params, jax.device_put(noisy), graph))[:n].astype(
+            np.float64
+        )
 
     x, done = run_passes(one_pass, x, policy, held)
     return frame.invert(x), done

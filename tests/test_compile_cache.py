@@ -201,6 +201,35 @@ def test_memory_plan_measure_is_kept(monkeypatch, tmp_path):
     memory_plan.network_bytes_per_vertex.cache_clear()
 
 
+def test_the_weights_check_reads_the_param_shapes_it_remembered(monkeypatch, tmp_path):
+    from dmd_jax import checkpoints
+
+    path = checkpoints.pretrained_path()
+    config = checkpoints.load_model(path).config
+    traced = {
+        jax_keystr: (tuple(x.shape), np.dtype(x.dtype).name)
+        for jax_keystr, x in _flat(checkpoints.abstract_params(config))
+    }
+    monkeypatch.setenv(ENV, str(tmp_path))
+    assert checkpoints.expected_params(config) == traced
+    assert any(p.name.startswith("param-shapes-") for p in entries(tmp_path))
+    # A second process: read, not traced; and a wrong file is still refused.
+    monkeypatch.setattr(checkpoints, "abstract_params", lambda c: 1 / 0)
+    bundle = checkpoints.load_model(path)
+    assert checkpoints.expected_params(bundle.config) == traced
+    params = dict(bundle.params)
+    name = next(iter(params))
+    params[name] = {**params[name], "extra": np.zeros(2, np.float32)}
+    with pytest.raises(ValueError, match="do not match their config"):
+        checkpoints.check_params(params, bundle.config, "weights")
+
+
+def _flat(tree):
+    import jax
+
+    return [(jax.tree_util.keystr(p), x) for p, x in jax.tree_util.tree_flatten_with_path(tree)[0]]
+
+
 # ---------------------------------------------------------------- the trust boundary
 
 posix_only = pytest.mark.skipif(
@@ -380,6 +409,45 @@ def test_program_sources_cover_the_network():
     assert {"forward.py", "model.py", "ops.py", "geometry.py", "graph.py"} <= names
     folders = {p.parent.name for p in compile_cache.program_sources()}
     assert "train.py" not in names and "cli" not in folders
+
+
+def _imports_by_ast(file: Path, package: str) -> set[str]:
+    import ast
+
+    found = set()
+    for node in ast.walk(ast.parse(file.read_bytes())):
+        if isinstance(node, ast.Import):
+            found |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            target = node.module or ""
+            if node.level:
+                base = package.split(".")[: len(package.split(".")) - node.level + 1]
+                target = ".".join(base + ([node.module] if node.module else []))
+            found |= {target} | {f"{target}.{a.name}" for a in node.names}
+    return {n for n in found if n == "dmd_jax" or n.startswith("dmd_jax.")}
+
+
+def test_program_sources_match_a_walk_of_the_syntax_trees():
+    import dmd_jax
+
+    root = Path(dmd_jax.__file__).parent
+
+    def file_of(name):
+        rel = Path(*name.split(".")[1:]) if "." in name else Path("__init__")
+        for cand in (root / rel.with_suffix(".py"), root / rel / "__init__.py"):
+            if cand.is_file():
+                return cand
+        return None
+
+    seen, todo = {}, ["dmd_jax.forward", "dmd_jax.model"]
+    while todo:
+        name = todo.pop()
+        file = None if name in seen else file_of(name)
+        if file is not None:
+            seen[name] = file
+            package = name if file.name == "__init__.py" else name.rpartition(".")[0]
+            todo += sorted(_imports_by_ast(file, package))
+    assert compile_cache.program_sources() == sorted(set(seen.values()))
 
 
 # ---------------------------------------------------------------- fresh processes
