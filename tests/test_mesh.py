@@ -549,3 +549,57 @@ def test_save_and_load_errors(tmp_path):
         load_mesh(tmp_path / "quad.off", polygons="reject")
     with pytest.raises(ValueError, match="polygons must be"):
         load_mesh(tmp_path / "quad.off", polygons="keep")
+
+
+PLAIN_OBJ = "v 0 0 0\nv 1 0 0\nv 0 1.5 0\nv 0 0 -2e-3\nf 1 2 3\nf 1 3 4\nf 2 4 3\nf 1 4 2\n"
+
+
+@pytest.mark.parametrize(
+    "text, plain",
+    [
+        (PLAIN_OBJ, True),
+        ("# header\n# two lines\n" + PLAIN_OBJ, True),
+        (PLAIN_OBJ.replace("\n", "\r\n"), True),
+        ("  " + PLAIN_OBJ.replace("\nf", "\n\tf"), True),
+        (PLAIN_OBJ.rstrip("\n"), True),
+        (PLAIN_OBJ + "# a comment after the header\n", False),
+        (PLAIN_OBJ.replace("f 1 2 3", "f 1/1 2/2 3/3"), False),
+        (PLAIN_OBJ.replace("f 1 2 3", "f -4 -3 -2"), False),
+        (PLAIN_OBJ.replace("f 1 2 3", "f 1 2 3 4"), False),
+        (PLAIN_OBJ.replace("v 1 0 0", "v 1 0 0 1"), False),
+        (PLAIN_OBJ.replace("f 1 2 3\n", "f 1 2 3\nvn 0 0 1\n"), False),
+        (PLAIN_OBJ.replace("\nf 1 2 3", "\n\nf 1 2 3"), False),
+        (PLAIN_OBJ.replace("f 1 3 4", "f 1 3 5"), False),  # out of range: the line is named
+        (PLAIN_OBJ.replace("v 1 0 0", "v 1 0 x"), False),
+        (PLAIN_OBJ.replace("v 1 0 0", "v 1_0 0 0"), True),  # as Python's float reads it
+    ],
+)
+def test_plain_obj_is_read_in_bulk_as_line_by_line(text, plain):
+    from dmd_jax.io.obj import _read_obj, _read_obj_lines, _read_plain_obj
+
+    bulk = _read_plain_obj(text)
+    assert (bulk is not None) == plain
+    try:
+        lines = _read_obj_lines(text, "m.obj")
+    except ValueError as err:
+        assert not plain
+        with pytest.raises(ValueError, match=re.escape(str(err))):
+            _read_obj(text.encode(), "m.obj")
+        return
+    got = _read_obj(text.encode(), "m.obj")
+    for a, b in zip(got, lines, strict=True):
+        np.testing.assert_array_equal(a, b)
+        assert np.asarray(a).dtype == np.asarray(b).dtype
+
+
+def test_plain_obj_of_the_writer_round_trips(tmp_path):
+    from dmd_jax.io.obj import _read_obj_lines, _read_plain_obj
+
+    v, f = icosphere(3)
+    v = v * np.pi + 1e-17  # every digit of repr kept
+    save_mesh(tmp_path / "m.obj", v, f)
+    text = (tmp_path / "m.obj").read_text()
+    bulk, lines = _read_plain_obj(text), _read_obj_lines(text, "m.obj")
+    np.testing.assert_array_equal(bulk.vertices, v)
+    np.testing.assert_array_equal(bulk.vertices, lines.vertices)
+    np.testing.assert_array_equal(bulk.faces, lines.faces)

@@ -15,6 +15,12 @@ def _read_obj(data: bytes, name: str) -> _MeshText:
     the line of any malformed statement.
     """
     text = _text_of(data, name)
+    plain = _read_plain_obj(text)
+    return plain if plain is not None else _read_obj_lines(text, name)
+
+
+def _read_obj_lines(text: str, name: str) -> _MeshText:
+    """`_read_obj`, one line at a time."""
     if "\\" in text:
         text = text.replace("\\\r\n", " ").replace("\\\n", " ")  # continuation lines
     coords: list[tuple[float, float, float]] = []
@@ -79,6 +85,43 @@ def _read_obj(data: bytes, name: str) -> _MeshText:
         np.array(flat, np.int64).reshape(-1, 3),
         n_poly,
     )
+
+
+# Characters that send a file to the line-by-line reader: comments past the header,
+# texture or normal indices, continuation lines, and the line breaks and spaces other
+# than "\n", " " and "\t" that `str.splitlines` and `str.split` treat differently.
+_NOT_PLAIN = ("#", "/", "\\", "\r", "\x0b", "\x0c", "\x1c", "\x1d", "\x1e", "\x1f", "\n\n")
+
+
+def _read_plain_obj(text: str) -> _MeshText | None:
+    """The common OBJ of one `v x y z` or `f i j k` statement (positive indices) per
+    line after a header of `#` comments, parsed in bulk (80k faces: 0.05 s against
+    0.35 s line by line); None for any other file, which `_read_obj` reads line by line
+    with the same result and names the line of an error."""
+    start = 0
+    while text.startswith("#", start):  # the header comments
+        start = text.find("\n", start) + 1
+        if start == 0:
+            return None
+    body = text[start:].replace("\r\n", "\n")
+    if not body.isascii() or any(c in body for c in _NOT_PLAIN):
+        return None
+    tokens = body.split()
+    lines = body.count("\n") + (not body.endswith("\n"))
+    if not tokens or len(tokens) != 4 * lines or body.startswith("\n"):
+        return None
+    rows = np.array(tokens, dtype=object).reshape(-1, 4)
+    is_v, is_f = rows[:, 0] == "v", rows[:, 0] == "f"
+    if not (is_v | is_f).all():
+        return None
+    try:
+        v = rows[is_v, 1:].astype(np.float64)
+        f = rows[is_f, 1:].astype(np.int64)
+    except (ValueError, OverflowError):
+        return None
+    if f.size and (f.min() < 1 or f.max() > len(v)):
+        return None
+    return _MeshText(v.reshape(-1, 3), (f - 1).reshape(-1, 3), 0)
 
 
 def _write_obj(tmp, v: np.ndarray, f: np.ndarray) -> None:
