@@ -356,6 +356,26 @@ def test_entry_point_subprocess(files, tmp_path):
     )
     assert_one_line_error(proc.returncode, proc.stderr, "already exists")
     assert proc.returncode == 2 and target.read_text() == "keep\n"
+    # `console` skips the interpreter's teardown: the file is whole and stdout flushed.
+    out = tmp_path / "noisy.obj"
+    proc = subprocess.run(
+        [*cmd, "add-noise", str(files / "clean.obj"), "-o", str(out), "--level", "0.1"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 0 and str(out) in proc.stdout + proc.stderr
+    assert load_mesh(out)[1].shape == load_mesh(files / "clean.obj")[1].shape
+
+
+def test_console_exits_with_the_code_of_main(monkeypatch):
+    import dmd_jax.cli as cli
+
+    exits = []
+    monkeypatch.setattr(cli, "main", lambda: 3)
+    monkeypatch.setattr(cli.os, "_exit", exits.append)
+    cli.console()
+    assert exits == [3]
 
 
 @pytest.fixture(scope="module")
