@@ -123,8 +123,9 @@ notebook: $(STAMP)
 train-long: $(STAMP)
 	$(if $(STEPS),STEPS=$(STEPS)) scripts/train_long.sh $(if $(OUT),$(OUT),runs/long)
 
-# The paper's Table II protocol and its DMD-Net vs CNR table, written to
-# experiments/results/sota/ (benchmarks/quality/table2.py). WEIGHTS=path (weights file or
+# The paper's Table II protocol, the same six meshes whole under scanner noise and as
+# simulated scans with the stress shapes (sota_scan.md), and the DMD-Net vs CNR table,
+# written to experiments/results/sota/ (benchmarks/quality/table2.py). WEIGHTS=path (weights file or
 # checkpoint directory) adds that DMD-Net as a column next to the bundled one.
 sota: $(STAMP)
 	$(BIN)/python benchmarks/quality/table2.py --table all --dmd-passes 8 $(if $(WEIGHTS),--weights checkpoint=$(WEIGHTS))

@@ -104,3 +104,37 @@ def test_dmd_passes_become_columns(sota):
     np.testing.assert_array_equal(
         methods[2].fn(v, f), dmd_jax.denoise(v, f, bundle, iterations=3, presmooth=0)
     )
+
+
+def test_scan_table_runs_sota_lite_on_the_six_meshes_whole(sota, tmp_path, monkeypatch):
+    from benchmarks.quality import sota_lite
+
+    calls = []
+    monkeypatch.setattr(sota_lite, "run", lambda *a, **k: calls.append((a, k)))
+    assert sota.main(["--table", "scan", "--out", str(tmp_path)]) == 0
+    (mesh_dir,), kw = calls[0]
+    assert kw["only"] == tuple(c.file for c in sota.SOTA_CASES)
+    assert kw["sets"] == ("shared", "stress") and kw["max_faces"] == 0 and kw["val_dir"] is None
+    assert [c.label for c in kw["conditions"]] == [
+        "scanner 0.3", "scanner 0.5", "scanner 0.8", "scan 0.15", "scan 0.5",
+    ]  # fmt: skip
+    assert kw["name"] == "sota_scan" and kw["out_dir"] == tmp_path
+
+
+def test_sota_lite_only_runs_the_named_meshes(tmp_path):
+    from benchmarks.quality import sota_lite
+
+    shared_mesh_path("decimated-knight.off")
+    common = dict(val_dir=None, methods=("laplacian",), out_dir=tmp_path, max_faces=0)
+    with pytest.raises(ValueError, match="no-such.off"):
+        sota_lite.run(SHARED_MESHES, only=("no-such.off",), **common)
+    conditions = (sota_lite.protocol.parse_condition("0.1"),)
+    sota_lite.run(
+        SHARED_MESHES,
+        only=("decimated-knight.off",),
+        conditions=conditions,
+        sets=("shared",),
+        **common,
+    )
+    rows = list(csv.DictReader(open(tmp_path / "sota_lite.csv")))
+    assert {r["mesh"] for r in rows} == {"decimated-knight.off"}

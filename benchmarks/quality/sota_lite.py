@@ -300,6 +300,7 @@ def run(
     weights=None,
     conditions=CONDITIONS,
     skip=(),
+    only=(),
     methods=None,
     name: str = "sota_lite",
     out_dir=RESULTS_DIR,
@@ -321,6 +322,7 @@ def run(
       weights: DMD-Net weights (default: bundled).
       conditions: the noise conditions (`protocol.QUALITY_CONDITIONS`).
       skip: file names of `mesh_dir` to leave out.
+      only: file names of `mesh_dir` to run, none other (empty: every file).
       methods: method ids (default `protocol.benchmark_methods()`).
       name, out_dir: report file stem and folder.
       reuse: take rows of classic methods from an existing `<name>.csv` (same mesh,
@@ -353,6 +355,10 @@ def run(
     wanted, sets = sets, {}
     if "shared" in wanted:
         sets["shared"] = protocol.mesh_files(mesh_dir, skip)
+        missing = sorted(set(only) - {p.name for p in sets["shared"]})
+        if missing:
+            raise ValueError(f"{mesh_dir}: no such mesh file(s) {missing} (--only)")
+        sets["shared"] = [p for p in sets["shared"] if not only or p.name in only]
         if not sets["shared"]:
             raise ValueError(f"{mesh_dir}: no {', '.join(MESH_SUFFIXES)} files")
     if val_dir is not None and "val" in wanted:
@@ -530,6 +536,7 @@ def main(argv: list[str] | None = None) -> int:
         help="Gaussian levels only (the benchmark's own conditions), instead of --conditions",
     )
     parser.add_argument("--skip", nargs="*", default=[], help="file names to leave out")
+    parser.add_argument("--only", nargs="+", default=[], help="file names to run, none other")
     parser.add_argument(
         "--methods",
         nargs="+",
@@ -578,6 +585,7 @@ def main(argv: list[str] | None = None) -> int:
                 else tuple(protocol.NoiseCondition(protocol.NOISE_KIND, lv) for lv in args.levels)
             ),
             skip=tuple(args.skip),
+            only=tuple(args.only),
             methods=None if args.methods is None else tuple(args.methods),
             name=args.name,
             out_dir=args.out_dir,

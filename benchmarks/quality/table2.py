@@ -1,6 +1,6 @@
 """Reproduces the paper's comparison tables on this project's meshes and data.
 
-Two tables (``--table sota``, ``--table cnr`` or ``--table all``):
+Three tables (``--table sota``, ``scan``, ``cnr`` or ``all``):
 
 * **sota**: the paper's Table II protocol. Six public meshes from ``../shared/meshes``
   with the paper's noise, in the canonical frame (bounding box longest side 1), fixed
@@ -12,6 +12,10 @@ Two tables (``--table sota``, ``--table cnr`` or ``--table all``):
   (degrees), per-coordinate vertex error (×10⁻³, as the paper's table) and chamfer
   distance (×10⁻³), and timed. Writes ``sota.md``, ``sota.csv`` and ``sota.png`` (rows =
   meshes, columns = methods, shaded renders).
+* **scan**: the same six meshes, whole, under the scanner-noise and simulated-scan
+  conditions of ``sota_lite.py`` (`SCAN_CONDITIONS`), and the generated stress shapes
+  clean and at Gaussian 0.1, every method rated per mesh against the best other one
+  (``sota_scan.md``, ``sota_scan.csv``; `sota_lite.run`).
 * **cnr**: the paper's DMD-Net vs CNR table (its Table "DMDvsCNR", "trained on ShapeNet"
   columns) on ``data/gen_v1``: ``--per-split`` meshes of test-intra and of test-inter,
   each corrupted like training data (`dmd_jax.pipeline.corrupt`: random rotation, mixed
@@ -75,6 +79,8 @@ SOTA_CASES = (
     Case("Fandisk", "fandisk.off", "gaussian", 0.05, 6),
 )
 
+# The conditions of the scan table (sota_lite's labels: rms in mean edges).
+SCAN_CONDITIONS = ("scanner:0.3", "scanner:0.5", "scanner:0.8", "scan:0.15", "scan:0.5")
 # The classic filters of `dmd_jax.denoise_with`, then MeshLab's, CNR and DMD-Net.
 CLASSIC = tuple(m for m in protocol.METHODS if m not in ("dmd", "cnr"))
 METHODS = CLASSIC + protocol.REFERENCE_METHODS + ("cnr", "dmd")
@@ -393,9 +399,7 @@ def sota_markdown(rows: list[dict], header: str, repeat: int) -> str:
     methods = list(dict.fromkeys(r["method"] for r in rows))
     by = {(r["mesh"], r["method"]): r for r in rows}
     labels = [by[(meshes[0], m)]["label"] for m in methods]
-    lines = [header, ""]
-    lines.append("## Our run")
-    lines.append("")
+    lines = [header, "", "## Our run", ""]
     lines.append(
         "Normal: mean face-normal angle (degrees). Vertex: per-coordinate mean squared "
         "error ×10⁻³ (the paper's convention). Chamfer: symmetric chamfer distance of "
@@ -428,14 +432,11 @@ def sota_markdown(rows: list[dict], header: str, repeat: int) -> str:
             lines.append(f"| {mesh} | {noise} | {name} | " + " | ".join(cells) + " |")
     lines.append("")
     lines.extend(_versus_laplacian(meshes, methods, by))
-    lines.append("Settings:")
-    lines.append("")
+    lines += ["Settings:", ""]
     for m in methods:
         if m != "noisy":
             lines.append(f"- {by[(meshes[0], m)]['label']}: {by[(meshes[0], m)]['status']}")
-    lines.append("")
-    lines.append("## Run time (seconds per mesh)")
-    lines.append("")
+    lines += ["", "## Run time (seconds per mesh)", ""]
     if repeat > 1:
         lines.append(
             f"Fastest of {repeat} calls (JAX methods compile on the first call; the first "
@@ -459,8 +460,7 @@ def sota_markdown(rows: list[dict], header: str, repeat: int) -> str:
     lines.append("")
     paper_meshes = [m for m in meshes if m in PAPER_TABLE_II]
     if paper_meshes:
-        lines.append("## The paper's Table II, for reference")
-        lines.append("")
+        lines += ["## The paper's Table II, for reference", ""]
         lines.append(
             "Their numbers, on their copies of the meshes (Chinese Lion where we use "
             "lion.off), their noise draws and their method settings; copied from "
@@ -687,7 +687,7 @@ def _parse(argv):
     p = argparse.ArgumentParser(
         prog="python benchmarks/quality/table2.py", description=__doc__.split("\n\n")[0]
     )
-    p.add_argument("--table", choices=("sota", "cnr", "all"), default="all")
+    p.add_argument("--table", choices=("sota", "scan", "cnr", "all"), default="all")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT, help="output directory")
     p.add_argument("--meshes-dir", type=Path, default=DEFAULT_MESHES)
     p.add_argument(
@@ -718,6 +718,7 @@ def _parse(argv):
         "(denoise(..., iterations=N, presmooth=0)), one column each",
     )
     p.add_argument("--repeat", type=int, default=1, help="calls per method; time = fastest")
+    p.add_argument("--reuse-scan", action="store_true", help="scan table: keep classic rows")
     p.add_argument("--no-figure", action="store_true")
     p.add_argument("--data", type=Path, default=DEFAULT_DATA, help="dataset for --table cnr")
     p.add_argument("--per-split", type=int, default=24)
@@ -763,6 +764,21 @@ def main(argv: Sequence[str] | None = None) -> int:
         (args.out / "sota.md").write_text(md)
         write_csv(rows, args.out / "sota.csv")
         print(f"wrote {args.out / 'sota.md'}")
+    if args.table in ("scan", "all"):
+        from benchmarks.quality import sota_lite
+
+        sota_lite.run(
+            args.meshes_dir,
+            val_dir=None,
+            weights=args.dmd_weights,
+            conditions=tuple(protocol.parse_condition(c) for c in SCAN_CONDITIONS),
+            only=tuple(c.file for c in (args.case or SOTA_CASES)),
+            sets=("shared", "stress"),
+            max_faces=0,
+            name="sota_scan",
+            out_dir=args.out,
+            reuse=args.reuse_scan,
+        )
     if args.table in ("cnr", "all"):
         methods = build_methods(
             ["cnr", "dmd"],
