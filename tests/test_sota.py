@@ -107,18 +107,29 @@ def test_dmd_passes_become_columns(sota):
 
 
 def test_scan_table_runs_sota_lite_on_the_six_meshes_whole(sota, tmp_path, monkeypatch):
-    from benchmarks.quality import sota_lite
-
     calls = []
-    monkeypatch.setattr(sota_lite, "run", lambda *a, **k: calls.append((a, k)))
+    monkeypatch.setattr(sota.subprocess, "run", lambda cmd, check: calls.append(cmd))
     assert sota.main(["--table", "scan", "--out", str(tmp_path)]) == 0
-    (mesh_dir,), kw = calls[0]
-    assert kw["only"] == tuple(c.file for c in sota.SOTA_CASES)
-    assert kw["sets"] == ("shared", "stress") and kw["max_faces"] == 0 and kw["val_dir"] is None
-    assert [c.label for c in kw["conditions"]] == [
+    cmd = calls[0]
+    assert cmd[1].endswith("sota_lite.py") and "--no-val" in cmd
+
+    def after(flag, n):
+        i = cmd.index(flag)
+        return cmd[i + 1 : i + 1 + n]
+
+    assert after("--only", 6) == [c.file for c in sota.SOTA_CASES]
+    assert after("--conditions", 5) == list(sota.SCAN_CONDITIONS)
+    assert after("--sets", 2) == ["shared", "stress"] and after("--max-faces", 1) == ["0"]
+    assert after("--name", 1) == ["sota_scan"] and after("--out-dir", 1) == [str(tmp_path)]
+    assert [protocol_label(c) for c in sota.SCAN_CONDITIONS] == [
         "scanner 0.3", "scanner 0.5", "scanner 0.8", "scan 0.15", "scan 0.5",
     ]  # fmt: skip
-    assert kw["name"] == "sota_scan" and kw["out_dir"] == tmp_path
+
+
+def protocol_label(condition: str) -> str:
+    from dmd_jax import protocol
+
+    return protocol.parse_condition(condition).label
 
 
 def test_sota_lite_only_runs_the_named_meshes(tmp_path):

@@ -15,7 +15,7 @@ Three tables (``--table sota``, ``scan``, ``cnr`` or ``all``):
 * **scan**: the same six meshes, whole, under the scanner-noise and simulated-scan
   conditions of ``sota_lite.py`` (`SCAN_CONDITIONS`), and the generated stress shapes
   clean and at Gaussian 0.1, every method rated per mesh against the best other one
-  (``sota_scan.md``, ``sota_scan.csv``; `sota_lite.run`).
+  (``sota_scan.md``, ``sota_scan.csv``; run by ``sota_lite.py``).
 * **cnr**: the paper's DMD-Net vs CNR table (its Table "DMDvsCNR", "trained on ShapeNet"
   columns) on ``data/gen_v1``: ``--per-split`` meshes of test-intra and of test-inter,
   each corrupted like training data (`dmd_jax.pipeline.corrupt`: random rotation, mixed
@@ -39,6 +39,7 @@ import datetime
 import os
 import platform
 import shlex
+import subprocess
 import sys
 import tempfile
 import time
@@ -269,6 +270,11 @@ def timed(fn, v, f, repeat: int) -> tuple[np.ndarray, float, float]:
 # --------------------------------------------------------------------------------------
 # Table II
 # --------------------------------------------------------------------------------------
+
+
+def scan_files(cases: Sequence[Case] | None) -> list[str]:
+    """The mesh files of the scan table: those of `cases`, by default Table II's."""
+    return [c.file for c in (cases or SOTA_CASES)]
 
 
 def noise_label(case: Case) -> str:
@@ -764,21 +770,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         (args.out / "sota.md").write_text(md)
         write_csv(rows, args.out / "sota.csv")
         print(f"wrote {args.out / 'sota.md'}")
-    if args.table in ("scan", "all"):
-        from benchmarks.quality import sota_lite
-
-        sota_lite.run(
-            args.meshes_dir,
-            val_dir=None,
-            weights=args.dmd_weights,
-            conditions=tuple(protocol.parse_condition(c) for c in SCAN_CONDITIONS),
-            only=tuple(c.file for c in (args.case or SOTA_CASES)),
-            sets=("shared", "stress"),
-            max_faces=0,
-            name="sota_scan",
-            out_dir=args.out,
-            reuse=args.reuse_scan,
-        )
+    if args.table in ("scan", "all"):  # sota_lite.py's run, as a script (no shared import)
+        cmd = [sys.executable, str(Path(__file__).with_name("sota_lite.py")), "--no-val"]
+        cmd += ["--meshes", str(args.meshes_dir), "--only", *scan_files(args.case)]
+        cmd += ["--conditions", *SCAN_CONDITIONS, "--sets", "shared", "stress"]
+        cmd += ["--max-faces", "0", "--name", "sota_scan", "--out-dir", str(args.out)]
+        cmd += ["--weights", str(args.dmd_weights)] if args.dmd_weights else []
+        subprocess.run(cmd + (["--reuse"] if args.reuse_scan else []), check=True)
     if args.table in ("cnr", "all"):
         methods = build_methods(
             ["cnr", "dmd"],
