@@ -80,8 +80,8 @@ SOTA_CASES = (
     Case("Fandisk", "fandisk.off", "gaussian", 0.05, 6),
 )
 
-# The conditions of the scan table (sota_lite's labels: rms in mean edges).
-SCAN_CONDITIONS = ("scanner:0.3", "scanner:0.5", "scanner:0.8", "scan:0.15", "scan:0.5")
+# The conditions of the scan table: the protocol's scanner noise and simulated scans.
+SCAN_CONDITIONS = tuple(c.label for c in (*protocol.SCANNER_CONDITIONS, *protocol.SCAN_CONDITIONS))
 # The classic filters of `dmd_jax.denoise_with`, then MeshLab's, CNR and DMD-Net.
 CLASSIC = tuple(m for m in protocol.METHODS if m not in ("dmd", "cnr"))
 METHODS = CLASSIC + protocol.REFERENCE_METHODS + ("cnr", "dmd")
