@@ -70,11 +70,16 @@ def exact_tolerance(dtype, vertices: np.ndarray, faces: np.ndarray) -> float:
     dtype = np.dtype(dtype)
     eps = float(np.finfo(dtype).eps) if np.issubdtype(dtype, np.floating) else 0.0
     v = np.asarray(vertices, np.float64)
-    edge = mean_edge_length(v, faces)
+    largest = float(np.max(np.abs(v))) if v.size else 0.0
+    if not 0 < largest < np.inf:
+        return EXACT_TOLERANCE_FLOOR
+    # Lengths in units of a power of two near the largest coordinate: exact, and no
+    # overflow (an extent near float64's limit) or underflow (one near its smallest).
+    exponent = int(np.frexp(largest)[1])
+    edge = mean_edge_length(np.ldexp(v, -exponent), faces)
     if not edge > 0:
         return EXACT_TOLERANCE_FLOOR
-    largest = float(np.max(np.abs(v)))
-    tol = EXACT_ROUNDING * eps * (largest / edge)
+    tol = EXACT_ROUNDING * eps * (float(np.ldexp(largest, -exponent)) / edge)
     # Coordinates too coarse to tell a plane from light noise certify nothing.
     return 0.0 if tol > EXACT_TOLERANCE_CAP else max(tol, EXACT_TOLERANCE_FLOOR)
 
