@@ -444,6 +444,8 @@ def test_matrix_has_enough_cases():
     assert sum(c.error is None for c in CASES) >= 10  # legal inputs are part of it
 
 
+# A refusal or an answer, never NumPy's overflow or invalid-value noise on the way.
+@pytest.mark.filterwarnings("error::RuntimeWarning")
 @pytest.mark.parametrize("case", CASES, ids=CASE_IDS)
 def test_bad_input_through_the_api(case, bundle, tmp_path):
     if case.file is not None:
