@@ -36,13 +36,12 @@ from dmd_jax.data.store import (
     _assign_splits,
     _check_test_inter,
     _digest,
+    _finish_dataset,
     _prepare_out_dir,
     _run_jobs,
-    _software_versions,
-    _write_manifest,
     _write_npz,
     intra_test_indices,  # noqa: F401 (re-exported)
-    load_dataset,
+    load_dataset,  # noqa: F401 (re-exported)
 )
 
 
@@ -171,7 +170,6 @@ def make_dataset(
             )
     if skipped:
         warnings.warn(f"{len(skipped)} shapes could not be generated: {skipped[:3]}", stacklevel=2)
-    cpu = [r["cpu_seconds"] for r in results.values() if "cpu_seconds" in r]
     manifest = {
         "format": MANIFEST_FORMAT,
         "version": MANIFEST_VERSION,
@@ -186,16 +184,10 @@ def make_dataset(
         },
         "test_inter": list(test_inter),
         "intra_fraction": float(intra_fraction),
-        "software": _software_versions(),
-        "timing": {
-            "wall_seconds": round(wall, 2),
-            "cpu_seconds_total": round(float(np.sum(cpu)), 2),
-        },
-        "meshes": meshes,
-        "skipped": skipped,
     }
-    _write_manifest(out_dir, manifest)
-    return load_dataset(out_dir)
+    return _finish_dataset(
+        out_dir, manifest, wall=wall, results=results.values(), meshes=meshes, skipped=skipped
+    )
 
 
 def build_dataset(

@@ -31,12 +31,10 @@ from dmd_jax.data.store import (
     _assign_splits,
     _check_test_inter,
     _digest,
+    _finish_dataset,
     _prepare_out_dir,
     _run_jobs,
-    _software_versions,
-    _write_manifest,
     _write_npz,
-    load_dataset,
 )
 from dmd_jax.io import SUPPORTED_EXTENSIONS, load_mesh
 from dmd_jax.mesh import canonical_frame
@@ -322,18 +320,6 @@ def convert_folder(
         )
     if skipped:
         warnings.warn(f"{len(skipped)} meshes were skipped: {skipped[:3]}", stacklevel=2)
-    cpu = [r["cpu_seconds"] for r in results if "cpu_seconds" in r]
-    manifest = dict(source.manifest)
-    manifest.update(
-        {
-            "software": _software_versions(),
-            "timing": {
-                "wall_seconds": round(wall, 2),
-                "cpu_seconds_total": round(float(np.sum(cpu)), 2),
-            },
-            "meshes": meshes,
-            "skipped": skipped,
-        }
+    return _finish_dataset(
+        out_dir, source.manifest, wall=wall, results=results, meshes=meshes, skipped=skipped
     )
-    _write_manifest(out_dir, manifest)
-    return load_dataset(out_dir)

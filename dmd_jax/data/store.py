@@ -285,6 +285,27 @@ def _software_versions() -> dict[str, str]:
     return out
 
 
+def _finish_dataset(
+    out_dir: Path, manifest: dict, *, wall: float, results, meshes: list, skipped: list
+) -> Dataset:
+    """What every builder ends with: the manifest completed with the software versions,
+    the timing (`wall` seconds; each job result's `cpu_seconds`), the meshes and the
+    skipped entries, written last, and the dataset loaded back."""
+    cpu = [r["cpu_seconds"] for r in results if "cpu_seconds" in r]
+    manifest = {
+        **manifest,
+        "software": _software_versions(),
+        "timing": {
+            "wall_seconds": round(wall, 2),
+            "cpu_seconds_total": round(float(np.sum(cpu)), 2),
+        },
+        "meshes": meshes,
+        "skipped": skipped,
+    }
+    _write_manifest(out_dir, manifest)
+    return load_dataset(out_dir)
+
+
 def _write_manifest(out_dir: Path, manifest: dict) -> None:
     text = json.dumps(manifest, indent=1, sort_keys=False) + "\n"
 
