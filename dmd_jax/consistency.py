@@ -38,7 +38,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import breadth_first_order, connected_components
 
 from dmd_jax.mesh import face_normals_np
-from dmd_jax.topology import face_adjacency
+from dmd_jax.topology import EdgeGroups, adjacent_faces, edge_groups
 
 # Two face normals closer than the tolerance (radians, |n1 × n2|) are one plane. The
 # tolerance is what rounding the coordinates to the input's number format can do to a
@@ -107,7 +107,8 @@ def exact_vertices(
     f = np.asarray(faces, np.int64)
     n_vertex = vertices.shape[0]
     normals = face_normals_np(np.asarray(vertices, np.float64), f)
-    a, b = face_adjacency(f, n_vertex)
+    groups = edge_groups(f, n_vertex)
+    a, b = adjacent_faces(groups, f.shape[0])
     flat = _coplanar(normals[a], normals[b], tolerance)
     exact_face = np.zeros(f.shape[0], bool)
     exact_face[a[flat]] = True
@@ -138,10 +139,12 @@ def exact_vertices(
         assigned |= open_ & _coplanar(cn, rep, tolerance)
     left = np.bincount(cv, weights=~assigned, minlength=n_vertex) > 0
     held = touches & ~left
-    return held | closed_tips(f, normals, held)
+    return held | closed_tips(f, normals, held, groups)
 
 
-def closed_tips(faces: np.ndarray, normals: np.ndarray, held: np.ndarray) -> np.ndarray:
+def closed_tips(
+    faces: np.ndarray, normals: np.ndarray, held: np.ndarray, groups: EdgeGroups
+) -> np.ndarray:
     """Free vertices that are the tip of a solid whose every other vertex is held.
 
     A vertex is a tip when it has at least three faces, each neighbour is held, and
@@ -155,29 +158,22 @@ def closed_tips(faces: np.ndarray, normals: np.ndarray, held: np.ndarray) -> np.
       faces: `[n_face, 3]` consistently wound faces.
       normals: `[n_face, 3]` unit face normals (zero for degenerate faces).
       held: `[n_vertex]` bool, the vertices already held.
+      groups: `topology.edge_groups(faces, n_vertex)`.
 
     Returns:
       `[n_vertex]` bool, the tips (disjoint from `held`).
     """
     f = np.asarray(faces, np.int64)
     n_vertex = held.shape[0]
-    # Corner (j, i) of face j at vertex f[j, i]; its far edge joins the other two.
-    p, q = f[:, [1, 2, 0]].ravel(), f[:, [2, 0, 1]].ravel()
-    owner = np.repeat(np.arange(f.shape[0]), 3)
-    key = np.minimum(p, q) * n_vertex + np.maximum(p, q)
-    order = np.argsort(key, kind="stable")
-    ks = key[order]
-    pair = np.flatnonzero((ks[:-1] == ks[1:]) & np.r_[True, ks[1:-1] != ks[:-2]])
-    pair = pair[(pair + 2 >= ks.size) | (ks[np.minimum(pair + 2, ks.size - 1)] != ks[pair])]
-    across = np.full(key.size, -1)
-    across[order[pair]] = owner[order[pair + 1]]
-    across[order[pair + 1]] = owner[order[pair]]
-    fold = np.einsum("ij,ij->i", normals[owner], normals[np.maximum(across, 0)]) < 0
-    ok = (across >= 0) & fold & held[p] & held[q]
-    corner = f.ravel()
-    count = np.bincount(corner, minlength=n_vertex)
-    bad = np.bincount(corner, weights=~ok, minlength=n_vertex)
-    return (count >= 3) & (bad == 0) & ~held
+    # The manifold edges (two faces) and, in each face, the corner opposite the edge.
+    pair = groups.start[groups.size == 2]
+    lo, hi = np.divmod(groups.key[pair], n_vertex)
+    fa, fb = groups.face[pair], groups.face[pair + 1]
+    ok = (np.einsum("ij,ij->i", normals[fa], normals[fb]) < 0) & held[lo] & held[hi]
+    corners = np.concatenate([f[fa].sum(axis=1), f[fb].sum(axis=1)]) - np.tile(lo + hi, 2)
+    good = np.bincount(corners[np.tile(ok, 2)], minlength=n_vertex)
+    count = np.bincount(f.ravel(), minlength=n_vertex)
+    return (count >= 3) & (good == count) & ~held
 
 
 def oriented_faces(faces: np.ndarray, n_vertex: int) -> tuple[np.ndarray, int]:
