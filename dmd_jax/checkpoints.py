@@ -32,7 +32,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from dmd_jax.config import ExperimentConfig
-from dmd_jax.graph import build_mesh_graph, pad_mesh_graph, padded_sizes_for
 from dmd_jax.io import atomic_write
 from dmd_jax.policy import (
     DenoisePolicy,
@@ -238,27 +237,11 @@ def load_weights(path) -> ModelBundle:
 
 @lru_cache(maxsize=8)
 def abstract_params(config: ExperimentConfig):
-    """Param shapes and dtypes of a config (traced once per config and process).
+    """Param shapes and dtypes of a config (`model.param_shapes`, traced once per config
+    and process; configs are frozen and hashable, so they are their own cache key)."""
+    from dmd_jax.model import param_shapes
 
-    Configs are frozen and hashable, so they are their own cache key.
-    """
-    from dmd_jax.model import DMDNet
-
-    # A padded tetrahedron: param shapes depend on the config only, not on the mesh.
-    f = np.array([[0, 1, 2], [0, 3, 1], [0, 2, 3], [1, 3, 2]], np.int32)
-    graph = build_mesh_graph(f, 4)
-    graph = pad_mesh_graph(graph, padded_sizes_for(graph))
-    x = np.zeros((graph.n_vertex, 3), np.float32)
-    model = DMDNet(config.model)
-    key = jax.random.PRNGKey(0)
-    return jax.eval_shape(
-        lambda: model.init(
-            {"params": key, "dropout": key},
-            jnp.asarray(x),
-            jax.tree.map(jnp.asarray, graph),
-            deterministic=True,
-        )
-    )["params"]
+    return param_shapes(config.model)
 
 
 def expected_params(config: ExperimentConfig) -> dict[str, tuple[tuple[int, ...], str]]:
