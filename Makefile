@@ -115,13 +115,21 @@ notebook: $(STAMP)
 	@test $(words $(NB_FILE)) -eq 1 || { echo "NB=$(NB) matches $(words $(NB_FILE)) notebooks: $(notdir $(NB_FILE))"; exit 2; }
 	$(if $(WEIGHTS),DMD_JAX_WEIGHTS=$(WEIGHTS)) $(BIN)/python notebooks/_run.py --only $(notdir $(NB_FILE))
 
-# The long training run of the learned model (scripts/train_long.sh: the bundled network
-# fine-tuned through the converged vertex update on the paper's noise, scanner noise,
-# simulated scans and the stress shapes). Rerun to resume from the last checkpoint
-# (bit-identical); OUT=dir picks the run folder (default runs/long), STEPS=n its length.
-.PHONY: train-long
+# The long training run that outlives sessions (scripts/train_long.sh, dmd_jax/long_run.py):
+# train-long resumes it from the committed training/long_run.msgpack (or the workdir, when
+# ahead) at nice 19 in the background, bit-identically; train-long-save stops it cleanly
+# and commits its state and curve; train-long-status prints one line. OUT=dir picks the
+# run folder (default runs/long). Every session: train-long at its start, save at its end.
+.PHONY: train-long train-long-save train-long-status
 train-long: $(STAMP)
-	$(if $(STEPS),STEPS=$(STEPS)) scripts/train_long.sh $(if $(OUT),$(OUT),runs/long)
+	scripts/train_long.sh $(if $(OUT),$(OUT),runs/long)
+
+train-long-save: $(STAMP)
+	scripts/train_long_save.sh $(if $(OUT),$(OUT),runs/long)
+
+train-long-status: $(STAMP)
+	@$(BIN)/python -m dmd_jax.long_run status --workdir $(if $(OUT),$(OUT),runs/long)/ft \
+		--state training/long_run.msgpack
 
 # The paper's Table II protocol, the same six meshes whole under scanner noise and as
 # simulated scans with the stress shapes (sota_scan.md), and the DMD-Net vs CNR table,

@@ -243,6 +243,23 @@ class TrainHook:
         """
         return None
 
+    def starting_state(self, state: TrainState) -> TrainState:
+        """The state the loop starts from, given the one it would start from.
+
+        Called once, after the workdir's newest checkpoint (if any) was restored; this
+        one returns it unchanged. A hook may return another state of the same structure
+        (e.g. one carried in from another machine, `dmd_jax.long_run`).
+        """
+        return state
+
+    def checkpoint_due(self, done: int) -> bool:
+        """Whether to checkpoint now, `done` steps done, beside `train.ckpt_every`'s
+        schedule (e.g. every few minutes of wall time); this one never asks."""
+        return False
+
+    def on_checkpoint(self, state: TrainState) -> None:
+        """Called after every checkpoint of the latest state, with that state."""
+
 
 class StopAfter(TrainHook):
     """Stops after `steps` steps of this `train` call, as a killed run would have left
@@ -379,6 +396,10 @@ def train(
     latest, best = checkpoint_managers(workdir, t.ckpt_keep)
     if latest.latest_step() is not None:
         state = parallel.replicate(mesh, restore_checkpoint(latest, state))
+    if hooks:
+        for hook in hooks:
+            state = hook.starting_state(state)
+        state = parallel.replicate(mesh, state)
     eval_batches = {
         name: evaluation_batches(
             ex,
@@ -464,9 +485,12 @@ def train(
                 key = "val/normal_deg" if "val/normal_deg" in last_eval else "test_intra/normal_deg"
                 if key in last_eval:
                     save_checkpoint(best, state, cfg, {"normal_deg": last_eval[key]})
-            if (t.ckpt_every and done % t.ckpt_every == 0) or done == end:
+            due = [bool(hook.checkpoint_due(done)) for hook in hooks]
+            if (t.ckpt_every and done % t.ckpt_every == 0) or done == end or any(due):
                 log.flush()
                 save_checkpoint(latest, state, cfg)
+                for hook in hooks:
+                    hook.on_checkpoint(state)
             if done == end:
                 break  # a hook stopped the run (or this was the last step)
     bar.close()

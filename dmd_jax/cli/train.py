@@ -106,18 +106,46 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
     from dmd_jax.train import train_and_evaluate
 
+    cfg = _train_config(args)
+    hooks = []
+    if args.long_run is not None:
+        check_local_path("--long-run", args.long_run)
+        check_range("--checkpoint-minutes", args.checkpoint_minutes, 0.1, 24 * 60)
+        hooks.append(_long_run_hook(args, cfg))
     result = train_and_evaluate(
-        _train_config(args),
+        cfg,
         args.workdir,
         pad=args.pad,
         data_parallel=args.data_parallel,
         progress=not args.no_progress,
         verbose=True,
+        hooks=hooks,
     )
     result.pop("state", None)
     if jax.process_index() == 0:
         print(json.dumps(result, indent=2) if args.json else _train_summary(result))
     return 0
+
+
+def _long_run_hook(args: argparse.Namespace, cfg):
+    """The `dmd_jax.long_run.LongRun` hook of `--long-run`, with the process's pid
+    recorded in the workdir (`make train-long-save` and `-status` read it)."""
+    import os
+    from pathlib import Path
+
+    from dmd_jax.io import write_text_atomic
+    from dmd_jax.long_run import PID_FILE, LongRun
+
+    workdir = Path(args.workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(workdir / PID_FILE, f"{os.getpid()}\n")
+    return LongRun(
+        workdir,
+        args.long_run,
+        cfg.to_dict(),
+        checkpoint_seconds=60.0 * args.checkpoint_minutes,
+        say=lambda line: print(line, flush=True),
+    )
 
 
 def _train_summary(result: dict) -> str:
@@ -186,6 +214,20 @@ def add_parser(sub) -> None:
         "--json", action="store_true", help="print the final evaluation as JSON, not one line"
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--long-run",
+        default=None,
+        metavar="STATE",
+        help="a run that outlives sessions (dmd_jax.long_run): resume from this committed "
+        "state file (params, optimiser, step) unless the workdir is ahead of it, export "
+        "every checkpoint to WORKDIR/state.msgpack, stop cleanly on WORKDIR/STOP or SIGTERM",
+    )
+    p.add_argument(
+        "--checkpoint-minutes",
+        type=float,
+        default=10.0,
+        help="with --long-run: the longest wall time between two checkpoints (default 10)",
+    )
     p.add_argument(
         "--data-parallel",
         action="store_true",
