@@ -571,7 +571,7 @@ PLAIN_OBJ = "v 0 0 0\nv 1 0 0\nv 0 1.5 0\nv 0 0 -2e-3\nf 1 2 3\nf 1 3 4\nf 2 4 3
         (PLAIN_OBJ.replace("\nf 1 2 3", "\n\nf 1 2 3"), False),
         (PLAIN_OBJ.replace("f 1 3 4", "f 1 3 5"), False),  # out of range: the line is named
         (PLAIN_OBJ.replace("v 1 0 0", "v 1 0 x"), False),
-        (PLAIN_OBJ.replace("v 1 0 0", "v 1_0 0 0"), True),  # as Python's float reads it
+        (PLAIN_OBJ.replace("v 1 0 0", "v 1_0 0 0"), False),  # not C strtod: refused
     ],
 )
 def test_plain_obj_is_read_in_bulk_as_line_by_line(text, plain):

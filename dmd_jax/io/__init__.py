@@ -16,6 +16,7 @@ import numpy as np
 
 from dmd_jax.io._files import (
     atomic_write,
+    check_not_compressed,
     check_readable_file,
     is_temp_name,
     name_max,
@@ -25,7 +26,13 @@ from dmd_jax.io._files import (
 from dmd_jax.io.obj import _read_obj, _write_obj
 from dmd_jax.io.off import _read_off, _write_off
 from dmd_jax.io.ply import PlyHeader, _read_ply, _write_ply, read_ply_header
-from dmd_jax.io.stl import _merge_identical_vertices, _read_stl, _write_stl, check_float32
+from dmd_jax.io.stl import (
+    _merge_identical_vertices,
+    _read_stl,
+    _write_stl,
+    binary_stl_size_ok,
+    check_float32,
+)
 from dmd_jax.mesh import validate_mesh
 
 __all__ = [
@@ -93,6 +100,8 @@ def load_mesh(path, *, polygons: str = "triangulate") -> tuple[np.ndarray, np.nd
     if not data.strip():
         raise ValueError(f"{path}: the file is empty")
     name = str(path)
+    if not (suffix == ".stl" and binary_stl_size_ok(data)):  # STL's header is free text
+        check_not_compressed(data, name)
     vertices, faces, n_poly = _READERS[suffix](data, name)
     if len(faces) == 0:
         raise ValueError(f"{path}: the file holds no faces (a point cloud is not a mesh)")

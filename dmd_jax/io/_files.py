@@ -41,6 +41,70 @@ def _text_of(data: bytes, name: str) -> str:
     return data.removeprefix(_BOM).decode("utf-8", errors="replace")
 
 
+# Compressed files and archives, by their leading bytes: read as a mesh they would be
+# "corrupt" in a way that hides what they are.
+_COMPRESSED = (
+    (b"\x1f\x8b", "gzip-compressed", "gunzip it"),
+    (b"PK\x03\x04", "a ZIP archive", "unzip it"),
+    (b"BZh", "bzip2-compressed", "bunzip2 it"),
+    (b"\xfd7zXZ\x00", "xz-compressed", "unxz it"),
+    (b"\x28\xb5\x2f\xfd", "zstd-compressed", "unzstd it"),
+    (b"7z\xbc\xaf\x27\x1c", "a 7-Zip archive", "extract it"),
+)
+
+
+def compressed(data: bytes) -> tuple[str, str] | None:
+    """`(what, how to undo it)` when `data` starts like a compressed file or archive."""
+    for magic, what, undo in _COMPRESSED:
+        if data.startswith(magic):
+            return what, undo
+    return None
+
+
+def check_not_compressed(data: bytes, name: str) -> None:
+    """Refuses a compressed file or archive under a mesh name, saying what it is.
+
+    Raises:
+      ValueError: `X: is gzip-compressed, not a mesh file; gunzip it first`.
+    """
+    found = compressed(data)
+    if found is not None:
+        what, undo = found
+        kind = what if what.startswith("a ") else f"a {what} file"
+        raise ValueError(f"{name}: is {kind}, not a mesh file; {undo} first")
+
+
+def sniff_format(data: bytes) -> str | None:
+    """The mesh format `data` looks like by its first statement (`"PLY"`, `"OFF"`,
+    `"STL"`, `"OBJ"`), or None: for error messages only, never to read a file."""
+    head = data.removeprefix(_BOM)[:4096]
+    first = head.lstrip(b" \t\r\n\v\f").split(None, 1)[:1]
+    word = first[0].decode("ascii", "replace") if first else ""
+    if word == "ply":
+        return "PLY"
+    if word.upper().endswith("OFF") and len(word) <= 6:
+        return "OFF"
+    if word.lower() == "solid":
+        return "STL"
+    text = head.decode("ascii", "replace")
+    if any(line.lstrip(" \t").startswith(("v ", "f ", "vn ", "vt ")) for line in text.split("\n")):
+        return "OBJ"
+    return None
+
+
+def not_this_format(data: bytes, name: str, expected: str, problem: str) -> None:
+    """Refuses a file its reader cannot read, saying which format it looks like instead.
+
+    Raises:
+      ValueError: `X: PROBLEM: not an EXPECTED file (it looks like OFF: rename it to .off)`.
+    """
+    other = sniff_format(data)
+    hint = f" (it looks like {other}: rename it to .{other.lower()})" if other else ""
+    if other == expected:
+        hint = ""
+    raise ValueError(f"{name}: {problem}: not an {expected} file{hint}")
+
+
 def check_readable_file(path, what: str = "mesh file") -> None:
     """Refuses, with the reason, a path that is not a regular file one can read.
 

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from dmd_jax.io._files import _fan, _MeshText, _text_of, _write_rows
+from dmd_jax.io import _syntax
+from dmd_jax.io._files import _fan, _MeshText, _text_of, _write_rows, not_this_format
 
 
 def _read_obj(data: bytes, name: str) -> _MeshText:
@@ -20,30 +21,28 @@ def _read_obj(data: bytes, name: str) -> _MeshText:
 
 
 def _read_obj_lines(text: str, name: str) -> _MeshText:
-    """`_read_obj`, one line at a time."""
+    """`_read_obj`, one line at a time (lines, tokens and numbers as in `_syntax`)."""
     if "\\" in text:
-        text = text.replace("\\\r\n", " ").replace("\\\n", " ")  # continuation lines
+        text = text.replace("\\\r\n", " ").replace("\\\n", " ").replace("\\\r", " ")
     coords: list[tuple[float, float, float]] = []
     flat: list[int] = []
     n_poly = 0
     max_index, max_line = 0, 0
-    for lineno, line in enumerate(text.splitlines(), 1):
-        s = line.lstrip()
-        if not s.startswith(("v ", "v\t", "f ", "f\t")):
+    for lineno, line in enumerate(_syntax.lines(text), 1):
+        parts = _syntax.tokens(line.split("#", 1)[0])
+        if not parts or parts[0] not in ("v", "f"):
             continue
-        parts = s.split("#", 1)[0].split()
         if parts[0] == "v":
             if len(parts) < 4:
                 raise ValueError(
                     f"{name}: line {lineno}: a vertex needs 3 coordinates, got {len(parts) - 1}"
                 )
             try:
-                coords.append((float(parts[1]), float(parts[2]), float(parts[3])))
-            except ValueError:
-                raise ValueError(
-                    f"{name}: line {lineno}: vertex coordinates are not numbers: "
-                    f"{' '.join(parts[1:4])[:60]!r}"
-                ) from None
+                # Every number of the statement (x y z, and w or a colour) is checked.
+                values = _syntax.floats(parts[1:])
+            except ValueError as exc:
+                raise ValueError(f"{name}: line {lineno}: vertex coordinate {exc}") from None
+            coords.append((values[0], values[1], values[2]))
             continue
         tokens = parts[1:]
         if len(tokens) < 3:
@@ -52,12 +51,17 @@ def _read_obj_lines(text: str, name: str) -> _MeshText:
             )
         corners = []
         for token in tokens:
+            # `v`, `v/vt`, `v//vn` or `v/vt/vn`: every part present is an integer.
+            fields = token.split("/")
             try:
-                i = int(token.split("/", 1)[0])
-            except ValueError:
-                raise ValueError(
-                    f"{name}: line {lineno}: face index {token[:30]!r} is not an integer"
-                ) from None
+                if len(fields) > 3 or (len(fields) == 3 and fields[2] == ""):
+                    raise ValueError(f"{token[:30]!r} is not an integer")
+                i = _syntax.int_of(fields[0])
+                for extra in fields[1:]:
+                    if extra:
+                        _syntax.int_of(extra)
+            except ValueError as exc:
+                raise ValueError(f"{name}: line {lineno}: face index {exc}") from None
             if i > 0:
                 if i > max_index:
                     max_index, max_line = i, lineno
@@ -80,6 +84,9 @@ def _read_obj_lines(text: str, name: str) -> _MeshText:
             f"{name}: line {max_line}: face index {max_index} is out of range for the "
             f"file's {len(coords)} vertices (OBJ indices start at 1)"
         )
+    if not coords and not flat:
+        # No `v` or `f` statement at all: another format under an .obj name, most likely.
+        not_this_format(text.encode("utf-8", "replace"), name, "OBJ", "no 'v' or 'f' statement")
     return _MeshText(
         np.array(coords, np.float64).reshape(-1, 3),
         np.array(flat, np.int64).reshape(-1, 3),
@@ -88,8 +95,8 @@ def _read_obj_lines(text: str, name: str) -> _MeshText:
 
 
 # Characters that send a file to the line-by-line reader: comments past the header,
-# texture or normal indices, continuation lines, and the line breaks and spaces other
-# than "\n", " " and "\t" that `str.splitlines` and `str.split` treat differently.
+# texture or normal indices, continuation lines, and the line breaks and blanks other
+# than "\n", " " and "\t" (`str.split` would treat the rest otherwise than `_syntax`).
 _NOT_PLAIN = ("#", "/", "\\", "\r", "\x0b", "\x0c", "\x1c", "\x1d", "\x1e", "\x1f", "\n\n")
 
 
@@ -98,12 +105,15 @@ def _read_plain_obj(text: str) -> _MeshText | None:
     line after a header of `#` comments, parsed in bulk (80k faces: 0.05 s against
     0.35 s line by line); None for any other file, which `_read_obj` reads line by line
     with the same result and names the line of an error."""
+    text = text.replace("\r\n", "\n")
+    if "\r" in text:  # a lone CR ends a line (a comment too): the line reader
+        return None
     start = 0
     while text.startswith("#", start):  # the header comments
         start = text.find("\n", start) + 1
         if start == 0:
             return None
-    body = text[start:].replace("\r\n", "\n")
+    body = text[start:]
     if not body.isascii() or any(c in body for c in _NOT_PLAIN):
         return None
     tokens = body.split()
@@ -115,10 +125,10 @@ def _read_plain_obj(text: str) -> _MeshText | None:
     if not (is_v | is_f).all():
         return None
     try:
-        v = rows[is_v, 1:].astype(np.float64)
-        f = rows[is_f, 1:].astype(np.int64)
-    except (ValueError, OverflowError):
-        return None
+        v = _syntax.floats(rows[is_v, 1:].ravel().tolist()).reshape(-1, 3)
+        f = _syntax.ints(rows[is_f, 1:].ravel().tolist()).reshape(-1, 3)
+    except ValueError:
+        return None  # the line reader names the line
     if f.size and (f.min() < 1 or f.max() > len(v)):
         return None
     return _MeshText(v.reshape(-1, 3), (f - 1).reshape(-1, 3), 0)

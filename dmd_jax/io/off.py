@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from dmd_jax.io._files import _fan, _MeshText, _text_of, _write_rows
+from dmd_jax.io import _syntax
+from dmd_jax.io._files import _fan, _MeshText, _text_of, _write_rows, not_this_format
 
 
 def _read_off(data: bytes, name: str) -> _MeshText:
@@ -15,8 +16,8 @@ def _read_off(data: bytes, name: str) -> _MeshText:
     """
     rows = (
         (lineno, tokens)
-        for lineno, line in enumerate(_text_of(data, name).splitlines(), 1)
-        if (tokens := line.split("#", 1)[0].split())
+        for lineno, line in enumerate(_syntax.lines(_text_of(data, name)), 1)
+        if (tokens := _syntax.tokens(line.split("#", 1)[0]))
     )
     first = next(rows, None)
     if first is None:
@@ -24,7 +25,9 @@ def _read_off(data: bytes, name: str) -> _MeshText:
     lineno, head = first
     keyword = head[0]
     if not keyword.upper().endswith("OFF"):
-        raise ValueError(f"{name}: not an OFF file (line {lineno} starts with {keyword[:20]!r})")
+        not_this_format(
+            data, name, "OFF", f"line {lineno} starts with {keyword[:20]!r}, not an OFF keyword"
+        )
     if "BINARY" in (t.upper() for t in head[1:]):
         raise ValueError(f"{name}: binary OFF is not supported; save it as ASCII OFF")
     prefix = keyword[:-3]
@@ -37,11 +40,11 @@ def _read_off(data: bytes, name: str) -> _MeshText:
             raise ValueError(f"{name}: truncated after the OFF header (no counts line)")
         lineno, counts = nxt
     try:
-        n_vertex, n_face = int(counts[0]), int(counts[1])
-    except (ValueError, IndexError):
+        n_vertex, n_face = (int(c) for c in _syntax.ints(counts[:3])[:2])
+    except ValueError:
         raise ValueError(
-            f"{name}: line {lineno}: expected the counts 'n_vertex n_face n_edge', got "
-            f"{' '.join(counts)[:60]!r}"
+            f"{name}: line {lineno}: expected the counts 'n_vertex n_face n_edge' (integers), "
+            f"got {' '.join(counts)[:60]!r}"
         ) from None
     if n_vertex < 0 or n_face < 0:
         raise ValueError(f"{name}: line {lineno}: negative counts {n_vertex} {n_face}")
@@ -54,12 +57,16 @@ def _read_off(data: bytes, name: str) -> _MeshText:
                 f"ends after {len(coords)}"
             )
         lineno, tokens = row
-        try:
-            coords.append((float(tokens[0]), float(tokens[1]), float(tokens[2])))
-        except (ValueError, IndexError):
+        if len(tokens) < 3:
             raise ValueError(
                 f"{name}: line {lineno}: a vertex needs 3 numbers, got {' '.join(tokens)[:60]!r}"
-            ) from None
+            )
+        try:
+            # Every column is a number: x y z, then a colour, normal or texture.
+            values = _syntax.floats(tokens)
+        except ValueError as exc:
+            raise ValueError(f"{name}: line {lineno}: vertex coordinate {exc}") from None
+        coords.append((values[0], values[1], values[2]))
     flat: list[int] = []
     n_poly = 0
     for done in range(n_face):
@@ -70,12 +77,12 @@ def _read_off(data: bytes, name: str) -> _MeshText:
             )
         lineno, tokens = row
         try:
-            k = int(tokens[0])
-            corners = [int(t) for t in tokens[1 : 1 + k]]
-        except ValueError:
+            k = _syntax.int_of(tokens[0])
+            corners = [int(c) for c in _syntax.ints(tokens[1 : 1 + max(k, 0)])]
+            _syntax.floats(tokens[1 + max(k, 0) :])  # a colour, if any
+        except ValueError as exc:
             raise ValueError(
-                f"{name}: line {lineno}: a face is 'k i_1 ... i_k' with integers, got "
-                f"{' '.join(tokens)[:60]!r}"
+                f"{name}: line {lineno}: a face is 'k i_1 ... i_k' with integers, but {exc}"
             ) from None
         if k < 3 or len(corners) < k:
             raise ValueError(

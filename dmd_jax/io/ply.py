@@ -8,6 +8,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from dmd_jax.io import _syntax
 from dmd_jax.io._files import _BOM, _MeshText
 
 # PLY's scalar types and their NumPy codes (without byte order).
@@ -77,11 +78,11 @@ def read_ply_header(data: bytes, name: str) -> PlyHeader:
             f"{name}: no 'end_header' line in the first {_PLY_MAX_HEADER >> 20} MiB "
             "(a truncated or corrupt PLY header)"
         )
-    lines = data[: end.start()].decode("ascii", errors="replace").splitlines()[1:]
+    lines = _syntax.lines(data[: end.start()].decode("ascii", errors="replace"))[1:]
     fmt = None
     elements: list[_PlyElement] = []
     for lineno, line in enumerate(lines, 2):
-        parts = line.split()
+        parts = _syntax.tokens(line)
         if not parts or parts[0] in ("comment", "obj_info"):
             continue
         bad = f"{name}: header line {lineno}: "
@@ -215,29 +216,27 @@ def _ply_binary_element(data: bytes, pos: int, el: _PlyElement, order: str, name
     return out, p
 
 
-def _numbers(tokens: list[bytes], name: str, what: str) -> np.ndarray:
-    """Tokens of an ASCII PLY as float64 (exact for every integer a mesh can index)."""
+def _numbers(tokens: list[bytes], name: str, what: str, integer: bool = False) -> np.ndarray:
+    """Tokens of an ASCII PLY as float64 (exact for every integer a mesh can index): real
+    numbers as C `strtod` reads them, or, for `integer` (a property of an integer type,
+    a list length), integers as `strtol` does (`_syntax`)."""
     try:
-        # float() one token at a time: a NumPy bytes array would be as wide as the
-        # longest token, which a hostile file can make enormous.
-        return np.fromiter(map(float, tokens), np.float64, len(tokens))
-    except ValueError:
-        bad = next(t for t in tokens if not _is_float(t))
-        raise ValueError(f"{name}: {what}: {bad[:30]!r} is not a number") from None
+        if integer:
+            return _syntax.ints(tokens).astype(np.float64)
+        return _syntax.floats(tokens)
+    except ValueError as exc:
+        kind = " of an integer type" if integer else ""
+        raise ValueError(f"{name}: {what}{kind}: {exc}") from None
 
 
-def _is_float(token: bytes) -> bool:
-    try:
-        float(token)
-    except ValueError:
-        return False
-    return True
+def _is_int(code: str | None) -> bool:
+    return code is not None and code[0] in "iu"
 
 
-def _list_length(x: float) -> int:
-    """A list length read from ASCII as an int; -1 for anything that is not a count
-    (negative, fractional, infinite or NaN)."""
-    return int(x) if np.isfinite(x) and x >= 0 and x == int(x) else -1
+def _list_length(token: bytes, name: str, what: str) -> int:
+    """A list length read from ASCII; -1 for a negative one."""
+    k = int(_numbers([token], name, what, integer=True)[0])
+    return k if k >= 0 else -1
 
 
 def _ply_ascii_element(tokens: list[bytes], t: int, el: _PlyElement, name: str):
@@ -258,15 +257,18 @@ def _ply_ascii_element(tokens: list[bytes], t: int, el: _PlyElement, name: str):
         if prop.count_dtype is None:
             q += 1
             continue
-        k = _list_length(_numbers([tokens[q]], name, what)[0])
+        k = _list_length(tokens[q], name, what)
         lengths.append(k)
         q += 1 + max(k, 0)
     width = q - t
     if all(k >= 0 for k in lengths) and t + width * el.count <= len(tokens):
-        block = _numbers(tokens[t : t + width * el.count], name, what).reshape(el.count, width)
+        flat = tokens[t : t + width * el.count]
+        block = _numbers(flat, name, what).reshape(el.count, width)
         out, col, ok = {}, 0, True
         for prop in props:
             if prop.count_dtype is None:
+                if _is_int(prop.dtype):
+                    _numbers(flat[col::width], name, what, integer=True)
                 out[prop.name] = block[:, col]
                 col += 1
                 continue
@@ -274,6 +276,10 @@ def _ply_ascii_element(tokens: list[bytes], t: int, el: _PlyElement, name: str):
             if not (block[:, col] == k).all():
                 ok = False
                 break
+            _numbers(flat[col::width], name, what, integer=True)
+            if _is_int(prop.dtype):
+                for c in range(col + 1, col + 1 + k):
+                    _numbers(flat[c::width], name, what, integer=True)
             items = block[:, col + 1 : col + 1 + k].ravel()
             out[prop.name] = (np.full(el.count, k, np.int64), items)
             col += 1 + k
@@ -290,7 +296,7 @@ def _ply_ascii_element(tokens: list[bytes], t: int, el: _PlyElement, name: str):
                 picks[i].append(t)
                 t += 1
                 continue
-            k = _list_length(_numbers([tokens[t]], name, what)[0])
+            k = _list_length(tokens[t], name, what)
             if k < 0:
                 raise ValueError(
                     f"{name}: {what} {r}: list length {tokens[t][:30]!r} is not a count"
@@ -302,7 +308,7 @@ def _ply_ascii_element(tokens: list[bytes], t: int, el: _PlyElement, name: str):
             t += 1 + k
     out = {}
     for i, prop in enumerate(props):
-        values = _numbers([tokens[j] for j in picks[i]], name, what)
+        values = _numbers([tokens[j] for j in picks[i]], name, what, _is_int(prop.dtype))
         if prop.count_dtype is not None:
             values = (np.array(lens[i], np.int64), values)
         out[prop.name] = values
@@ -363,6 +369,15 @@ def _read_ply(data: bytes, name: str) -> _MeshText:
     if vertex is None or not all(isinstance(vertex.get(c), np.ndarray) for c in ("x", "y", "z")):
         raise ValueError(f"{name}: the PLY has no 'vertex' element with x, y, z properties")
     vertices = np.stack([vertex[c].astype(np.float64) for c in ("x", "y", "z")], axis=1)
+    if "face" not in found:
+        others = [e.name for e in header.elements if e.name != "vertex"]
+        if others:
+            # Not a point cloud: its faces (if any) sit in an element PLY does not name so.
+            raise ValueError(
+                f"{name}: the PLY has no 'face' element (it declares "
+                f"{', '.join(repr(e.name[:30]) for e in header.elements)}); PLY names the "
+                "faces' element 'face'"
+            )
     face = found.get("face", {})
     lists = {k: v for k, v in face.items() if isinstance(v, tuple)}
     key = next((k for k in ("vertex_indices", "vertex_index") if k in lists), None)

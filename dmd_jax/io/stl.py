@@ -7,21 +7,102 @@ import warnings
 
 import numpy as np
 
-from dmd_jax.io._files import _BOM, _MeshText
+from dmd_jax.io import _syntax
+from dmd_jax.io._files import _BOM, _MeshText, _text_of
 
 
-def _check_stl_size(data: bytes, name: str) -> None:
-    """A binary STL's size is fixed by its triangle count; ASCII STL ends with `endsolid`."""
-    if len(data) >= 84:
-        n = int(np.frombuffer(data[80:84], "<u4")[0])
-        if len(data) == 84 + 50 * n:
-            return
-    if data.lstrip()[:5].lower() == b"solid":
-        if b"endsolid" not in data[-1024:].lower():
-            raise ValueError(f"{name}: truncated ASCII STL (no closing 'endsolid')")
+def binary_stl_size_ok(data: bytes) -> bool:
+    """Whether `data` is exactly as long as a binary STL of its header's triangle count."""
+    return len(data) >= 84 and len(data) == 84 + 50 * int(np.frombuffer(data[80:84], "<u4")[0])
+
+
+def _is_ascii_stl(data: bytes) -> bool:
+    """ASCII STL starts with `solid` (a binary one may too: its size decides first)."""
+    return not binary_stl_size_ok(data) and data.lstrip()[:5].lower() == b"solid"
+
+
+# The tokens of one facet of an ASCII STL, in order; None stands for a number.
+_FACET = ("facet", "normal", None, None, None, "outer", "loop") + ("vertex", None, None, None) * 3
+_FACET_END = ("endloop", "endfacet")
+_FACET_WIDTH = len(_FACET) + len(_FACET_END)
+_NUMBER_COLUMNS = [i for i, word in enumerate(_FACET) if word is None]
+_VERTEX_COLUMNS = [c for c in _NUMBER_COLUMNS if c > 6]
+
+
+def _ascii_stl_body(text: str, name: str) -> list[tuple[int, str]]:
+    """`(line, token)` of every token of the facets, the `solid NAME` and `endsolid
+    NAME` lines left out (a name is free text); refuses a file without `endsolid`."""
+    out: list[tuple[int, str]] = []
+    ended = False
+    for lineno, line in enumerate(_syntax.lines(text), 1):
+        parts = _syntax.tokens(line)
+        if not parts:
+            continue
+        word = parts[0].lower()
+        if word in ("solid", "endsolid"):
+            ended = word == "endsolid"
+            continue
+        out.extend((lineno, t) for t in parts)
+        ended = False
+    if not ended:
+        raise ValueError(f"{name}: truncated ASCII STL (no closing 'endsolid')")
+    return out
+
+
+def _read_ascii_stl(data: bytes, name: str) -> _MeshText:
+    """An ASCII STL's facets (`facet normal n n n / outer loop / vertex x y z` x 3 /
+    `endloop / endfacet`), read with the lines, tokens and numbers of `_syntax`."""
+    body = _ascii_stl_body(_text_of(data, name), name)
+    words = [t.lower() for _, t in body]
+    n = len(words) // _FACET_WIDTH
+    expected = _FACET + _FACET_END
+    if len(words) == n * _FACET_WIDTH:
+        # The common layout, checked and read in bulk.
+        table = np.array(words, dtype=object).reshape(n, _FACET_WIDTH) if n else None
+        keywords = [i for i, w in enumerate(expected) if w is not None]
+        if n == 0 or all((table[:, i] == expected[i]).all() for i in keywords):
+            columns = [body[r * _FACET_WIDTH + c] for r in range(n) for c in _VERTEX_COLUMNS]
+            numbers = [body[r * _FACET_WIDTH + c] for r in range(n) for c in _NUMBER_COLUMNS]
+            try:
+                _syntax.floats([t for _, t in numbers])
+            except ValueError:
+                pass  # named with its line below
+            else:
+                v = _syntax.floats([t for _, t in columns]).reshape(-1, 3)
+                return _MeshText(v, np.arange(len(v), dtype=np.int64).reshape(-1, 3), 0)
+    # Token by token, naming the line of the first thing out of place.
+    coords: list[float] = []
+    i = 0
+    while i < len(body):
+        for want in expected:
+            if i >= len(body):
+                raise ValueError(f"{name}: truncated ASCII STL (the last facet is cut short)")
+            lineno, token = body[i]
+            if want is None:
+                try:
+                    value = _syntax.float_of(token)
+                except ValueError as exc:
+                    raise ValueError(f"{name}: line {lineno}: {exc}") from None
+                coords.append(value)
+            elif token.lower() != want:
+                raise ValueError(
+                    f"{name}: line {lineno}: expected {want!r} in an ASCII STL facet, got "
+                    f"{token[:30]!r}"
+                )
+            i += 1
+    # Each facet gave 3 normal and 9 vertex numbers: keep the vertices.
+    v = np.array(coords, np.float64).reshape(-1, 12)[:, 3:].reshape(-1, 3)
+    return _MeshText(v, np.arange(len(v), dtype=np.int64).reshape(-1, 3), 0)
+
+
+def _check_binary_stl(data: bytes, name: str) -> None:
+    """A binary STL's size is fixed by its triangle count."""
+    if binary_stl_size_ok(data):
         return
     promised = (
-        f"its header promises {n} triangles ({84 + 50 * n} bytes), the file has {len(data)}"
+        f"its header promises {int(np.frombuffer(data[80:84], '<u4')[0])} triangles "
+        f"({84 + 50 * int(np.frombuffer(data[80:84], '<u4')[0])} bytes), the file has "
+        f"{len(data)}"
         if len(data) >= 84
         else f"the file has only {len(data)} bytes"
     )
@@ -29,7 +110,8 @@ def _check_stl_size(data: bytes, name: str) -> None:
 
 
 def _read_stl(data: bytes, name: str) -> _MeshText:
-    """STL (ASCII or binary) through trimesh, with the size checks trimesh skips."""
+    """STL: ASCII by our reader (`_syntax`'s numbers), binary through trimesh, with the
+    size check trimesh skips."""
     from io import BytesIO  # the standard library's, not this module
 
     import trimesh
@@ -38,22 +120,20 @@ def _read_stl(data: bytes, name: str) -> _MeshText:
         # A BOM before an ASCII STL's `solid`; a binary STL's free 80-byte header may
         # start with any bytes, so only strip it when what follows is ASCII STL.
         data = data[3:]
-    suffix = ".stl"
-    _check_stl_size(data, name)
+    if _is_ascii_stl(data):
+        return _read_ascii_stl(data, name)
+    _check_binary_stl(data, name)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             mesh = trimesh.load(
                 BytesIO(data),
-                file_type=suffix[1:],
+                file_type="stl",
                 process=False,
                 maintain_order=True,
                 force="mesh",
                 skip_materials=True,
             )
-    except ImportError:
-        # trimesh guesses the encoding of undecodable text with an optional package.
-        raise ValueError(f"{name}: corrupt file (neither valid binary nor UTF-8 text)") from None
     except Exception as exc:  # trimesh raises many types for corrupt files
         raise ValueError(f"{name}: could not read the mesh ({type(exc).__name__}: {exc})") from exc
     vertices = np.asarray(getattr(mesh, "vertices", np.zeros((0, 3))), np.float64)
