@@ -2,29 +2,32 @@
 
 Both meshes are first mapped into the canonical frame of the ground truth (bounding box
 centred, longest side 1), the same map applied to both, so the numbers do not depend on
-where a mesh sits or how large it is. The metrics are the training losses of
-`dmd_jax.losses`, evaluated on one mesh pair; only the frame is added here.
+where a mesh sits or how large it is. The definitions are those of the training losses
+(`dmd_jax.losses.vertex_loss`, `normal_loss`, `chamfer_distance`), computed here on the
+host in float64 (NumPy, and SciPy's k-d tree for the chamfer term's nearest
+neighbours) whatever JAX's precision: float32 in the canonical frame of a scene with a
+small part far away loses that part's faces and errors to rounding, and an all-pairs
+nearest-vertex search is quadratic (12 s at 82k faces, where the tree takes 0.1 s).
+
+A face has zero area, and no normal, when its height is at most `ZERO_AREA_RATIO` of
+its own longest edge (`zero_area_faces`): a test relative to the face itself, so a part
+a million times smaller than the rest of the scene, or two parts 1e8 apart, keep their
+faces.
 """
 
 from __future__ import annotations
 
 import math
-from functools import partial
 from typing import NamedTuple
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
-from dmd_jax import losses
-from dmd_jax.graph import bucket_size
 from dmd_jax.mesh import canonical_frame
 
-# A prediction farther than this from the ground truth (in the ground truth's canonical
-# frame, where it spans 1) or smaller than its inverse is scored with the safeguards of
-# `_scale_safe`: float32 squares overflow near 1e19 and underflow near 1e-19, and lose
-# their precision long before.
-_SAFE_RANGE = 1e6
+# A face is degenerate (zero area, undefined normal) when twice its area is at most this
+# share of its longest edge squared, i.e. its height is at most 1e-12 of that edge: far
+# above float64's rounding of a truly flat face (~1e-16), far below any real sliver.
+ZERO_AREA_RATIO = 1e-12
 
 
 def _checked(pred_vertices, gt_vertices, faces):
@@ -42,56 +45,75 @@ def _checked(pred_vertices, gt_vertices, faces):
         raise ValueError(f"faces must be integer [n_face, 3], got {f.dtype} {f.shape}")
     if f.size and (f.min() < 0 or f.max() >= gt.shape[0]):
         raise ValueError(f"face indices must lie in [0, {gt.shape[0]})")
-    return pred, gt, f
+    return pred, gt, f.astype(np.int64)
 
 
-def _scale_safe(pred, gt):
-    """`(pred, gt, pred for normals, far)` in the ground truth's frame, float64.
+def face_normals_checked(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
+    """Unit face normals in float64 at any scale, and which faces have one.
 
-    Normals do not change under a uniform scale and a shift, so a prediction of an
-    extreme size (a copy of the ground truth 1e15 times larger, say) has its normals
-    taken in its own canonical frame, where float32 cannot overflow or underflow; `far`
-    (its largest coordinate in the ground truth's frame) says whether the vertex and
-    chamfer errors need float64 too.
+    Each face's edges are divided by their largest coordinate before the cross product,
+    so neither a face of size 1e-300 nor one of 1e300 underflows or overflows, and the
+    zero-area test compares the face with itself, not with the whole mesh.
+
+    Args:
+      vertices: `[n_vertex, 3]` positions (any float dtype; computed in float64).
+      faces: `[n_face, 3]` int vertex indices.
+
+    Returns:
+      `(normals, ok)`: `[n_face, 3]` float64 unit normals (right-hand rule), zero rows
+      where `ok` is False; `[n_face]` bool, False for a face of zero area (its height at
+      most `ZERO_AREA_RATIO` of its longest edge) or with a non-finite corner.
     """
-    frame = canonical_frame(gt)
-    with np.errstate(over="ignore", invalid="ignore"):
-        p = frame.apply(pred)
-        far = float(np.abs(p).max()) if p.size else 0.0
-        extent = float(np.ptp(p, axis=0).max()) if p.size else 0.0
-    for_normals = p
-    if np.all(np.isfinite(pred)) and not (1 / _SAFE_RANGE <= extent <= _SAFE_RANGE):
-        try:
-            for_normals = canonical_frame(pred).apply(pred)
-        except ValueError:  # zero extent: every face degenerate whatever the frame
-            pass
-    return p, frame.apply(gt), for_normals, far
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64)
+    p0, p1, p2 = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        e1, e2, e3 = p1 - p0, p2 - p0, p2 - p1
+        big = np.max(np.abs(np.concatenate([e1, e2, e3], axis=1)), axis=1)
+        unit = np.where(np.isfinite(big) & (big > 0), big, 1.0)[:, None]
+        a, b, c = e1 / unit, e2 / unit, e3 / unit
+        cross = np.cross(a, b)
+        doubled = np.linalg.norm(cross, axis=1)  # twice the area, in the face's own unit
+        longest_sq = np.max(np.stack([_sq(a), _sq(b), _sq(c)]), axis=0)
+        ok = np.isfinite(big) & (big > 0) & (doubled > ZERO_AREA_RATIO * longest_sq)
+        normals = np.where(ok[:, None], cross / np.where(ok, doubled, 1.0)[:, None], 0.0)
+    return normals, ok
 
 
-def _in_gt_frame(pred_vertices, gt_vertices, faces):
-    pred, gt, f = _checked(pred_vertices, gt_vertices, faces)
-    _, g, for_normals, _ = _scale_safe(pred, gt)
-    return jnp.asarray(for_normals), jnp.asarray(g), jnp.asarray(f)
+def _sq(x: np.ndarray) -> np.ndarray:
+    return np.einsum("ij,ij->i", x, x)
 
 
-def _far_errors(pred: np.ndarray, gt: np.ndarray) -> tuple[float, float]:
-    """`(vertex, chamfer)` in float64 on the host, for a prediction far off the ground
-    truth (the same definitions as `losses.vertex_loss` and `losses.chamfer_distance`)."""
+def zero_area_faces(vertices, faces) -> np.ndarray:
+    """`[n_face]` bool: the faces without a normal (`face_normals_checked`'s `not ok`)."""
+    return ~face_normals_checked(vertices, faces)[1]
+
+
+def _normal_angles(pred, gt, f) -> tuple[np.ndarray, np.ndarray]:
+    """`(angles, gt_ok)`: `[n_face]` radians between the unit normals of `pred` and
+    `gt`, π/2 where `pred`'s face is degenerate (`losses.face_normal_angles`), and
+    whether the ground truth's face has a normal."""
+    n_p, ok_p = face_normals_checked(pred, f)
+    n_t, ok_t = face_normals_checked(gt, f)
+    # atan2(|n_p × n_t|, n_p · n_t): exact near 0 and π, where arccos is not.
+    angle = np.arctan2(np.linalg.norm(np.cross(n_p, n_t), axis=1), _dot(n_p, n_t))
+    return np.where(ok_p & ok_t, angle, 0.5 * math.pi), ok_t
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.einsum("ij,ij->i", a, b)
+
+
+def _nearest(points: np.ndarray, tree_points: np.ndarray) -> np.ndarray | None:
+    """`[n]` index of the nearest of `tree_points` to each of `points` (k-d tree), or
+    None where a squared distance overflows float64 (the tree then finds no neighbour)."""
     from scipy.spatial import cKDTree
 
-    with np.errstate(over="ignore", invalid="ignore"):
-        vertex = float(np.mean(np.sum((pred - gt) ** 2, axis=1)))
-        if not np.all(np.isfinite(pred)):
-            return vertex, math.inf
-        to_gt = cKDTree(gt).query(pred)[0]
-        to_pred = cKDTree(pred).query(gt)[0]
-        chamfer = float(np.mean(to_gt**2) + np.mean(to_pred**2))
-    return vertex, chamfer
+    index = cKDTree(tree_points).query(points)[1]
+    return None if np.any(index >= len(tree_points)) else index
 
 
-def mesh_metrics(
-    pred_vertices, gt_vertices, faces, *, chamfer_block=1024, min_rows: int = 0
-) -> dict:
+def mesh_metrics(pred_vertices, gt_vertices, faces, *, chamfer_block=None, min_rows=0) -> dict:
     """Vertex, normal and chamfer errors of a mesh against its ground truth.
 
     Args:
@@ -99,9 +121,8 @@ def mesh_metrics(
         ground truth.
       gt_vertices: `[n_vertex, 3]` ground-truth positions.
       faces: `[n_face, 3]` int vertex indices shared by both meshes.
-      chamfer_block: block size of the chamfer search.
-      min_rows: pad to at least this many vertex rows (e.g. the largest mesh of an
-        evaluation set: one compiled program for the whole set).
+      chamfer_block, min_rows: ignored; kept for callers of the former blockwise JAX
+        computation (which padded to `min_rows` to share a compiled program).
 
     Returns:
       Dict of Python floats:
@@ -110,58 +131,57 @@ def mesh_metrics(
         which is what the paper's tables report (their noisy-input reference values are
         `level² · E[X²]` per coordinate, see `dmd_jax.noise`);
       `normal_deg`: mean angle between face normals in degrees, zero-area ground-truth
-        faces left out (`losses.normal_loss`);
+        faces left out (`losses.normal_loss`; zero area is judged per face against its
+        own edges, `face_normals_checked`), a face degenerate only in the prediction
+        counted as 90°;
       `chamfer`: symmetric chamfer distance of the vertex sets (`losses.chamfer_distance`).
-      All lengths in the ground truth's canonical frame. Honest at every scale: a
-      prediction far off the ground truth is scored in float64 (`inf` only where even
-      float64 overflows), never as a small or perfect error; `normal_deg` is NaN when
-      no ground-truth face has a non-zero area (the normal error is then undefined).
+      Lengths in the ground truth's canonical frame, so a small part of a large scene
+      has small vertex and chamfer errors by definition; the normal error is free of
+      scale and counts every face alike. All in float64: honest at every scale, never
+      a rounded-away or perfect error for a mesh that differs (`inf` only where even
+      float64 overflows); `normal_deg` is NaN when no ground-truth face has a non-zero
+      area (the normal error is then undefined).
+
+    Raises:
+      ValueError: shapes that do not match, non-integer or out-of-range faces, a
+        ground truth with non-finite coordinates or zero extent.
     """
-    pred64, gt64, f64 = _checked(pred_vertices, gt_vertices, faces)
-    p64, g64, for_normals, far = _scale_safe(pred64, gt64)
-    pred, gt, f = jnp.asarray(for_normals), jnp.asarray(g64), jnp.asarray(f64)
-    # One compiled program per size bucket, not per mesh: the arrays are padded (zeros,
-    # faces (0, 0, 0)) and the padding masked, which changes no sum.
-    n_vertex, n_face = pred.shape[0], f.shape[0]
-    rows_v = bucket_size(max(n_vertex, min_rows))
-    # Faces follow the vertex bucket (f <= 2v for a closed mesh, fewer with boundaries),
-    # so the bucket pair, hence the program, is one per vertex bucket.
-    rows_f = max(2 * rows_v, bucket_size(n_face))
-    # Far off: float32 would overflow; _far_errors replaces these two numbers below.
-    p_rows = _pad_rows(p64 if far <= _SAFE_RANGE else np.zeros_like(p64), rows_v)
-    vertex, normal, chamfer, n_normal = _padded_metrics(
-        p_rows,
-        _pad_rows(pred, rows_v),
-        _pad_rows(gt, rows_v),
-        _pad_rows(f, rows_f),
-        jnp.arange(rows_v) < n_vertex,
-        jnp.arange(rows_f) < n_face,
-        chamfer_block,
-    )
-    vertex, chamfer = float(vertex), float(chamfer)
-    if not far <= _SAFE_RANGE:  # NaN included
-        vertex, chamfer = _far_errors(p64, g64)
+    pred, gt, f = _checked(pred_vertices, gt_vertices, faces)
+    frame = canonical_frame(gt)
+    with np.errstate(over="ignore", invalid="ignore"):
+        # The difference before the scaling: exact for nearby points at any offset.
+        vertex = float(np.mean(_sq((pred - gt) / frame.scale))) if len(gt) else 0.0
+        chamfer = _chamfer(pred, gt, frame)
+    angles, gt_ok = _normal_angles(pred, gt, f)
+    normal = float(np.degrees(angles[gt_ok].mean())) if gt_ok.any() else math.nan
     return {
         "vertex": vertex,
         "vertex_per_coord": vertex / 3.0,
-        "normal_deg": float(normal) if int(n_normal) else math.nan,
+        "normal_deg": normal,
         "chamfer": chamfer,
     }
 
 
-def _pad_rows(x, rows: int):
-    x = np.asarray(x)
-    return jnp.asarray(np.concatenate([x, np.zeros((rows - x.shape[0],) + x.shape[1:], x.dtype)]))
+def _chamfer(pred: np.ndarray, gt: np.ndarray, frame) -> float:
+    """`mean_p min_g |p − g|² + mean_g min_p |p − g|²` in the ground truth's frame
+    (`losses.chamfer_distance`); `inf` for a prediction whose coordinates overflow
+    float64 in that frame.
 
-
-@partial(jax.jit, static_argnums=6)
-def _padded_metrics(pred, for_normals, gt, faces, vertex_mask, face_mask, chamfer_block):
-    vertex = losses.vertex_loss(pred, gt, vertex_mask=vertex_mask)
-    normal = losses.normal_term(for_normals, gt, faces, face_mask=face_mask)
-    chamfer = losses.chamfer_distance(
-        pred, gt, a_mask=vertex_mask, b_mask=vertex_mask, block_size=chamfer_block
-    )
-    return vertex, normal.mean() * (180.0 / math.pi), chamfer, normal.count
+    The tree finds each nearest point in frame coordinates; the distance is then taken
+    between the input coordinates and scaled, so a part at an offset of 1e8 keeps
+    every digit its coordinates hold (the frame's rounding would cost four of them).
+    """
+    p, g = frame.apply(pred), frame.apply(gt)
+    if not (np.all(np.isfinite(p)) and np.all(np.isfinite(g))):
+        return math.inf
+    if len(p) == 0:
+        return 0.0
+    near_gt, near_pred = _nearest(p, g), _nearest(g, p)
+    if near_gt is None or near_pred is None:
+        return math.inf
+    to_gt = _sq((pred - gt[near_gt]) / frame.scale)
+    to_pred = _sq((gt - pred[near_pred]) / frame.scale)
+    return float(np.mean(to_gt) + np.mean(to_pred))
 
 
 def face_normal_errors_deg(pred_vertices, gt_vertices, faces, *, undefined=0.0) -> np.ndarray:
@@ -178,10 +198,9 @@ def face_normal_errors_deg(pred_vertices, gt_vertices, faces, *, undefined=0.0) 
       `[n_face]` float64 NumPy array in `[0, 180]`; a face degenerate only in the
       prediction gets 90 (see `losses.face_normal_angles`).
     """
-    pred, gt, f = _in_gt_frame(pred_vertices, gt_vertices, faces)
-    angles, gt_ok = losses.face_normal_angles(pred, gt, f)
-    deg = np.asarray(angles, np.float64) * (180.0 / math.pi)
-    return np.where(np.asarray(gt_ok), deg, float(undefined))
+    pred, gt, f = _checked(pred_vertices, gt_vertices, faces)
+    angles, gt_ok = _normal_angles(pred, gt, f)
+    return np.where(gt_ok, np.degrees(angles), float(undefined))
 
 
 # --------------------------------------------------------------------------------------
@@ -246,8 +265,17 @@ def metric_header(spec: MetricSpec) -> str:
 
 
 def format_metric(spec: MetricSpec, value: float) -> str:
-    """The displayed number of one raw metric value (scaled, fixed decimals)."""
-    return f"{float(value) * spec.scale:.{spec.digits}f}"
+    """The displayed number of one raw metric value (scaled, fixed decimals).
+
+    A value that is not zero but would show as `0.000` (a small part of a large scene,
+    say) is written with two significant digits instead (`3.2e-09`): never a perfect
+    score for a mesh that differs.
+    """
+    shown = float(value) * spec.scale
+    text = f"{shown:.{spec.digits}f}"
+    if shown != 0.0 and math.isfinite(shown) and float(text) == 0.0:
+        return f"{shown:.1e}"
+    return text
 
 
 def metric_cells(metrics: dict, specs=DEFAULT_METRICS) -> list[str]:

@@ -114,21 +114,53 @@ def test_bad_inputs():
         mesh_metrics(np.zeros((3, 3)), np.zeros((3, 3)), np.array([[0, 1, 2]]))
 
 
-def test_mesh_metrics_padding_changes_nothing():
-    """`mesh_metrics` pads to a size bucket (one program per bucket); the numbers are the
-    unpadded losses, with or without extra rows (`min_rows`)."""
+def dense_chamfer(a: np.ndarray, b: np.ndarray) -> float:
+    """The chamfer distance by an all-pairs search, as the former JAX computation did."""
+    d = np.sum((a[:, None, :] - b[None, :, :]) ** 2, axis=-1)  # [n_a, n_b]
+    return float(d.min(axis=1).mean() + d.min(axis=0).mean())
+
+
+def test_the_losses_definitions_to_float64(key):
+    """`mesh_metrics` (NumPy, k-d tree) equals the training losses it stands for
+    (`dmd_jax.losses`, float64 under this suite) and an all-pairs chamfer search, in the
+    ground truth's frame; `min_rows` and `chamfer_block` are accepted and change nothing."""
     from dmd_jax import losses
-    from dmd_jax.metrics import _in_gt_frame
+    from dmd_jax.mesh import canonical_frame
 
     v, f = icosphere(2)
-    noisy = v + 0.01 * np.random.default_rng(0).standard_normal(v.shape)
-    pred, gt, ff = _in_gt_frame(noisy, v, f)
-    ref = {
-        "vertex": float(losses.vertex_loss(pred, gt)),
-        "normal_deg": float(losses.normal_loss(pred, gt, ff, degrees=True)),
-        "chamfer": float(losses.chamfer_distance(pred, gt)),
-    }
-    for min_rows in (0, 3000):
-        got = mesh_metrics(noisy, v, f, min_rows=min_rows)
-        for key, value in ref.items():
-            np.testing.assert_allclose(got[key], value, rtol=1e-5, err_msg=key)
+    for seed, sigma in enumerate([1e-3, 0.01, 0.1]):
+        noisy = v + sigma * np.random.default_rng(seed).standard_normal(v.shape)
+        frame = canonical_frame(v)
+        pred, gt = frame.apply(noisy), frame.apply(v)
+        ref = {
+            "vertex": float(losses.vertex_loss(pred, gt)),
+            "normal_deg": float(losses.normal_loss(pred, gt, f, degrees=True)),
+            "chamfer": float(losses.chamfer_distance(pred, gt)),
+        }
+        np.testing.assert_allclose(dense_chamfer(pred, gt), ref["chamfer"], rtol=1e-12)
+        for kwargs in ({}, {"min_rows": 3000, "chamfer_block": 64}):
+            got = mesh_metrics(noisy, v, f, **kwargs)
+            for k, value in ref.items():
+                np.testing.assert_allclose(got[k], value, rtol=1e-10, err_msg=k)
+
+
+def test_chamfer_equals_the_all_pairs_search_on_unlike_point_sets():
+    """Vertex sets that do not correspond (a shuffled, shrunk and shifted copy), so the
+    nearest neighbours are not the corresponding vertices."""
+    v, f = icosphere(1)
+    rng = np.random.default_rng(3)
+    pred = 0.7 * v[rng.permutation(len(v))] + [0.1, -0.2, 0.05]
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    centre, scale = (lo + hi) / 2, (hi - lo).max()
+    ref = dense_chamfer((pred - centre) / scale, (v - centre) / scale)
+    np.testing.assert_allclose(mesh_metrics(pred, v, f)["chamfer"], ref, rtol=1e-12)
+
+
+def test_a_value_too_small_for_its_decimals_is_not_shown_as_zero():
+    from dmd_jax.metrics import CHAMFER, NORMAL, VERTEX, format_metric
+
+    assert format_metric(VERTEX, 0.0) == "0.000"
+    assert format_metric(VERTEX, 1.234e-4) == "1.234"
+    assert format_metric(VERTEX, 6.2e-12) == "6.2e-08"
+    assert format_metric(CHAMFER, 3e-20) == "3.0e-16"
+    assert format_metric(NORMAL, 1e-5) == "1.0e-05"

@@ -50,20 +50,12 @@ def _ply_element_counts(path) -> dict[str, int]:
 
 
 def _zero_area_faces(vertices, faces) -> int:
-    """Faces of zero area, to rounding (1e-12 of the squared longest bounding-box side)."""
-    import numpy as np
+    """Faces of zero area, each judged against its own edges (`metrics.zero_area_faces`):
+    a test against the whole mesh's extent would call every face of a small part far
+    from the rest zero-area."""
+    from dmd_jax.metrics import zero_area_faces
 
-    v = np.asarray(vertices, np.float64)
-    f = np.asarray(faces)
-    # Scaled to at most 1 first: coordinates near 1e300 (or 1e-300) would overflow (or
-    # underflow) in the cross products, with a NumPy warning per operation.
-    largest = float(np.abs(v).max()) if v.size else 0.0
-    if largest == 0.0:
-        return len(f)
-    v = v / largest
-    doubled = np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
-    side = float(np.ptp(v, axis=0).max())
-    return int(np.count_nonzero(doubled <= 1e-12 * side * side))
+    return int(zero_area_faces(vertices, faces).sum())
 
 
 def _load_input(path):
