@@ -26,18 +26,51 @@ SHARED_MESHES = shared_meshes_dir()
 NEEDS_SHARED = "needs the shared meshes"
 
 
+def shared_meshes_state(environ=None, folder: Path | None = None) -> str:
+    """Where the shared meshes were looked for and what is there, in words, true in
+    every case: the variable set, set but empty, or unset (and the old name); the
+    folder found with its mesh count, holding no mesh, not a folder, or absent.
+
+    Args:
+      environ: the environment to describe (default `os.environ`).
+      folder: the folder it leads to (default `shared_meshes_dir()` of the present one).
+    """
+    from dmd_jax.io import SUPPORTED_EXTENSIONS
+
+    env = os.environ if environ is None else environ
+    folder = shared_meshes_dir() if folder is None else Path(folder)
+    old = "DMD_SHARED_MESHES"  # the deprecated name `shared_meshes_dir` still reads
+    if env.get(SHARED_MESHES_ENV):
+        source = f"from ${SHARED_MESHES_ENV}"
+    elif env.get(old):
+        source = f"from ${old}, the deprecated name of ${SHARED_MESHES_ENV}"
+    elif SHARED_MESHES_ENV in env:
+        source = f"the default beside the checkout: ${SHARED_MESHES_ENV} is set but empty"
+    else:
+        source = f"the default beside the checkout: ${SHARED_MESHES_ENV} is unset"
+    if folder.is_dir():
+        n = sum(1 for p in folder.iterdir() if p.suffix.lower() in SUPPORTED_EXTENSIONS)
+        found = (
+            f"{folder} found, {n} mesh file{'s' * (n != 1)}"
+            if n
+            else f"{folder} holds no mesh file"
+        )
+    elif folder.exists():
+        found = f"{folder} is not a folder"
+    else:
+        found = f"{folder} does not exist"
+    return f"{found} ({source})"
+
+
 def skip_without_shared(missing: Path):
     """Skips the calling test: `missing` (a file or folder of the shared meshes) is absent."""
-    pytest.skip(
-        f"{NEEDS_SHARED}: {missing} is absent (the public test meshes, ../shared/meshes "
-        f"beside the checkout; ${SHARED_MESHES_ENV} points elsewhere)"
-    )
+    pytest.skip(f"{NEEDS_SHARED}: {missing} is absent; {shared_meshes_state()}")
 
 
 @pytest.hookimpl(hookwrapper=True)
 def pytest_terminal_summary(terminalreporter):
     """After the run's summary (just above its counts): how many tests skipped for want of
-    the shared meshes."""
+    the shared meshes, and why."""
     yield
     skipped = terminalreporter.stats.get("skipped", [])
     n = sum(
@@ -45,10 +78,8 @@ def pytest_terminal_summary(terminalreporter):
         for report in skipped
         if isinstance(report.longrepr, tuple) and NEEDS_SHARED in str(report.longrepr[2])
     )
-    where = f"{SHARED_MESHES} found" if SHARED_MESHES.is_dir() else f"{SHARED_MESHES} absent"
     terminalreporter.write_line(
-        f"{n} tests skipped for want of the shared meshes ({where}; "
-        f"${SHARED_MESHES_ENV} points elsewhere)"
+        f"{n} tests skipped for want of the shared meshes: {shared_meshes_state()}"
     )
 
 
