@@ -1,0 +1,184 @@
+"""The long run that outlives sessions (`dmd_jax.long_run`): a state committed as one file
+resumes on another machine bit-identically, and a stale, conflicting or foreign state is
+refused rather than silently thrown away."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import jax
+import numpy as np
+import pytest
+from conftest import icosphere, tetrahedron
+
+from dmd_jax import config, long_run, pipeline, train
+
+TINY = {
+    "model": {"variant": "do_1s", "depth": 1, "n_agg": 1},
+    "loss": {"feature": 0.0},
+    "train": {"batch_size": 2, "steps": 4, "eval_every": 0, "ckpt_every": 0, "log_every": 1},
+}
+
+
+@pytest.fixture(scope="module")
+def setup():
+    cfg = config.preset("test").with_edits(TINY)
+    return cfg, pipeline.make_examples([icosphere(1), tetrahedron()])
+
+
+def _run(cfg, examples, workdir, state_file, *hooks, **kw):
+    hook = long_run.LongRun(workdir, state_file, cfg.to_dict(), say=lambda _: None, **kw)
+    return train.train(cfg, examples, workdir, progress=False, hooks=[hook, *hooks])
+
+
+def _leaves(result):
+    return [np.asarray(x) for x in jax.tree.leaves(jax.device_get(result["state"]))]
+
+
+def _losses(workdir):
+    rows = [json.loads(x) for x in (workdir / "log.jsonl").read_text().splitlines()]
+    return {r["step"]: r["loss"] for r in rows if r["kind"] == "train"}
+
+
+def test_a_committed_state_resumes_bit_identically_on_a_fresh_workdir(tmp_path, setup):
+    cfg, examples = setup
+    whole = train.train(cfg, examples, tmp_path / "whole", progress=False)
+    state, curve = tmp_path / "repo/state.msgpack", tmp_path / "repo/curve.csv"
+
+    # Session 1: two steps, stopped by the stop file, saved.
+    first = tmp_path / "s1"
+    out = _run(cfg, examples, first, state, train.StopAfter(2))
+    assert out["step"] == 2 and (first / long_run.LOCAL_STATE).is_file()
+    assert long_run.save(first, state, curve) == 2
+    meta = long_run.read_meta(state)
+    assert meta["step"] == 2 and meta["parent"] == "" and meta["config"] == cfg.to_dict()
+    assert state.stat().st_size < 5e6
+
+    # Session 2 on a fresh machine: only the committed file is there.
+    second = tmp_path / "s2"
+    out = _run(cfg, examples, second, state)
+    assert out["step"] == 4
+    for a, b in zip(_leaves(out), _leaves(whole), strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert _losses(second) == {k: v for k, v in _losses(tmp_path / "whole").items() if k > 2}
+    assert long_run.save(second, state, curve) == 4
+    assert (
+        long_run.read_meta(state)["parent"]
+        == long_run.read_meta(second / long_run.LOCAL_STATE)["parent"]
+    )
+    steps = [int(r.split(",")[0]) for r in curve.read_text().splitlines()[1:]]
+    assert sorted(set(steps)) == [1, 2, 3, 4]  # each step once, across both sessions
+    line = long_run.status_line(second, state)
+    assert line.startswith("step 4;") and "not running" in line and "committed step 4" in line
+
+
+@pytest.mark.slow  # 30 s on 2 busy cores (four compiled runs); the next test is its cheap twin
+def test_stale_foreign_and_conflicting_states_are_refused(tmp_path, setup):
+    cfg, examples = setup
+    state, curve = tmp_path / "state.msgpack", tmp_path / "curve.csv"
+    a = tmp_path / "a"
+    _run(cfg, examples, a, state, train.StopAfter(1))
+    long_run.save(a, state, curve)
+
+    # Another recipe cannot resume this state.
+    other = cfg.with_edits({"train": {"lr": cfg.train.lr * 2}})
+    with pytest.raises(long_run.StateConflictError, match="another recipe.*train.lr"):
+        _run(other, examples, tmp_path / "other", state)
+
+    # Two sessions grow from the same committed step; the first to save wins, the
+    # second is refused (its save would replace training it does not hold).
+    b = tmp_path / "b"
+    _run(cfg, examples, b, state, train.StopAfter(1))
+    c = tmp_path / "c"
+    _run(cfg, examples, c, state, train.StopAfter(2))
+    assert long_run.save(b, state, curve) == 2
+    with pytest.raises(long_run.StateConflictError, match="changed since this run resumed"):
+        long_run.save(c, state, curve)
+    # ... and resuming the loser's workdir, ahead of the committed state on another
+    # lineage, is refused too.
+    with pytest.raises(long_run.StateConflictError, match="did not grow from the committed"):
+        _run(cfg, examples, c, state)
+
+    # A workdir behind the committed state (stale) takes the committed one.
+    out = _run(cfg, examples, a, state, train.StopAfter(1))
+    assert out["step"] == 3
+
+
+def test_starting_state_takes_keeps_or_refuses_without_training(tmp_path, setup):
+    """The same rules as above on states written directly (no step compiled)."""
+    cfg, examples = setup
+    trainer = train.Trainer(cfg, train.parallel.batch_mesh(jax.devices()[:1]))
+    batch = pipeline.training_batch(
+        examples, 0, batch_size=2, seed=0, noise=cfg.noise, encoding=cfg.model.encoding
+    )
+    fresh = trainer.init(batch)
+    at = {n: fresh._replace(step=np.int32(n)) for n in (0, 3, 5)}
+    committed = tmp_path / "state.msgpack"
+    committed.write_bytes(long_run.state_bytes(at[3], cfg.to_dict(), parent="", seconds=7.0))
+
+    def start(workdir, state, conf=cfg):
+        hook = long_run.LongRun(workdir, committed, conf.to_dict(), say=lambda _: None)
+        return int(hook.starting_state(state).step)
+
+    assert start(tmp_path / "new", at[0]) == 3  # a fresh workdir takes the committed state
+    assert start(tmp_path / "new", at[5]) == 5  # ... and, having grown from it, keeps its own
+    assert start(tmp_path / "stale", at[0]) == 3
+    other = cfg.with_edits({"loss": {"normal": 9.0}})
+    with pytest.raises(long_run.StateConflictError, match="another recipe.*loss.normal"):
+        start(tmp_path / "x", at[0], other)
+    with pytest.raises(long_run.StateConflictError, match="did not grow from the committed"):
+        start(tmp_path / "foreign", at[5])  # ahead, but of unknown lineage
+    (tmp_path / "new" / long_run.LOCAL_STATE).write_bytes(
+        long_run.state_bytes(at[5], cfg.to_dict(), parent="", seconds=9.0)
+    )
+    committed.write_bytes(long_run.state_bytes(at[5], cfg.to_dict(), parent="x", seconds=8.0))
+    with pytest.raises(long_run.StateConflictError, match="changed since this run resumed"):
+        long_run.save(tmp_path / "new", committed, tmp_path / "curve.csv")
+
+
+def test_the_stop_file_stops_after_the_running_step(tmp_path, setup):
+    cfg, examples = setup
+    hook = long_run.LongRun(tmp_path, tmp_path / "none.msgpack", cfg.to_dict(), say=print)
+
+    class Stopper(train.TrainHook):
+        def after_step(self, step, metrics):
+            (tmp_path / long_run.STOP_FILE).touch()
+
+    out = train.train(cfg, examples, tmp_path, progress=False, hooks=[Stopper(), hook])
+    assert out["step"] == 1 and (tmp_path / long_run.LOCAL_STATE).is_file()
+
+
+def test_a_timed_checkpoint_exports_the_state(tmp_path, setup):
+    cfg, examples = setup
+    hook = long_run.LongRun(
+        tmp_path, tmp_path / "none.msgpack", cfg.to_dict(), checkpoint_seconds=0.0, say=print
+    )
+    exported = []
+    hook_export = hook.on_checkpoint
+
+    def spy(state):
+        hook_export(state)
+        exported.append(long_run.read_meta(tmp_path / long_run.LOCAL_STATE)["step"])
+
+    hook.on_checkpoint = spy
+    train.train(cfg, examples, tmp_path, progress=False, hooks=[hook])
+    assert exported == [1, 2, 3, 4]  # every step was due (ckpt_every is 0 here)
+
+
+def test_bad_state_files_and_the_command_line(tmp_path, capsys):
+    bad = tmp_path / "bad.msgpack"
+    bad.write_bytes(b"not msgpack at all")
+    with pytest.raises(ValueError, match="not a long-run state file"):
+        long_run.read_meta(bad)
+    with pytest.raises(FileNotFoundError, match="no state file"):
+        long_run.read_meta(tmp_path / "missing.msgpack")
+    args = ["--workdir", str(tmp_path / "w"), "--state", str(bad)]
+    assert long_run.main(["status", *args]) == 2
+    assert "not a long-run state file" in capsys.readouterr().err
+    assert long_run.main(["save", *args, "--curve", str(tmp_path / "c.csv")]) == 2
+    assert "exported no state" in capsys.readouterr().err
+    (tmp_path / "w").mkdir()
+    (tmp_path / "w" / long_run.PID_FILE).write_text(f"{os.getpid()}\n")
+    with pytest.raises(long_run.StateConflictError, match="still running"):
+        long_run.save(tmp_path / "w", bad, tmp_path / "c.csv")
