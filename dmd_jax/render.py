@@ -32,7 +32,8 @@ UP_AXES = ("z", "y", "auto")
 _GREY = np.array([0.74, 0.77, 0.84])
 # Bounds on the picture: a panel's longer side in inches, and the whole canvas in
 # pixels (Agg allocates 4 bytes a pixel at once; 100 M pixels is 400 MB).
-MAX_PANEL_SIZE = 20.0
+MIN_PANEL_SIZE, MAX_PANEL_SIZE = 0.5, 20.0
+MIN_DPI, MAX_DPI = 30, 1200
 MAX_PIXELS = 100e6
 _TITLE_IN = 0.3  # inches of title strip above the first row
 _BAR_IN = 0.62  # inches of colour-bar strip under the values row
@@ -68,6 +69,80 @@ def _camera(elev: float, azim: float) -> tuple[np.ndarray, np.ndarray, np.ndarra
     view = np.array([math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)])
     right = np.array([-math.sin(a), math.cos(a), 0.0])
     return view, right, np.cross(view, right)
+
+
+def check_direction(name: str, value) -> np.ndarray:
+    """A camera direction or a point: three finite numbers, as a float64 `[3]` array.
+
+    Raises:
+      ValueError: naming `name`, for anything else.
+    """
+    try:
+        d = np.asarray(value, np.float64)
+    except (TypeError, ValueError):
+        d = None
+    if d is None or d.shape != (3,) or not np.all(np.isfinite(d)):
+        raise ValueError(f"{name} must be three finite numbers x, y, z, got {value!r}")
+    return d
+
+
+def view_angles(view, up: str = "z") -> tuple[float, float]:
+    """`(elev, azim)` in degrees of a camera looking along `view`.
+
+    Args:
+      view: `[3]` the direction the camera looks along, in the meshes' coordinates
+        (the convention of `dmd_jax.simulate_scan`'s `view`: the sensor's side of the
+        surface is the side shown).
+      up: `"z"` or `"y"`, the up axis the angles are taken about (`render_meshes`' `up`).
+
+    Raises:
+      ValueError: `view` not three finite numbers, or zero.
+    """
+    d = check_direction("view", view)
+    length = float(np.linalg.norm(d))
+    if not length > 0:
+        raise ValueError(f"view must not be zero, got {view!r}")
+    # The camera sits on the side it looks from: towards the viewer is -view.
+    towards = _to_z_up((-d / length)[None, :], _resolve_up(up, None, None))[0]
+    elev = math.degrees(math.asin(float(np.clip(towards[2], -1.0, 1.0))))
+    azim = math.degrees(math.atan2(towards[1], towards[0]))
+    return elev, azim
+
+
+# An open mesh whose faces' area vectors add up to at least this share of its area is
+# seen from one side (a single-view scan: 0.63 to 0.69 for `simulate_scan` of the
+# shared bunny; a hemisphere 0.5); a closed mesh adds up to 0.
+AUTO_VIEW_MIN_OPENNESS = 0.3
+
+
+def auto_view(meshes) -> np.ndarray | None:
+    """The direction to look along that faces a single-view scan, or None.
+
+    The meshes' mean area-weighted face normal, each mesh weighted alike: a range scan's
+    faces are wound to face the sensor (`simulate_scan`'s are, as real scans' are), so
+    the camera looks against it. None when the normals cancel (a closed mesh, or an open
+    one seen from all round, less than `AUTO_VIEW_MIN_OPENNESS`): keep the default view.
+
+    Args:
+      meshes: `(vertices [n, 3], faces [f, 3])` pairs.
+
+    Returns:
+      `[3]` unit look direction in the meshes' coordinates (for `view_angles`), or None.
+    """
+    total = np.zeros(3)
+    for v, f in meshes:
+        v = np.asarray(v, np.float64)
+        f = np.asarray(f, np.int64)
+        v = canonical_frame(v).apply(v)
+        cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+        area = float(np.linalg.norm(cross, axis=1).sum())
+        if area > 0:
+            total += cross.sum(axis=0) / area
+    total /= max(len(meshes), 1)
+    openness = float(np.linalg.norm(total))
+    if not openness >= AUTO_VIEW_MIN_OPENNESS:
+        return None
+    return -total / openness
 
 
 def _to_z_up(v: np.ndarray, up: str) -> np.ndarray:
@@ -157,13 +232,24 @@ def sharpest_face(
     f = np.asarray(faces, np.int64)
     v = _to_z_up(canonical_frame(v).apply(v), _resolve_up(up, v, f))
     sharp = dihedral_angles(v, f)
-    view, right, screen_up = _camera(elev, azim)
     candidates = np.flatnonzero(sharp >= 0.8 * sharp.max())
+    return _best_in_view(v, f, candidates, np.zeros(len(f)), elev, azim, crop_size)
+
+
+def _best_in_view(v, f, candidates, score, elev, azim, crop_size) -> int:
+    """Of `candidates` (face indices), the one with the best `score` plus the share of
+    its zoom window covered by surface; facing the camera preferred, hidden ones (behind
+    another face) left out. `v` in the canonical frame, Z up."""
+    view, right, screen_up = _camera(elev, azim)
     facing = np.abs(face_normals_np(v, f[candidates]) @ view) > 0.2
     if facing.any():
         candidates = candidates[facing]
     if len(candidates) > 32:
-        candidates = candidates[np.linspace(0, len(candidates) - 1, 32).astype(int)]
+        best_first = candidates[np.argsort(-score[candidates], kind="stable")]
+        top = best_first[: 32 if np.ptp(score[candidates]) > 0 else len(best_first)]
+        candidates = np.sort(top)
+        if len(candidates) > 32:
+            candidates = candidates[np.linspace(0, len(candidates) - 1, 32).astype(int)]
     xy = np.stack([v @ right, v @ screen_up], axis=1)
     tri = xy[f]  # [n_face, 3, 2]
     depth = v[f].mean(axis=1) @ view
@@ -184,10 +270,64 @@ def sharpest_face(
         p = tri[c].mean(axis=0)
         hidden = np.any(covering(p[None])[0] & (depth > depth[c] + 1e-3))
         covered = covering(p + crop_size * grid).any(axis=1).mean()
-        score = float(covered) - (10.0 if hidden else 0.0)
-        if score > best_score:
-            best, best_score = int(c), score
+        total = float(score[c]) + float(covered) - (10.0 if hidden else 0.0)
+        if total > best_score:
+            best, best_score = int(c), total
     return best
+
+
+def most_different_face(
+    meshes,
+    *,
+    elev: float = _ELEV,
+    azim: float = _AZIM,
+    up: str = "z",
+    crop_size: float = 0.15,
+) -> int:
+    """A face where the meshes differ most, in view: a crop centre for `zoom="auto"`.
+
+    Per face, the largest angle between the normals of any two meshes; averaged over the
+    zoom window (faces whose centroid lies within `crop_size` of the face's, in the last
+    mesh's canonical frame: the clean one of `dmd-jax render --gt`), so one stray face
+    does not outweigh a region; the best of those that face the camera and are not
+    hidden. Meshes that do not differ give `sharpest_face` of the last one.
+
+    Args:
+      meshes: `(vertices [n, 3], faces [f, 3])` pairs sharing their faces.
+      elev, azim: the camera, degrees.
+      up: the up axis, `"z"`, `"y"` or `"auto"`.
+      crop_size: half-width of the zoom window, canonical units.
+
+    Returns:
+      The face index (the same in every mesh).
+
+    Raises:
+      ValueError: meshes with different faces.
+    """
+    from scipy.spatial import cKDTree
+
+    ref_v, ref_f = (np.asarray(x) for x in meshes[-1])
+    if not all(np.shape(f) == ref_f.shape and np.array_equal(f, ref_f) for _, f in meshes):
+        raise ValueError("zoom 'auto' compares faces one to one: the meshes must share faces")
+    f = ref_f.astype(np.int64)
+    normals = [face_normals_np(np.asarray(v, np.float64), f) for v, _ in meshes]
+    spread = np.zeros(len(f))
+    for i in range(len(normals)):
+        for j in range(i + 1, len(normals)):
+            cos = np.clip(np.sum(normals[i] * normals[j], axis=1), -1.0, 1.0)
+            spread = np.maximum(spread, np.degrees(np.arccos(cos)))
+    v = np.asarray(ref_v, np.float64)
+    v = _to_z_up(canonical_frame(v).apply(v), _resolve_up(up, v, f))
+    if not spread.max() > 1e-6:
+        return sharpest_face(v, f, elev=elev, azim=azim, up="z", crop_size=crop_size)
+    centroid = v[f].mean(axis=1)
+    candidates = np.argsort(-spread, kind="stable")[:256]
+    near = cKDTree(centroid).query_ball_point(centroid[candidates], crop_size)
+    window = np.zeros(len(f))
+    window[candidates] = [spread[k].mean() for k in near]
+    # Scores in units of the best window (coverage, in [0, 1], breaks near-ties).
+    score = 4.0 * window / window.max()
+    return _best_in_view(v, f, candidates, score, elev, azim, crop_size)
 
 
 def nice_range(values: Sequence[np.ndarray], percentile: float = 95.0) -> tuple[float, float]:
@@ -245,9 +385,12 @@ def render_meshes(
     elev: float = _ELEV,
     azim: float = _AZIM,
     up: str = "z",
+    view=None,
     panel_size: float = 3.2,
     shaded_row: bool | None = None,
     crop_face: int | None = None,
+    zoom: str | None = None,
+    zoom_at=None,
     crop_size: float = 0.15,
     cmap: str = "inferno",
     dpi: int = 110,
@@ -269,15 +412,25 @@ def render_meshes(
         95th percentile, rounded up; symmetric if any value is negative).
       elev, azim: camera angles in degrees, about the model's up axis.
       up: the model's up axis, `"z"`, `"y"` or `"auto"` (`resolve_up`: the meshes vote).
-      panel_size: inches of a panel's longer side.
+      view: instead of `elev`/`azim`, the direction `[3]` the camera looks along, in the
+        meshes' coordinates (`simulate_scan`'s `view` shows the side its sensor saw;
+        `view_angles`), or `"auto"`: facing a single-view scan (`auto_view`), and
+        `elev`/`azim` for a closed mesh.
+      panel_size: inches of a panel's longer side, `MIN_PANEL_SIZE` (0.5) to
+        `MAX_PANEL_SIZE` (20).
       shaded_row: add a grey shaded row above the values; default: only when there are
         no `face_values` (then it is the only row).
       crop_face: a face index (the same in every mesh, e.g. from `sharpest_face`):
         adds a shaded row zoomed on that face.
+      zoom: instead of `crop_face`, `"sharpest"` (`sharpest_face` of the last mesh) or
+        `"auto"` (`most_different_face`: where the meshes differ most); both need
+        meshes that share their faces.
+      zoom_at: instead of `crop_face`, a point `[3]` in the meshes' coordinates: the
+        zoom row is centred on it in every panel (each mesh in its own canonical frame).
       crop_size: half-width of the zoom window, in canonical units (bounding box
         longest side 1).
       cmap: matplotlib colour map of the values row.
-      dpi: pixels per inch.
+      dpi: pixels per inch, `MIN_DPI` (30) to `MAX_DPI` (1200).
       overwrite: replace an existing file.
       max_faces: refuse meshes larger than this (matplotlib is not a rasteriser for
         millions of faces).
@@ -299,12 +452,22 @@ def render_meshes(
     face_values = list(face_values) if has_values else [None] * n_col
     if len(titles) != n_col or len(face_values) != n_col:
         raise ValueError("titles and face_values need one entry per mesh")
-    if not (isinstance(panel_size, int | float) and 0 < panel_size <= MAX_PANEL_SIZE):
-        # A bound, not only a sign: 150 inches asks Agg for a 1 GB canvas and dies in C++.
+    if not (isinstance(panel_size, int | float) and MIN_PANEL_SIZE <= panel_size <= MAX_PANEL_SIZE):
+        # Bounds, not only a sign: 150 inches asks Agg for a 1 GB canvas and dies in C++,
+        # and a panel under a pixel leaves Agg an empty image it cannot write.
         raise ValueError(
-            f"panel_size must be in (0, {MAX_PANEL_SIZE:g}] inches, got {panel_size!r}"
+            f"panel_size must be in [{MIN_PANEL_SIZE:g}, {MAX_PANEL_SIZE:g}] inches, "
+            f"got {panel_size!r}"
         )
-    prepared = []
+    if not (isinstance(dpi, int | float) and MIN_DPI <= dpi <= MAX_DPI):
+        raise ValueError(f"dpi must be in [{MIN_DPI}, {MAX_DPI}], got {dpi!r}")
+    if sum(x is not None for x in (crop_face, zoom, zoom_at)) > 1:
+        raise ValueError("give one of crop_face, zoom and zoom_at")
+    if zoom not in (None, "sharpest", "auto"):
+        raise ValueError(f"zoom must be 'sharpest', 'auto' or None, got {zoom!r}")
+    if zoom_at is not None:
+        zoom_at = check_zoom_point(zoom_at, meshes)
+    prepared, frames = [], []
     for i, (v, f) in enumerate(meshes):
         v = np.asarray(v, np.float64)
         f = np.asarray(f, np.int64)
@@ -314,11 +477,26 @@ def render_meshes(
             raise ValueError(f"mesh {i}: faces must be a non-empty [n_face, 3] array")
         if crop_face is not None and not 0 <= crop_face < len(f):
             raise ValueError(f"crop_face {crop_face} is out of range for mesh {i}")
-        prepared.append((canonical_frame(v).apply(v), f))
+        frames.append(canonical_frame(v))
+        prepared.append((frames[-1].apply(v), f))
     for i, fv in enumerate(face_values):
         if fv is not None and np.shape(fv) != (len(prepared[i][1]),):
             raise ValueError(f"face_values[{i}] needs one value per face of mesh {i}")
     up = resolve_up(up, prepared)
+    if isinstance(view, str):
+        if view != "auto":
+            raise ValueError(f"view must be 'auto' or three numbers x, y, z, got {view!r}")
+        view = auto_view(prepared)
+    if view is not None:
+        elev, azim = view_angles(view, up)
+    if zoom is not None:
+        ref_f = prepared[-1][1]
+        if any(f.shape != ref_f.shape or (f != ref_f).any() for _, f in prepared):
+            raise ValueError(f"zoom {zoom!r} needs meshes that share their faces")
+        if zoom == "sharpest":
+            crop_face = sharpest_face(*prepared[-1], elev=elev, azim=azim, up=up)
+        else:
+            crop_face = most_different_face(prepared, elev=elev, azim=azim, up=up)
     vals = [np.asarray(x, np.float64) for x in face_values if x is not None]
     if has_values and not vals:
         has_values = False
@@ -331,13 +509,18 @@ def render_meshes(
     # Light from the upper left of the viewer, fixed to the camera.
     light = view + 0.55 * screen_up - 0.45 * right
     light /= np.linalg.norm(light)
-    projected = []
-    for v, f in prepared:
+    projected, crop_centres = [], []
+    for (v, f), frame in zip(prepared, frames, strict=True):
         v = _to_z_up(v, up)
         xy = np.stack([v @ right, v @ screen_up], axis=1)
         order = np.argsort(v[f].mean(axis=1) @ view)  # painter's algorithm: far first
         shade = 0.22 + 0.78 * np.abs(face_normals_np(v, f) @ light)
         projected.append((xy, f, order, shade))
+        if zoom_at is not None:
+            point = _to_z_up(frame.apply(zoom_at)[None, :], up)[0]
+            crop_centres.append(np.array([point @ right, point @ screen_up]))
+        elif crop_face is not None:
+            crop_centres.append(xy[f[crop_face]].mean(axis=0))
 
     # Panel shape: the projected extent of the first mesh, clamped to 1:2 .. 2:1.
     lo = np.min([p[0].min(axis=0) for p in projected], axis=0)
@@ -355,7 +538,7 @@ def render_meshes(
     rows = []
     if shaded_row or not has_values:
         rows.append("shaded")
-    if crop_face is not None:
+    if crop_centres:
         rows.append("zoom")
     if has_values:
         rows.append("values")
@@ -375,7 +558,7 @@ def render_meshes(
     fig_h = title_in + panel_h * len(rows) + bar_in
     fig = plt.figure(figsize=(fig_w, fig_h))
     cm = plt.get_cmap(cmap)
-    zoom = max(span.max(), 1e-12) / (2 * crop_size)
+    zoom_factor = max(span.max(), 1e-12) / (2 * crop_size)
 
     def limits(center, half_w, half_h, ax):
         ax.set_xlim(center[0] - half_w, center[0] + half_w)
@@ -419,11 +602,10 @@ def render_meshes(
             else:
                 half[1] = half[0] * panel_h / panel_w
             if row == "zoom":
-                center = xy[f[crop_face]].mean(axis=0)
-                limits(center, half[0] / zoom, half[1] / zoom, ax)
+                limits(crop_centres[c], half[0] / zoom_factor, half[1] / zoom_factor, ax)
             else:
                 limits(0.5 * (lo + hi), half[0], half[1], ax)
-            label = {"shaded": "", "zoom": f"zoom ×{zoom:.1f}", "values": ""}[row]
+            label = {"shaded": "", "zoom": f"zoom ×{zoom_factor:.1f}", "values": ""}[row]
             if row == "values" and fv is None:
                 label = "reference"
             if label:
@@ -457,6 +639,24 @@ def render_meshes(
         return atomic_write(path, write, overwrite=overwrite)
     finally:
         plt.close(fig)
+
+
+def check_zoom_point(point, meshes, name: str = "zoom_at") -> np.ndarray:
+    """A zoom centre `[3]` that lies on or near the meshes, as float64.
+
+    Raises:
+      ValueError: naming `name`: not three finite numbers, or outside every mesh's
+        bounding box grown by a tenth of its longest side (the zoom would show nothing).
+    """
+    point = check_direction(name, point)
+    for v, _ in meshes:
+        # The canonical frame's box has half-sides of at most 0.5.
+        if np.all(np.abs(canonical_frame(v).apply(point)) <= 0.6):
+            return point
+    raise ValueError(
+        f"{name} {point.tolist()} lies outside the meshes (beyond their bounding boxes); "
+        "its zoom would be empty"
+    )
 
 
 def saturation_note(value_range, vals) -> str:

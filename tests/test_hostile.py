@@ -386,7 +386,7 @@ def test_case9_render_panel_size_is_bounded(capsys, sphere_files, size):
     for out in ("r.png", "r.html"):
         code, _, err = run(capsys, "render", tmp / "gt.off", "-o", tmp / out, "--panel-size", size)
         assert code == 2
-        _one_line_error(err, "--panel-size must be in (0, 20] inches")
+        _one_line_error(err, "--panel-size must be in [0.5, 20] inches")
         assert not (tmp / out).exists()
 
 

@@ -13,11 +13,36 @@ from dmd_jax.cli._common import (
     check_range,
 )
 
+# The camera of `--elev`/`--azim` alone, and of `--view auto` on a closed mesh.
+_DEFAULT_ELEV, _DEFAULT_AZIM = 20.0, -60.0
+
+
+def _triple(flag: str, text: str):
+    """`x,y,z` of `--view` / `--zoom-at` as a float64 `[3]` array, or a one-line error
+    naming the option."""
+    from dmd_jax.render import check_direction
+
+    parts = str(text).split(",")
+    try:
+        numbers = [float(x) for x in parts]
+    except ValueError:
+        numbers = None
+    try:
+        if numbers is None:
+            raise ValueError
+        return check_direction(flag, numbers)
+    except ValueError:
+        raise ValueError(
+            f"{flag} must be three finite numbers x,y,z (e.g. 0,0,-1), got {text!r}"
+        ) from None
+
 
 def _cmd_render(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from dmd_jax.render import render_meshes, resolve_up, sharpest_face
+    import numpy as np
+
+    from dmd_jax.render import auto_view, render_meshes, resolve_up, view_angles
 
     kind = Path(args.output).suffix.lower()
     if kind not in (".png", ".html"):
@@ -28,16 +53,33 @@ def _cmd_render(args: argparse.Namespace) -> int:
         # Degrees of normal error: 0 to 180, both ends finite.
         check_range("--range", args.range[0], -180, 180)
         check_range("--range", args.range[1], -180, 180)
-    from dmd_jax.render import MAX_PANEL_SIZE, MAX_VIEW_DEGREES
+    from dmd_jax.render import MAX_PANEL_SIZE, MAX_VIEW_DEGREES, MIN_PANEL_SIZE
 
     check_range("--elev", args.elev, -MAX_VIEW_DEGREES, MAX_VIEW_DEGREES)
     check_range("--azim", args.azim, -MAX_VIEW_DEGREES, MAX_VIEW_DEGREES)
     check_range("number of panels", len(args.inputs) + bool(args.gt), 1, MAX_PANELS)
 
-    if not 0 < args.panel_size <= MAX_PANEL_SIZE:  # NaN fails too
+    if not MIN_PANEL_SIZE <= args.panel_size <= MAX_PANEL_SIZE:  # NaN fails too
+        # Below half an inch a panel has too few pixels to show a mesh (under a pixel,
+        # none at all: matplotlib cannot write the empty image).
         raise ValueError(
-            f"--panel-size must be in (0, {MAX_PANEL_SIZE:g}] inches, got {args.panel_size:g}"
+            f"--panel-size must be in [{MIN_PANEL_SIZE:g}, {MAX_PANEL_SIZE:g}] inches, "
+            f"got {args.panel_size:g}"
         )
+    angles_given = args.elev is not None or args.azim is not None
+    view = "auto" if args.view is None and not angles_given else args.view
+    if view is not None and view != "auto":
+        view = _triple("--view", view)
+        if not np.linalg.norm(view) > 0:
+            raise ValueError(f"--view must not be zero, got {args.view!r}")
+    if view is not None and angles_given:
+        raise ValueError("give --view or --elev/--azim, not both")
+    zoom_at = None if args.zoom_at is None else _triple("--zoom-at", args.zoom_at)
+    zoom = "none" if args.no_zoom else args.zoom
+    if zoom_at is not None and zoom != "sharpest":  # sharpest: the default, overridden
+        raise ValueError("give --zoom-at or --zoom auto/none/--no-zoom, not both")
+    if kind == ".html" and zoom_at is not None:
+        raise ValueError("--zoom-at draws a zoom row of a .png; an .html page has none")
     _check_output(
         args.output,
         args.inputs + ([args.gt] if args.gt else []),
@@ -45,6 +87,10 @@ def _cmd_render(args: argparse.Namespace) -> int:
         parents=args.parents,
     )
     meshes = [_load_input(p) for p in args.inputs]
+    if zoom_at is not None:
+        from dmd_jax.render import check_zoom_point
+
+        check_zoom_point(zoom_at, meshes, "--zoom-at")
     if args.parents:
         _make_parent(args.output)
     titles = args.titles.split(",") if args.titles else [Path(p).stem for p in args.inputs]
@@ -78,13 +124,20 @@ def _cmd_render(args: argparse.Namespace) -> int:
         for i, (v, _) in enumerate(meshes[: len(args.inputs)]):
             mean = np.nanmean(face_normal_errors_deg(v, gt_v, gt_f, undefined=math.nan))
             titles[i] += f"\n{NORMAL.name} {format_metric(NORMAL, mean)}{NORMAL.unit}"
-    view = dict(
+    up = resolve_up(args.up, meshes)
+    elev = _DEFAULT_ELEV if args.elev is None else args.elev
+    azim = _DEFAULT_AZIM if args.azim is None else args.azim
+    if isinstance(view, str):  # auto: facing a single-view scan, else the default view
+        view = auto_view(meshes)
+    if view is not None:
+        elev, azim = view_angles(view, up)
+    camera = dict(
         titles=titles,
         face_values=values,
         value_range=None if args.range is None else tuple(args.range),
-        elev=args.elev,
-        azim=args.azim,
-        up=resolve_up(args.up, meshes),
+        elev=elev,
+        azim=azim,
+        up=up,
     )
     if kind == ".html":
         from dmd_jax.viewer import comparison_html
@@ -94,23 +147,23 @@ def _cmd_render(args: argparse.Namespace) -> int:
             args.output,
             overwrite=args.overwrite,
             panel_px=round(130 * args.panel_size),
-            **view,
+            **camera,
         )
     else:
-        crop = None
-        if not args.no_zoom:
-            # Zoom on the sharpest feature of the clean mesh (or of the first input).
-            ref_v, ref_f = meshes[-1]
-            if all(f.shape == ref_f.shape and (f == ref_f).all() for _, f in meshes):
-                crop = sharpest_face(ref_v, ref_f, elev=args.elev, azim=args.azim, up=view["up"])
+        ref_f = meshes[-1][1]
+        shared = all(f.shape == ref_f.shape and (f == ref_f).all() for _, f in meshes)
+        # sharpest: the sharpest feature of the clean mesh (or of the last input); auto:
+        # where the panels differ most. Both compare faces one to one; meshes with
+        # faces of their own get no zoom row unless --zoom-at names a point.
         render_meshes(
             meshes,
             args.output,
             shaded_row=True,
-            crop_face=crop,
+            zoom=zoom if zoom != "none" and zoom_at is None and shared else None,
+            zoom_at=zoom_at,
             panel_size=args.panel_size,
             overwrite=args.overwrite,
-            **view,
+            **camera,
         )
     print(f"wrote {args.output}")
     return 0
@@ -134,8 +187,22 @@ def add_parser(sub) -> None:
         help="clean mesh: colour faces by normal error against it, shown as the last panel",
     )
     p.add_argument("--titles", default=None, help="comma-separated panel titles")
-    p.add_argument("--elev", type=float, default=20.0, help="camera elevation, degrees")
-    p.add_argument("--azim", type=float, default=-60.0, help="camera azimuth, degrees")
+    p.add_argument(
+        "--view",
+        default=None,
+        metavar="auto|X,Y,Z",
+        help="the direction the camera looks along, in the meshes' coordinates (e.g. "
+        "the view of dmd_jax.simulate_scan: the side its sensor saw), or auto: facing "
+        "a single-view scan (against its mean face normal), the --elev/--azim default "
+        "for a closed mesh (default: auto unless --elev or --azim is given; a vector "
+        "that starts with a minus is written --view=-1,0,0)",
+    )
+    p.add_argument(
+        "--elev", type=float, default=None, help="camera elevation, degrees (default: 20)"
+    )
+    p.add_argument(
+        "--azim", type=float, default=None, help="camera azimuth, degrees (default: -60)"
+    )
     p.add_argument(
         "--up",
         default="auto",
@@ -144,7 +211,10 @@ def add_parser(sub) -> None:
         "else y (the convention of scans; dmd_jax.render.guess_up_axis)",
     )
     p.add_argument(
-        "--panel-size", type=float, default=3.2, help="inches per panel (HTML: × 130 px)"
+        "--panel-size",
+        type=float,
+        default=3.2,
+        help="inches per panel, 0.5 to 20 (HTML: × 130 px)",
     )
     p.add_argument(
         "--range",
@@ -155,7 +225,20 @@ def add_parser(sub) -> None:
         help="error colour range in degrees (default: 0 to the best panel's 95th "
         "percentile, rounded up)",
     )
-    p.add_argument("--no-zoom", action="store_true", help="PNG: no zoom on the sharpest edge")
+    p.add_argument(
+        "--zoom",
+        default="sharpest",
+        choices=["sharpest", "auto", "none"],
+        help="PNG zoom row: on the sharpest edge of the last panel, or auto: where the "
+        "panels differ most (their face normals), or none",
+    )
+    p.add_argument(
+        "--zoom-at",
+        default=None,
+        metavar="X,Y,Z",
+        help="PNG: centre the zoom row on this point, in the meshes' coordinates",
+    )
+    p.add_argument("--no-zoom", action="store_true", help="PNG: no zoom row (--zoom none)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.add_argument("--parents", action="store_true", help="create -o's missing folders")
     p.set_defaults(func=_cmd_render)
