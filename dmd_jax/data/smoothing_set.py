@@ -1,0 +1,369 @@
+"""The smoothing controller's training set: generated noisy meshes and, for each, the
+error of every amount of smoothing.
+
+How much to smooth (Laplacian pre-smoothing steps, network passes, the vertex update)
+is a choice per mesh that the controller (`dmd_jax.controller`) learns from examples.
+Each example is a clean mesh from the training split (procedural shapes, patches of
+the real training meshes, the stress shapes; never the real validation split, never
+the public test meshes), one draw of one noise kind, the controller's statistics of the
+noisy mesh (`controller_features.features`) and a search: the mean face-normal error
+after `p` pre-smoothing steps and `k` network passes with either vertex update, for
+every `p` of `PRESMOOTH_GRID` and `k` from 0 to `SEARCH_PASSES` (one run of
+`SEARCH_PASSES` passes gives every pass count).
+
+Every example is a pure function of `(seed, index)` and the sources, written as one
+`.npz` (`examples/NNNNN.npz`: `features`, `errors [n_presmooth, n_update, passes + 1]`,
+`spec` as JSON): a build resumes where it stopped, and two builds agree file by file.
+
+    python -m dmd_jax.data.smoothing_set --out data/smoothing --examples 2000
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+PRESMOOTH_GRID = (0, 3, 8, 20)
+SEARCH_PASSES = 8
+UPDATES = ("jacobi", "solve")
+# Noise kinds and their share of the examples.
+KINDS = {
+    "gaussian_normal": 0.22,
+    "gaussian_iso": 0.12,
+    "impulse": 0.08,
+    "scanner": 0.22,
+    "scan": 0.16,
+    "fine": 0.12,
+    "clean": 0.08,
+}
+# Patch sizes: the search runs one compiled program per padded size, so examples are
+# crops of about this many faces (the controller's statistics are per-area, not totals).
+PATCH_FACES = (600, 1500)
+
+
+def example_spec(seed: int, index: int, sources: dict[str, int]) -> dict:
+    """What example `index` is: a pure function of `(seed, index)` and the source counts.
+
+    Args:
+      seed: the set's seed.
+      index: the example's number.
+      sources: how many meshes each source has (`{"procedural": n, "real": n, "stress": n}`).
+
+    Returns:
+      A JSON-able dict: source, mesh, patch seed and size, noise kind and its parameters,
+      and the noise seed.
+    """
+    rng = np.random.default_rng([seed, index])
+    names = [k for k in ("procedural", "real", "stress") if sources.get(k)]
+    weights = np.array([{"procedural": 0.45, "real": 0.45, "stress": 0.10}[k] for k in names])
+    source = names[int(rng.choice(len(names), p=weights / weights.sum()))]
+    kinds = list(KINDS)
+    kind = kinds[int(rng.choice(len(kinds), p=np.array(list(KINDS.values()))))]
+    spec = {
+        "index": index,
+        "source": source,
+        "mesh": int(rng.integers(sources[source])),
+        "patch_faces": int(rng.integers(*PATCH_FACES)),
+        "patch_seed": int(rng.integers(2**31)),
+        "kind": kind,
+        "noise_seed": int(rng.integers(2**31)),
+    }
+    if kind in ("gaussian_normal", "gaussian_iso"):
+        spec["level"] = float(np.exp(rng.uniform(np.log(0.05), np.log(0.6))))
+    elif kind == "impulse":
+        spec["level"] = float(rng.uniform(0.3, 1.0))
+    elif kind in ("scanner", "scan", "fine"):
+        # Real depth-camera noise is correlated over 4-16 rings: vary the scanner model
+        # widely rather than train on its defaults alone.
+        spec["level"] = float(rng.uniform(0.03, 0.15) if kind == "fine" else rng.uniform(0.2, 1.0))
+        spec["correlation_length"] = float(np.exp(rng.uniform(np.log(2.0), np.log(16.0))))
+        spec["white_share"] = float(rng.uniform(0.02, 0.4))
+        spec["grazing_max_gain"] = float(rng.uniform(1.0, 3.0))
+        spec["spike_share"] = float(rng.choice([0.0, 0.001, 0.005]))
+        if kind == "scan":
+            spec["resolution"] = int(rng.choice([48, 64, 96]))
+    return spec
+
+
+def scanner_model(spec: dict):
+    """The `ScannerModel` of a spec's scanner, scan or fine noise."""
+    from dmd_jax.scanner_model import ScannerModel
+
+    return ScannerModel(
+        correlation_length=spec["correlation_length"],
+        white_share=spec["white_share"],
+        grazing_max_gain=spec["grazing_max_gain"],
+        spike_share=spec["spike_share"],
+    )
+
+
+def noisy_example(spec: dict, clean: np.ndarray, faces: np.ndarray):
+    """`(clean, noisy, faces)` of a spec, from its clean crop.
+
+    A scan replaces the crop by what a simulated depth camera sees of it (its own
+    clean surface points, faces and holes).
+    """
+    from dmd_jax import add_noise, noise
+    from dmd_jax.scan import simulate_scan
+
+    kind, seed = spec["kind"], spec["noise_seed"]
+    if kind == "clean":
+        return clean, clean.copy(), faces
+    if kind == "gaussian_normal":
+        return (
+            clean,
+            add_noise(
+                seed, clean, faces, "gaussian", spec["level"], units="edge", direction="normal"
+            ),
+            faces,
+        )
+    if kind == "gaussian_iso":
+        return clean, add_noise(seed, clean, faces, "gaussian", spec["level"], units="edge"), faces
+    if kind == "impulse":
+        return clean, add_noise(seed, clean, faces, "impulse", spec["level"], units="edge"), faces
+    model = scanner_model(spec)
+    if kind == "scan":
+        scan = simulate_scan(
+            seed, clean, faces, resolution=spec["resolution"], level=spec["level"], model=model
+        )
+        return scan.clean, scan.noisy, scan.faces
+    import jax
+
+    noisy = noise.scanner_noise(
+        jax.random.PRNGKey(seed), clean, faces, spec["level"], units="edge", model=model
+    )
+    return clean, noisy, faces
+
+
+class Sources:
+    """The clean meshes examples are cut from: procedural training meshes, the real
+    training split, the stress shapes (loaded on first use, kept)."""
+
+    def __init__(self, dataset_dir=None, real_root=None):
+        self.dataset_dir, self.real_root = dataset_dir, real_root
+        self._procedural = self._real = None
+        from dmd_jax.data.stress import stress_shapes
+
+        self._stress = list(stress_shapes().values())
+
+    def counts(self) -> dict[str, int]:
+        out = {"stress": len(self._stress)}
+        if self.dataset_dir is not None:
+            out["procedural"] = len(self._procedural_records())
+        if self.real_root is not None:
+            out["real"] = len(self._real_files())
+        return out
+
+    def _procedural_records(self):
+        if self._procedural is None:
+            from dmd_jax.data.store import load_dataset
+
+            self._procedural = load_dataset(self.dataset_dir).split("train")
+        return self._procedural
+
+    def _real_files(self):
+        if self._real is None:
+            from dmd_jax.data.real import mesh_files
+
+            self._real = mesh_files(self.real_root, "train")
+        return self._real
+
+    def mesh(self, spec: dict) -> tuple[np.ndarray, np.ndarray]:
+        """The clean crop of a spec: `(vertices [m, 3] float64, faces [k, 3] int32)`."""
+        from dmd_jax.data.real import patch_mesh
+        from dmd_jax.data.stress import subdivide
+
+        source, i = spec["source"], spec["mesh"]
+        if source == "stress":
+            v, f = self._stress[i]
+            v, f = np.asarray(v, np.float64), np.asarray(f, np.int32)
+            while len(f) < spec["patch_faces"] // 2:
+                v, f = subdivide(v, f, 1)
+            return np.asarray(v, np.float64), np.asarray(f, np.int32)
+        if source == "procedural":
+            record = self._procedural_records()[i]
+            v, f = record.load()
+        else:
+            from dmd_jax.io import load_mesh
+
+            v, f = load_mesh(self._real_files()[i])
+        v, f = np.asarray(v, np.float64), np.asarray(f, np.int64)
+        if len(f) <= spec["patch_faces"]:
+            return v, f.astype(np.int32)
+        seed_face = spec["patch_seed"] % len(f)
+        return patch_mesh(v, f, seed_face, spec["patch_faces"])
+
+
+def pass_errors(noisy, clean, faces, bundle) -> np.ndarray:
+    """The mean face-normal error (degrees) of every setting of the search.
+
+    Args:
+      noisy: `[n_vertex, 3]` the noisy mesh.
+      clean: `[n_vertex, 3]` its ground truth.
+      faces: `[n_face, 3]`.
+      bundle: the network (`ModelBundle`).
+
+    Returns:
+      `(errors, first)`: `[len(PRESMOOTH_GRID), len(UPDATES), SEARCH_PASSES + 1]`
+      float64, entry `[p, u, k]` after `PRESMOOTH_GRID[p]` Laplacian steps and `k`
+      passes with update `UPDATES[u]` (`k = 0`: the pre-smoothed mesh itself); and
+      `pass_change` of the first pass on the mesh as given (`[2]`).
+    """
+    from dmd_jax.inference import network_passes
+    from dmd_jax.metrics import face_normal_errors_deg
+    from dmd_jax.presmooth import laplacian_steps
+
+    def error(x):
+        return float(np.mean(face_normal_errors_deg(x, clean, faces)))
+
+    out = np.empty((len(PRESMOOTH_GRID), len(UPDATES), SEARCH_PASSES + 1))
+    bundles = [_with_update(bundle, u) for u in UPDATES]
+    x, done = np.asarray(noisy, np.float64), 0
+    first = None
+    for p, steps in enumerate(PRESMOOTH_GRID):
+        x = laplacian_steps(x, faces, steps - done)
+        done = steps
+        for u, b in enumerate(bundles):
+            out[p, u, 0] = error(x)
+            for k, y in enumerate(network_passes(x, faces, b, SEARCH_PASSES), 1):
+                out[p, u, k] = error(y)
+                if first is None:
+                    first = pass_change(x, y, faces)
+    return out, first
+
+
+def pass_change(before, after, faces) -> np.ndarray:
+    """How much one network pass changed a mesh: `[2]`, the mean vertex move in mean
+    edges of `before` and the mean angle (degrees) between the face normals before and
+    after (a statistic the controller may read: `denoise` runs that pass anyway)."""
+    from dmd_jax.metrics import face_normal_errors_deg
+
+    f = np.asarray(faces, np.int64)
+    edges = np.sort(f[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    mean_edge = float(np.linalg.norm(before[edges[:, 0]] - before[edges[:, 1]], axis=1).mean())
+    move = float(np.linalg.norm(after - before, axis=1).mean()) / max(mean_edge, 1e-300)
+    return np.array([move, float(np.mean(face_normal_errors_deg(after, before, faces)))])
+
+
+def _with_update(bundle, update: str):
+    cfg = bundle.config
+    model = cfg.model.replace(vertex_update=update)
+    return bundle._replace(config=cfg.replace(model=model))
+
+
+def build(
+    out,
+    n_examples: int,
+    *,
+    seed: int = 0,
+    sources: Sources,
+    bundle=None,
+    shard: tuple[int, int] = (0, 1),
+    say=print,
+) -> int:
+    """Writes examples `0 .. n_examples-1` that `out/examples/` lacks; returns how many
+    it wrote. Each is written whole or not at all (a stopped build resumes).
+
+    `shard=(k, n)` writes only the examples whose index is `k` modulo `n` (one process
+    per core, each its own shard)."""
+    from dmd_jax import denoise, load_pretrained
+    from dmd_jax.controller_features import features
+    from dmd_jax.io._files import atomic_write, write_text_atomic
+    from dmd_jax.metrics import face_normal_errors_deg
+
+    out = Path(out)
+    (out / "examples").mkdir(parents=True, exist_ok=True)
+    bundle = load_pretrained() if bundle is None else bundle
+    counts = sources.counts()
+    manifest = {
+        "seed": seed,
+        "sources": counts,
+        "presmooth_grid": PRESMOOTH_GRID,
+        "updates": UPDATES,
+        "search_passes": SEARCH_PASSES,
+        "kinds": KINDS,
+    }
+    mpath = out / "manifest.json"
+    if mpath.is_file() and json.loads(mpath.read_text()) != json.loads(json.dumps(manifest)):
+        raise ValueError(f"{out} holds a set built with other settings (manifest.json)")
+    write_text_atomic(mpath, json.dumps(manifest, indent=2))
+    written, t0 = 0, time.time()
+    for index in range(shard[0], n_examples, shard[1]):
+        path = out / "examples" / f"{index:05d}.npz"
+        if path.exists():
+            continue
+        spec = example_spec(seed, index, counts)
+        clean, faces = sources.mesh(spec)
+        clean, noisy, faces = noisy_example(spec, clean, faces)
+        feats = features(noisy, faces)
+        errors, first = pass_errors(noisy, clean, faces, bundle)
+        # Today's default call, for the controller's report (its gain over the default).
+        default = float(
+            np.mean(face_normal_errors_deg(denoise(noisy, faces, bundle), clean, faces))
+        )
+
+        def write(
+            tmp, feats=feats, errors=errors, spec=spec, faces=faces, first=first, default=default
+        ):
+            with open(tmp, "wb") as fh:
+                np.savez(
+                    fh,
+                    features=feats,
+                    errors=errors,
+                    first_pass=first,
+                    default_error=default,
+                    spec=json.dumps(spec),
+                    n_faces=len(faces),
+                )
+
+        atomic_write(path, write, overwrite=False)
+        written += 1
+        if written % 10 == 0:
+            say(
+                f"{index + 1}/{n_examples} examples, {written} this run, "
+                f"{(time.time() - t0) / written:.2f} s each"
+            )
+    return written
+
+
+def load(out) -> dict:
+    """A built set as arrays: `features [n, N_FEATURES]`, `errors [n, P, U, K + 1]`,
+    `first_pass [n, 2]`, `default_error [n]` and `specs` (a list of dicts)."""
+    files = sorted(Path(out, "examples").glob("*.npz"))
+    out = {"features": [], "errors": [], "first_pass": [], "default_error": [], "specs": []}
+    for path in files:
+        with np.load(path) as z:
+            for key in ("features", "errors", "first_pass", "default_error"):
+                out[key].append(z[key])
+            out["specs"].append(json.loads(str(z["spec"])))
+    return {k: v if k == "specs" else np.array(v) for k, v in out.items()}
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--examples", type=int, default=2000)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--data", default="data/gen_v2", help="procedural dataset")
+    parser.add_argument("--real", default="../shared/meshes/train", help="real meshes")
+    parser.add_argument("--shard", default="0/1", help="K/N: every N-th example from K")
+    args = parser.parse_args(argv)
+    sources = Sources(
+        args.data if Path(args.data).is_dir() else None,
+        args.real if Path(args.real).is_dir() else None,
+    )
+    k, _, n = args.shard.partition("/")
+    wrote = build(args.out, args.examples, seed=args.seed, sources=sources, shard=(int(k), int(n)))
+    print(f"wrote {wrote} examples to {args.out}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("JAX_PLATFORMS", "cpu")
+    raise SystemExit(main())

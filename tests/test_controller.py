@@ -1,0 +1,126 @@
+"""The smoothing controller: its statistics are scale-free and read what they claim, its
+training set's search agrees with `denoise`, and a fit learns a choice that depends on
+the statistics."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from conftest import icosphere
+
+from dmd_jax import add_noise, controller, denoise, load_pretrained
+from dmd_jax.controller_features import FEATURE_NAMES, N_FEATURES, features
+from dmd_jax.data import smoothing_set
+from dmd_jax.metrics import face_normal_errors_deg
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    v, f = icosphere(3)
+    return np.asarray(v, np.float64), np.asarray(f, np.int32)
+
+
+def _rotation(seed):
+    q, _ = np.linalg.qr(np.random.default_rng(seed).standard_normal((3, 3)))
+    return q * np.sign(np.linalg.det(q))
+
+
+def test_features_are_invariant_to_pose_and_scale(sphere):
+    v, f = sphere
+    noisy = add_noise(0, v, f, "gaussian", 0.3, units="edge", direction="normal")
+    a = features(noisy, f)
+    b = features(noisy @ _rotation(1).T * 1e3 + 7.0, f)
+    assert a.shape == (N_FEATURES,) == (len(FEATURE_NAMES),)
+    np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-9)
+
+
+def test_features_read_noise_strength_and_direction(sphere):
+    v, f = sphere
+    named = lambda x: dict(zip(FEATURE_NAMES, features(x, f), strict=True))  # noqa: E731
+    light = named(add_noise(0, v, f, "gaussian", 0.05, units="edge", direction="normal"))
+    heavy = named(add_noise(0, v, f, "gaussian", 0.5, units="edge", direction="normal"))
+    assert heavy["rough_q50"] > 3 * light["rough_q50"]
+    assert heavy["disp_rms"] > light["disp_rms"]
+    iso = named(add_noise(0, v, f, "gaussian", 0.5, units="edge"))
+    scan = named(add_noise(0, v, f, "scanner", 0.5, units="edge", view=[0.0, 0.0, 1.0]))
+    # One view direction: the noise directions' second moment is one-dimensional.
+    assert scan["disp_anisotropy"] > 0.8 and iso["disp_anisotropy"] < 0.5
+    # Along the normals: the displacement is nearly all normal; isotropic noise a third.
+    assert heavy["disp_normal_share"] > 0.8 and iso["disp_normal_share"] < 0.6
+    # Correlated noise survives Laplacian steps that white noise does not.
+    assert scan["rough_ratio_16"] > heavy["rough_ratio_16"]
+    assert light["boundary_share"] == 0.0
+
+
+def test_the_search_is_what_denoise_does(sphere):
+    """Entry [p, u, k] of the search is `denoise(presmooth=p, iterations=k)` with that
+    vertex update (a noisy sphere: no vertex is held)."""
+    v, f = sphere
+    noisy = add_noise(3, v, f, "gaussian", 0.3, units="edge", direction="normal")
+    bundle = load_pretrained()
+    errors, first = smoothing_set.pass_errors(noisy, v, f, bundle)
+    grid = smoothing_set.PRESMOOTH_GRID
+    assert errors.shape == (len(grid), 2, smoothing_set.SEARCH_PASSES + 1)
+    for p, u, k in ((0, 0, 1), (1, 1, 3)):
+        b = smoothing_set._with_update(bundle, smoothing_set.UPDATES[u])
+        out = denoise(noisy, f, b, presmooth=grid[p], iterations=k)
+        want = float(np.mean(face_normal_errors_deg(out, v, f)))
+        assert errors[p, u, k] == pytest.approx(want, rel=1e-4)
+    assert errors[0, 0, 0] == pytest.approx(
+        float(np.mean(face_normal_errors_deg(noisy, v, f))), rel=1e-9
+    )
+    assert first.shape == (2,) and first[0] > 0 and first[1] > 0
+
+
+def test_example_specs_are_pure_and_cover_every_kind():
+    counts = {"procedural": 50, "real": 40, "stress": 8}
+    specs = [smoothing_set.example_spec(0, i, counts) for i in range(400)]
+    assert specs == [smoothing_set.example_spec(0, i, counts) for i in range(400)]
+    assert {s["kind"] for s in specs} == set(smoothing_set.KINDS)
+    assert {s["source"] for s in specs} == set(counts)
+    json.dumps(specs)  # stored with each example
+    scanners = [s for s in specs if s["kind"] in ("scanner", "scan")]
+    lengths = [s["correlation_length"] for s in scanners]
+    assert min(lengths) < 3 and max(lengths) > 12  # the scanner model varied widely
+
+
+def test_a_fit_learns_a_choice_that_depends_on_the_statistics():
+    """Two kinds of example: on one option 1 is best, on the other option 2; the
+    statistic tells them apart. The controller learns to pick per example."""
+    rng = np.random.default_rng(0)
+    n = 400
+    kind = rng.integers(2, size=n)
+    feats = np.stack([kind + 0.1 * rng.standard_normal(n), rng.standard_normal(n)], axis=1)
+    errors = np.full((n, 3), 10.0)
+    errors[kind == 0, 1] = 2.0
+    errors[kind == 1, 2] = 2.0
+    opts = [
+        controller.Option(0, None, 0),
+        controller.Option(0, "jacobi", 1),
+        controller.Option(0, "solve", 1),
+    ]
+    params = controller.fit(feats, errors, opts, hidden=8, steps=500, seed=0)
+    chosen = np.argmax(controller.scores(params, feats), axis=1)
+    assert np.mean(chosen == kind + 1) > 0.98
+    r = controller.evaluate(chosen, errors, np.full(n, 10.0))
+    assert r["to_oracle"] < 1.01 and r["capture"] > 0.95
+    again = controller.fit(feats, errors, opts, hidden=8, steps=500, seed=0)
+    np.testing.assert_array_equal(again.w2, params.w2)  # reproducible
+    back = controller.ControllerParams.from_dict(params.to_dict())
+    assert back.options == params.options
+    assert controller.choose(back, feats[0]) == params.options[int(chosen[0])]
+
+
+def test_malformed_controller_sections_are_refused():
+    opts = [controller.Option(0, None, 0)]
+    good = controller.fit(np.zeros((4, 2)), np.ones((4, 1)), opts, hidden=2, steps=2).to_dict()
+    for broken in (
+        {k: v for k, v in good.items() if k != "w1"},
+        {**good, "b2": np.zeros(5)},
+        {**good, "w1": np.full_like(good["w1"], np.nan)},
+        {**good, "options": [[0, "", "x"]]},
+    ):
+        with pytest.raises(ValueError, match="controller section"):
+            controller.ControllerParams.from_dict(broken)
