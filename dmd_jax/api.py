@@ -65,23 +65,23 @@ def add_noise(
       not JAX's float64 mode is on, and the same as `dmd-jax add-noise --seed`).
     """
 
-    import jax
     import jax.numpy as jnp
 
     from dmd_jax import noise
+    from dmd_jax.mesh import validate_mesh, validate_vertices
 
-    if isinstance(seed, (bool, np.bool_)):
-        raise ValueError(f"seed must be an integer or a jax.random key, got {seed!r}")
-    if isinstance(seed, (int, np.integer)) and not -(2**63) <= int(seed) < 2**63:
-        # jax.random.PRNGKey takes a 64-bit signed integer and overflows past it.
-        raise ValueError(f"seed must lie in [-2**63, 2**63), got {seed}")
-    key = jax.random.PRNGKey(int(seed)) if isinstance(seed, (int, np.integer)) else seed
+    # Every argument is checked before any draw, as `denoise` checks its own.
+    key = noise.seed_key(seed)
+    noise.check_kind(kind)
     level = noise.check_level(level)
-    dtype = _float_dtype(vertices)
-    v = np.asarray(vertices, np.float64)
-    if v.ndim != 2 or v.shape[-1] != 3 or v.shape[0] == 0:
-        raise ValueError(f"vertices must have shape [n_vertex, 3], got {v.shape}")
+    noise.check_units(units)
     noise.check_direction(direction)
+    noise.check_impulse(impulse_p, impulse_q, impulse_mode)
+    dtype = _float_dtype(vertices)
+    if faces is None:
+        v = validate_vertices(vertices)
+    else:
+        v, faces = validate_mesh(vertices, faces)
     if kind == "scanner":
         if direction != "isotropic":
             raise ValueError(

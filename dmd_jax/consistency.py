@@ -37,6 +37,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import breadth_first_order, connected_components
 
+from dmd_jax.constants import CREASE_ANGLE
 from dmd_jax.mesh import face_normals_np
 from dmd_jax.topology import EdgeGroups, adjacent_faces, edge_groups
 
@@ -283,3 +284,68 @@ def scale_groups(vertices: np.ndarray, faces: np.ndarray) -> list[np.ndarray] | 
         groups.append(np.isin(label, left[take]))
         left = left[~take]
     return groups
+
+
+# Faces whose area is below this share of their longest edge squared are taken as zero
+# area: their normal is rounding noise (collinear points a float cannot place exactly).
+ZERO_AREA_SHARE = 1e-12
+STILL_REASON = (
+    "nothing to denoise: every edge between faces of non-zero area is a crease of at "
+    f"least {CREASE_ANGLE:g} degrees, or no face has an area (consistency.still_vertices)"
+)
+
+
+def still_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Which faces belong to a connected part with nothing to denoise, as a mask.
+
+    A part has something to denoise when two of its faces of non-zero area meet on an
+    edge at less than `CREASE_ANGLE` (the crease of `comparison.crease_faces` and the
+    training loss): a smooth stretch the surface could be estimated over. A part with no
+    such edge is all creases (a tetrahedron, an octahedron, an icosahedron: 109.5, 70.5,
+    41.8 degrees), a lone triangle, or faces of zero area only: no neighbourhood to
+    average over, and noise on it cannot be told from shape, so every denoiser returns
+    it as given. A noisy mesh of more than a few dozen faces never qualifies (even noise
+    larger than the edges leaves a tenth of its edges below 30 degrees).
+
+    Args:
+      vertices: `[n_vertex, 3]` finite positions, in any frame.
+      faces: `[n_face, 3]` vertex indices (any winding: they are oriented here).
+
+    Returns:
+      `[n_face]` bool; all False on an ordinary noisy mesh.
+    """
+    f, _ = oriented_faces(np.asarray(faces, np.int64), vertices.shape[0])
+    v = np.asarray(vertices, np.float64)
+    largest = float(np.max(np.abs(v))) if v.size else 0.0
+    if largest > 0:  # a power of two: exact, and no overflow of the cross products
+        v = np.ldexp(v, -int(np.frexp(largest)[1]))
+    corners = v[f]
+    cross = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    area2 = np.linalg.norm(cross, axis=1)
+    longest2 = np.max(np.sum((corners - np.roll(corners, 1, axis=1)) ** 2, axis=2), axis=1)
+    solid = area2 > ZERO_AREA_SHARE * longest2
+    normals = np.zeros_like(cross)
+    normals[solid] = cross[solid] / area2[solid, None]
+    a, b = adjacent_faces(edge_groups(f, v.shape[0]), f.shape[0])
+    smooth = (
+        solid[a]
+        & solid[b]
+        & (np.einsum("ij,ij->i", normals[a], normals[b]) > np.cos(np.radians(CREASE_ANGLE)))
+    )
+    # Parts: faces joined through shared vertices (a face and its corners, one graph).
+    m, n = f.shape[0], v.shape[0]
+    rows = np.repeat(np.arange(m), 3)
+    graph = sp.coo_matrix((np.ones(3 * m), (rows, m + f.ravel())), shape=(m + n, m + n))
+    _, label = connected_components(graph, directed=False)
+    busy = np.zeros(label.max() + 1, bool)
+    busy[label[a[smooth]]] = True
+    return ~busy[label[:m]]
+
+
+def still_vertices(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """`[n_vertex]` the vertices of `still_faces` (every denoiser returns them as given);
+    vertices no face references are not among them."""
+    f = np.asarray(faces, np.int64)
+    out = np.zeros(np.asarray(vertices).shape[0], bool)
+    out[f[still_faces(vertices, f)].ravel()] = True
+    return out

@@ -230,11 +230,10 @@ def build_mesh_graph(faces, n_vertex: int) -> MeshGraph:
       faces: `[n_face, 3]` integer vertex indices (validated with `validate_mesh` first).
       n_vertex: number of vertices, isolated ones included.
     """
-    f = np.asarray(faces, dtype=np.int64)
-    if f.ndim != 2 or f.shape[1] != 3:
-        raise ValueError(f"faces must have shape [n_face, 3], got {f.shape}")
-    if f.size and (f.min() < 0 or f.max() >= n_vertex):
-        raise ValueError(f"face indices must lie in [0, {n_vertex}), got [{f.min()}, {f.max()}]")
+    from dmd_jax.mesh import validate_faces
+
+    f = validate_faces(faces, n_vertex, name="faces", allow_empty=True)
+    n_vertex = int(n_vertex)
     n_face = f.shape[0]
     # One sort of the face edges gives both the unique edges and the adjacent faces.
     groups = edge_groups(f, n_vertex)

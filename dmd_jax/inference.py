@@ -15,7 +15,14 @@ import jax
 import numpy as np
 
 from dmd_jax.checkpoints import as_bundle
-from dmd_jax.consistency import exact_tolerance, exact_vertices, oriented_faces, scale_groups
+from dmd_jax.consistency import (
+    STILL_REASON,
+    exact_tolerance,
+    exact_vertices,
+    oriented_faces,
+    scale_groups,
+    still_vertices,
+)
 from dmd_jax.encoding import mesh_frame
 from dmd_jax.forward import predictor
 from dmd_jax.graph import (
@@ -93,7 +100,11 @@ class DenoiseInfo:
         they are (`consistency.exact_vertices`; 0 on a noisy mesh).
       scale_groups: runs of components of very different sizes
         (`consistency.scale_groups`); the other fields are those of the largest's run,
-        but `flipped_faces` and `exact_vertices`, summed.
+        but `flipped_faces`, `exact_vertices` and `still_vertices`, summed.
+      still_vertices: vertices of parts with nothing to denoise (all creases, a lone
+        triangle, no area: `consistency.still_faces`), returned exactly as given.
+      unchanged: why the whole mesh came back as given, without any work (`path` is
+        then `"unchanged"`); None when the network ran.
 
     Its `repr` is a summary of at most `INFO_REPR_MAX` characters (fields that are None
     left out, arrays shown by shape, long sequences by length); every field stays
@@ -116,6 +127,8 @@ class DenoiseInfo:
     flipped_faces: int = 0
     exact_vertices: int = 0
     scale_groups: int = 1
+    still_vertices: int = 0
+    unchanged: str | None = None
 
     def __repr__(self) -> str:
         parts = (
@@ -320,6 +333,7 @@ def denoise(
             **runs[0],
             "flipped_faces": sum(r["flipped_faces"] for r in runs),
             "exact_vertices": sum(r["exact_vertices"] for r in runs),
+            "still_vertices": sum(r["still_vertices"] for r in runs),
             "scale_groups": len(runs),
         }
     out_dtype = np.float32 if in_dtype == np.float32 else np.float64
@@ -331,9 +345,8 @@ def denoise(
     if not return_info:
         return out
     unused = 0 if referenced is None else int((~used).sum())
-    return out, DenoiseInfo(
-        **fields, relax_steps=run.relax_steps, unused_vertices=unused, policy=run
-    )
+    relax_steps = fields.pop("relax_steps", run.relax_steps)
+    return out, DenoiseInfo(**fields, relax_steps=relax_steps, unused_vertices=unused, policy=run)
 
 
 def _denoise_referenced(
@@ -351,8 +364,23 @@ def _denoise_referenced(
     from dmd_jax.relax import relax_tangential
 
     f, flipped = oriented_faces(f, v.shape[0])
-    x, centre, scale = _prenormalised(v)
-    held = exact_vertices(x, f, exact_tolerance(in_dtype, v, f))
+    x, centre, scale = _prenormalised(v)  # refuses a mesh of one point first
+    still = still_vertices(v, f)
+    if still.all():
+        # Nothing to denoise (all creases, or no area): the mesh as given, no work.
+        fields = dict(
+            path="unchanged",
+            budget_bytes=None,
+            passes=0,
+            presmooth_steps=0,
+            roughness=None,
+            relax_steps=0,
+            flipped_faces=flipped,
+            still_vertices=int(still.sum()),
+            unchanged=STILL_REASON,
+        )
+        return v.copy(), fields
+    held = exact_vertices(x, f, exact_tolerance(in_dtype, v, f)) | still
     if not held.any():
         held = None  # a noisy mesh: every path exactly as without the test
     pre = presmooth_plan(run, x, f, presmooth, free=None if held is None else ~held)
@@ -382,7 +410,10 @@ def _denoise_referenced(
         presmooth_steps=pre.steps,
         roughness=pre.roughness,
         flipped_faces=flipped,
-        exact_vertices=0 if held is None else int(held.sum()),
+        exact_vertices=0 if held is None else int((held & ~still).sum()),
+        still_vertices=int(still.sum()),
         **extra,
     )
-    return x * scale + centre, fields
+    out = x * scale + centre
+    out[still] = v[still]  # exactly as given, not through the frame's rounding
+    return out, fields

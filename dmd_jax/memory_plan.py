@@ -65,27 +65,48 @@ _UNITS.update({"kb": 10**3, "mb": 10**6, "gb": 10**9, "tb": 10**12})
 _UNITS.update({"kib": 2**10, "mib": 2**20, "gib": 2**30, "tib": 2**40})
 
 
-def parse_memory(value) -> int:
+# The largest budget taken: 2**63 - 1 bytes (8 EiB), beyond any machine's memory.
+MAX_MEMORY_BYTES = 2**63 - 1
+
+
+def parse_memory(value, name: str = "max_memory") -> int:
     """A memory size in bytes from a number of bytes or a string such as `"6GiB"`, `"8GB"`,
-    `"500M"` (k/M/G/T are powers of 1000, KiB/MiB/GiB/TiB of 1024).
+    `"500M"` (k/M/G/T are powers of 1000, KiB/MiB/GiB/TiB of 1024); a number without
+    a unit counts bytes (`"1e3"` is 1000 bytes).
+
+    Args:
+      value: the size.
+      name: the argument named in errors (`--max-memory` on the command line).
 
     Raises:
-      ValueError: an unreadable or non-positive size.
+      ValueError: an unreadable size, one below a byte, or one beyond `MAX_MEMORY_BYTES`.
     """
     if isinstance(value, str):
-        m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:e[0-9]+)?)\s*([a-zA-Z]*)\s*", value)
+        m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:[eE][+-]?[0-9]+)?)\s*([a-zA-Z]*)\s*", value)
         if m is None or m.group(2).lower() not in _UNITS:
             raise ValueError(
-                f"cannot read the memory size {value!r}; write e.g. 8GB, 6GiB, 500MB or a "
-                "number of bytes"
+                f"{name}: cannot read the memory size {value!r}; write e.g. 8GB, 6GiB, 500MB "
+                "or a number of bytes"
             )
         size = float(m.group(1)) * _UNITS[m.group(2).lower()]
-    elif isinstance(value, int | float | np.integer | np.floating) and not isinstance(value, bool):
+    elif isinstance(value, int | float | np.integer | np.floating) and not isinstance(
+        value, bool | np.bool_
+    ):
         size = float(value)
     else:
-        raise ValueError(f"max_memory must be a number of bytes or a string, got {value!r}")
-    if not (math.isfinite(size) and size > 0):
-        raise ValueError(f"max_memory must be positive, got {value!r}")
+        raise ValueError(f"{name} must be a number of bytes or a string, got {value!r}")
+    if size == 0 and isinstance(value, str) and re.search(r"[1-9]", value.split("e")[0]):
+        size = 0.5  # a positive size below float64's range (1e-400): less than a byte
+    if math.isnan(size) or size <= 0:
+        raise ValueError(f"{name} must be positive, got {value!r}")
+    if size > MAX_MEMORY_BYTES:
+        shown = "beyond float64's range" if math.isinf(size) else f"{size:.3g} bytes"
+        raise ValueError(
+            f"{name} {value!r} is {shown}, more than any machine's memory (at most "
+            f"{MAX_MEMORY_BYTES:.3g} bytes); write e.g. 8GB"
+        )
+    if size < 1:
+        raise ValueError(f"{name} {value!r} is less than one byte")
     return int(size)
 
 

@@ -32,47 +32,8 @@ def validate_mesh(vertices, faces, *, name: str = "mesh") -> tuple[np.ndarray, n
         infinite coordinates, polygons, negative or out-of-range indices, and faces that
         repeat a vertex.
     """
-    try:
-        v = np.asarray(vertices)
-        f = np.asarray(faces)
-    except ValueError:  # NumPy refuses ragged nested lists
-        raise ValueError(
-            f"{name}: vertices and faces must be numeric arrays, not ragged lists"
-        ) from None
-    if v.dtype == object or f.dtype == object:
-        raise ValueError(f"{name}: vertices and faces must be numeric arrays, not ragged lists")
-    if v.ndim != 2 or v.shape[-1] != 3:
-        raise ValueError(f"{name}: vertices must have shape [n_vertex, 3], got {v.shape}")
-    if v.shape[0] == 0:
-        raise ValueError(f"{name}: the mesh has no vertices")
-    if not (np.issubdtype(v.dtype, np.floating) or np.issubdtype(v.dtype, np.integer)):
-        raise ValueError(f"{name}: vertices must be real numbers, got dtype {v.dtype}")
-    if f.ndim != 2:
-        raise ValueError(f"{name}: faces must have shape [n_face, 3], got {f.shape}")
-    if f.shape[0] == 0:
-        raise ValueError(f"{name}: the mesh has no faces")
-    if f.shape[1] != 3:
-        raise ValueError(
-            f"{name}: faces must be triangles ([n_face, 3]), got polygons with {f.shape[1]} "
-            "corners; triangulate them first (load_mesh(..., polygons='triangulate'))"
-        )
-    if np.issubdtype(f.dtype, np.floating):
-        if not np.all(np.isfinite(f)) or np.any(f != np.round(f)):
-            raise ValueError(f"{name}: face indices must be integers, got non-integral floats")
-    elif not np.issubdtype(f.dtype, np.integer):
-        raise ValueError(f"{name}: face indices must be integers, got dtype {f.dtype}")
-    v = v.astype(np.float64)
-    bad = ~np.isfinite(v).all(axis=1)
-    if bad.any():
-        idx = np.flatnonzero(bad)
-        raise ValueError(
-            f"{name}: {idx.size} vertices have NaN or infinite coordinates (first: vertex {idx[0]})"
-        )
-    f = f.astype(np.int64)
-    if f.min() < 0:
-        raise ValueError(f"{name}: negative face index {f.min()} (indices start at 0)")
-    if f.max() >= v.shape[0]:
-        raise ValueError(f"{name}: face index {f.max()} is out of range for {v.shape[0]} vertices")
+    v = validate_vertices(vertices, name=name)
+    f = validate_faces(faces, v.shape[0], name=name)
     if v.shape[0] >= np.iinfo(np.int32).max or f.shape[0] >= np.iinfo(np.int32).max:
         raise ValueError(f"{name}: mesh too large for int32 indices")
     repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])
@@ -84,6 +45,92 @@ def validate_mesh(vertices, faces, *, name: str = "mesh") -> tuple[np.ndarray, n
             "remove_degenerate_faces"
         )
     return v, f.astype(np.int32)
+
+
+def validate_faces(
+    faces, n_vertex: int, *, name: str = "mesh", allow_empty: bool = False
+) -> np.ndarray:
+    """Checks face indices alone (`validate_mesh`'s part, for `build_mesh_graph`) and
+    returns them as an int64 `[n_face, 3]` copy.
+
+    Raises:
+      ValueError: ragged lists, a shape other than `[n_face >= 1, 3]`, indices that are
+        not integers, negative, or not below `n_vertex` (checked in the input's own
+        dtype: an unsigned or float index beyond int64 is not wrapped).
+      TypeError: `n_vertex` is not an integer.
+
+    `allow_empty` takes a mesh of no faces (a graph of isolated vertices).
+    """
+    if isinstance(n_vertex, bool | np.bool_) or not isinstance(n_vertex, int | np.integer):
+        raise TypeError(f"n_vertex must be an integer, got {n_vertex!r}")
+    try:
+        f = np.asarray(faces)
+    except ValueError:  # NumPy refuses ragged nested lists
+        raise ValueError(
+            f"{name}: vertices and faces must be numeric arrays, not ragged lists"
+        ) from None
+    if f.dtype == object:
+        raise ValueError(f"{name}: vertices and faces must be numeric arrays, not ragged lists")
+    if f.ndim != 2:
+        raise ValueError(f"{name}: faces must have shape [n_face, 3], got {f.shape}")
+    if f.shape[0] == 0 and not (allow_empty and f.shape[1:] in ((0,), (3,))):
+        raise ValueError(f"{name}: the mesh has no faces")
+    if f.shape[0] == 0:
+        return np.zeros((0, 3), np.int64)
+    if f.shape[1] != 3:
+        raise ValueError(
+            f"{name}: faces must be triangles ([n_face, 3]), got polygons with {f.shape[1]} "
+            "corners; triangulate them first (load_mesh(..., polygons='triangulate'))"
+        )
+    if np.issubdtype(f.dtype, np.floating):
+        if not np.all(np.isfinite(f)) or np.any(f != np.round(f)):
+            raise ValueError(f"{name}: face indices must be integers, got non-integral floats")
+    elif not np.issubdtype(f.dtype, np.integer) or np.issubdtype(f.dtype, np.bool_):
+        raise ValueError(f"{name}: face indices must be integers, got dtype {f.dtype}")
+    # Compared before the cast to int64, which would wrap a uint64 index past 2**63.
+    if f.min() < 0:
+        raise ValueError(
+            f"{name}: negative face index {f.min()} (faces index vertices from 0; negative "
+            "indices are not taken from the end)"
+        )
+    if f.max() >= n_vertex:
+        raise ValueError(
+            f"{name}: face index {f.max()} is out of range for {n_vertex} vertices (faces "
+            f"index vertices 0 to {n_vertex - 1})"
+        )
+    return f.astype(np.int64)
+
+
+def validate_vertices(vertices, *, name: str = "mesh") -> np.ndarray:
+    """Checks vertex positions alone (`validate_mesh`'s part, for functions whose faces
+    are optional) and returns them as a float64 `[n, 3]` copy.
+
+    Raises:
+      ValueError: ragged lists, a shape other than `[n_vertex >= 1, 3]`, a dtype other
+        than real numbers, NaN or infinite coordinates.
+    """
+    try:
+        v = np.asarray(vertices)
+    except ValueError:  # NumPy refuses ragged nested lists
+        raise ValueError(
+            f"{name}: vertices and faces must be numeric arrays, not ragged lists"
+        ) from None
+    if v.dtype == object:
+        raise ValueError(f"{name}: vertices and faces must be numeric arrays, not ragged lists")
+    if v.ndim != 2 or v.shape[-1] != 3:
+        raise ValueError(f"{name}: vertices must have shape [n_vertex, 3], got {v.shape}")
+    if v.shape[0] == 0:
+        raise ValueError(f"{name}: the mesh has no vertices")
+    if not (np.issubdtype(v.dtype, np.floating) or np.issubdtype(v.dtype, np.integer)):
+        raise ValueError(f"{name}: vertices must be real numbers, got dtype {v.dtype}")
+    v = v.astype(np.float64)
+    bad = ~np.isfinite(v).all(axis=1)
+    if bad.any():
+        idx = np.flatnonzero(bad)
+        raise ValueError(
+            f"{name}: {idx.size} vertices have NaN or infinite coordinates (first: vertex {idx[0]})"
+        )
+    return v
 
 
 # --------------------------------------------------------------------------------------

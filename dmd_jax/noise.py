@@ -143,12 +143,12 @@ class NoiseSpec(NamedTuple):
 # --------------------------------------------------------------------------------------
 
 
-def _check_kind(kind):
+def check_kind(kind):
     if kind not in NOISE_KINDS:
         raise ValueError(f"unknown noise kind {kind!r}; expected one of {NOISE_KINDS}")
 
 
-def _check_units(units):
+def check_units(units):
     if units not in NOISE_UNITS:
         raise ValueError(f"unknown noise units {units!r}; expected one of {NOISE_UNITS}")
 
@@ -161,7 +161,10 @@ def check_direction(direction):
 
 
 def check_level(level) -> float:
-    """`level` as a float; `ValueError` unless it is a finite number >= 0."""
+    """`level` as a float; `ValueError` unless it is a finite number >= 0 (a string or
+    a bool is not a number here, though `float()` takes them)."""
+    if isinstance(level, bool | np.bool_ | str | bytes):
+        raise ValueError(f"noise level must be a number, got {level!r}")
     try:
         value = float(level)
     except (TypeError, ValueError) as err:
@@ -172,10 +175,51 @@ def check_level(level) -> float:
 
 
 def _check_probability(name, p) -> float:
+    if isinstance(p, bool | np.bool_) or not isinstance(p, int | float | np.integer | np.floating):
+        raise TypeError(f"{name} must be a number in [0, 1], got {p!r}")
     value = float(p)
     if not 0.0 <= value <= 1.0:
         raise ValueError(f"{name} must lie in [0, 1], got {p!r}")
     return value
+
+
+def check_impulse(impulse_p, impulse_q, impulse_mode) -> tuple[float, float]:
+    """The impulse kind's `(p, q)` as floats, checked with its mode (`unit_noise`)."""
+    p = _check_probability("impulse_p", impulse_p)
+    q = _check_probability("impulse_q", impulse_q)
+    if impulse_mode not in IMPULSE_MODES:
+        raise ValueError(f"unknown impulse_mode {impulse_mode!r}; expected one of {IMPULSE_MODES}")
+    if impulse_mode == "coordinate" and p + q > 1.0:
+        raise ValueError(f"impulse_p + impulse_q must be <= 1, got {p} + {q}")
+    return p, q
+
+
+def seed_key(seed):
+    """The `jax.random` key of a public function's `seed`: an integer in [-2**63, 2**63)
+    (as `dmd-jax add-noise --seed`), or a `jax.random` key (typed, or raw uint32 `[2]`).
+
+    Raises:
+      TypeError: a seed of another type (a float, a string, None).
+      ValueError: a bool, an integer beyond 64 bits, or an array that is not a key.
+    """
+    if isinstance(seed, bool | np.bool_):  # an int to Python, never meant as a seed
+        raise ValueError(f"seed must be an integer or a jax.random key, got {seed!r}")
+    if isinstance(seed, int | np.integer):
+        if not -(2**63) <= int(seed) < 2**63:
+            # jax.random.PRNGKey takes a 64-bit signed integer and overflows past it.
+            raise ValueError(f"seed must lie in [-2**63, 2**63), got {seed}")
+        return jax.random.PRNGKey(int(seed))
+    if isinstance(seed, jax.Array | np.ndarray) and not isinstance(seed, jax.core.Tracer):
+        if jax.dtypes.issubdtype(seed.dtype, jax.dtypes.prng_key):
+            if seed.shape == ():
+                return seed
+        elif seed.shape == (2,) and seed.dtype == np.uint32:
+            return jnp.asarray(seed)
+        raise ValueError(
+            "seed must be an integer or one jax.random key (jax.random.key(n), or "
+            f"PRNGKey(n): uint32 [2]), got an array of shape {seed.shape}, dtype {seed.dtype}"
+        )
+    raise TypeError(f"seed must be an integer or a jax.random key, got {seed!r}")
 
 
 # --------------------------------------------------------------------------------------
@@ -207,12 +251,14 @@ def unit_noise(
     Returns:
       Array of `shape`.
     """
-    _check_kind(kind)
+    check_kind(kind)
     if kind == SCANNER_KIND:
         raise ValueError(
             "the scanner kind is not drawn per coordinate: use scanner_displacement "
             "(or add_noise_jax / dmd_jax.add_noise with kind='scanner')"
         )
+    if kind == "impulse":
+        impulse_p, impulse_q = check_impulse(impulse_p, impulse_q, impulse_mode)
     shape = tuple(shape)
     if shape and isinstance(shape[0], int | np.integer):
         # Eager call: sample a bucketed row count (one compile per bucket), slice on host.
@@ -275,7 +321,7 @@ def noise_unit_length(vertices, faces, units):
     the unique undirected edges (as `dmd_jax.mesh.mean_edge_length`). `faces` must be a
     concrete array for `"edge"` (the edge list is built on the host).
     """
-    _check_units(units)
+    check_units(units)
     v = jnp.asarray(vertices)
     if units == "canonical":
         return jnp.max(jnp.max(v, axis=0) - jnp.min(v, axis=0))
@@ -312,7 +358,7 @@ def scanner_noise(
     Returns:
       `[n_vertex, 3]` float64 noisy positions.
     """
-    _check_units(units)
+    check_units(units)
     level = check_level(level)
     v = np.asarray(vertices, np.float64)
     if v.ndim != 2 or v.shape[-1] != 3 or v.shape[0] == 0:
@@ -375,8 +421,8 @@ def add_noise_jax(
       ValueError: on an unknown kind, units or impulse mode, a negative level, vertices
         that are not `[n, 3]`, or a bad `view` (zero, not finite, not a 3-vector).
     """
-    _check_kind(kind)
-    _check_units(units)
+    check_kind(kind)
+    check_units(units)
     level = check_level(level)
     v = jnp.asarray(vertices)
     if v.ndim != 2 or v.shape[-1] != 3 or v.shape[0] == 0:
@@ -477,7 +523,7 @@ def sample_noise_spec(
     if not kinds:
         raise ValueError("kinds is empty")
     for kind in kinds:
-        _check_kind(kind)
+        check_kind(kind)
     p_edge = _check_probability("p_edge", p_edge)
     p_normal = _check_probability("p_normal", p_normal)
     p_clean = _check_probability("p_clean", p_clean)

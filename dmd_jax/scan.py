@@ -39,7 +39,7 @@ from typing import NamedTuple
 import numpy as np
 
 from dmd_jax import noise as noise_lib
-from dmd_jax.mesh import mean_edge_length
+from dmd_jax.mesh import mean_edge_length, validate_mesh
 
 # The simulator's defaults, each a named choice.
 DEFAULT_RESOLUTION = 256
@@ -82,20 +82,18 @@ class Scan(NamedTuple):
 
 
 def _check_mesh(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
-    try:
-        v = np.asarray(vertices, np.float64)
-    except (TypeError, ValueError) as err:
-        raise ValueError("vertices must be a numeric [n_vertex, 3] array") from err
-    if v.ndim != 2 or v.shape[1] != 3 or v.shape[0] < 3:
-        raise ValueError(f"vertices must have shape [n_vertex >= 3, 3], got {v.shape}")
-    if not np.all(np.isfinite(v)):
-        raise ValueError("vertices must be finite (NaN or inf found)")
-    f = np.asarray(faces)
-    if f.ndim != 2 or f.shape[1] != 3 or f.shape[0] == 0 or not np.issubdtype(f.dtype, np.integer):
-        raise ValueError(f"faces must be an integer [n_face >= 1, 3] array, got {f.shape}")
-    if f.min() < 0 or f.max() >= v.shape[0]:
-        raise ValueError(f"faces index vertices outside [0, {v.shape[0]})")
+    """The mesh as `validate_mesh` checks it for `denoise`, with int64 faces."""
+    v, f = validate_mesh(vertices, faces)
     return v, f.astype(np.int64)
+
+
+def _check_real(name: str, value) -> float:
+    """A real-number argument as a float; `TypeError` naming it for anything else."""
+    if isinstance(value, bool | np.bool_) or not isinstance(
+        value, int | float | np.integer | np.floating
+    ):
+        raise TypeError(f"{name} must be a number, got {value!r}")
+    return float(value)
 
 
 def _check_resolution(resolution) -> int:
@@ -289,21 +287,17 @@ def simulate_scan(
       ValueError: a bad mesh (shape, NaN, indices), `view` (zero, not a 3-vector),
         `resolution`, `level`, or no surface in view (nothing left to triangulate).
     """
-    import jax
-
+    key = noise_lib.seed_key(seed)
     v, f = _check_mesh(vertices, faces)
     resolution = _check_resolution(resolution)
     level = noise_lib.check_level(level)
-    if not 0.0 < float(max_grazing_deg) <= 90.0:
+    if not 0.0 < _check_real("max_grazing_deg", max_grazing_deg) <= 90.0:
         raise ValueError(f"max_grazing_deg must lie in (0, 90], got {max_grazing_deg!r}")
-    if not float(max_depth_jump) > 0.0:
+    if not _check_real("max_depth_jump", max_depth_jump) > 0.0:
         raise ValueError(f"max_depth_jump must be > 0, got {max_depth_jump!r}")
     noise_lib.check_scanner_model(model)
     if view is not None:
         view = noise_lib.check_view(view)
-    if isinstance(seed, bool | np.bool_):
-        raise ValueError(f"seed must be an integer or a jax.random key, got {seed!r}")
-    key = jax.random.PRNGKey(int(seed)) if isinstance(seed, int | np.integer) else seed
     rng = noise_lib.host_rng(key)
     if view is None:
         view = noise_lib.random_view(rng)

@@ -111,10 +111,12 @@ def check_view(view) -> np.ndarray:
         raise ValueError(f"view must be a 3-vector, got {view!r}") from err
     if d.shape != (3,):
         raise ValueError(f"view must be a 3-vector, got shape {d.shape}")
-    norm = float(np.linalg.norm(d))
-    if not np.all(np.isfinite(d)) or norm < 1e-12:
+    if not np.all(np.isfinite(d)) or not np.any(d):
         raise ValueError(f"view must be a finite non-zero 3-vector, got {d.tolist()}")
-    return d / norm
+    # Divided by its largest entry first: the norm of [1e200, 1e200, 0] overflows (the
+    # direction would be zero) and that of [1e-200, 0, 0] underflows.
+    d = d / np.abs(d).max()
+    return d / float(np.linalg.norm(d))
 
 
 def random_view(rng: np.random.Generator) -> np.ndarray:

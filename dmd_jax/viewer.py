@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dmd_jax.mesh import canonical_frame, face_normals_np
+from dmd_jax.mesh import canonical_frame, face_normals_np, validate_mesh
 from dmd_jax.render import (
     _AZIM,
     _ELEV,
@@ -92,6 +92,7 @@ def comparison_figure(
 
     if not meshes:
         raise ValueError("comparison_figure needs at least one mesh")
+    meshes = _checked_meshes(meshes)
     n = len(meshes)
     titles = list(titles) if titles is not None else [f"mesh {i}" for i in range(n)]
     face_values = list(face_values) if face_values is not None else [None] * n
@@ -203,6 +204,16 @@ def comparison_figure(
         modebar=dict(orientation="v"),  # at the right edge, clear of the panel titles
     )
     return fig
+
+
+def _checked_meshes(meshes) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Each `(vertices, faces)` pair checked as `denoise` checks a mesh, naming it."""
+    out = []
+    for i, pair in enumerate(meshes):
+        if not (isinstance(pair, tuple | list) and len(pair) == 2):
+            raise ValueError(f"meshes[{i}] must be a (vertices, faces) pair")
+        out.append(validate_mesh(pair[0], pair[1], name=f"meshes[{i}]"))
+    return out
 
 
 def comparison_html(

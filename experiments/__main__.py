@@ -84,8 +84,53 @@ def _resolve(args):
     return p, out, data
 
 
+def _folder(path: Path, what: str) -> None:
+    """Refuses, in one line, a `path` that is not an existing folder."""
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such folder ({what})")
+    if not path.is_dir():
+        raise NotADirectoryError(f"{path}: is not a folder ({what})")
+
+
+def _json_file(path: Path) -> None:
+    """Refuses a `path` that is not a readable JSON file, naming it."""
+    import json
+
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: missing (not a sweep's results folder? run the sweep)")
+    try:
+        json.loads(path.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{path}: not valid JSON ({exc})") from None
+
+
+def _check_paths(args) -> None:
+    """Every path `aggregate` and `index` read or write, checked before any work, so a
+    missing, empty or wrong path is one line (as `dmd-jax` says it), not a traceback
+    or a README written into the wrong folder."""
+    if args.command == "aggregate":
+        _folder(args.out, "a sweep's results folder")
+        _json_file(args.out / "plan.json")
+    root = args.index if args.command == "aggregate" else args.root
+    if args.command == "index" or root is not None:
+        _folder(root, "a results root")
+        presets = [d for d in root.iterdir() if (d / "summary.json").is_file()]
+        if args.command == "index" and not presets:
+            raise FileNotFoundError(
+                f"{root}: holds no preset folder with a summary.json (not a results root?)"
+            )
+        for d in presets:
+            _json_file(d / "summary.json")
+
+
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
+    if args.command in ("aggregate", "index"):
+        try:
+            _check_paths(args)
+        except (OSError, ValueError) as exc:
+            print(f"python -m experiments {args.command}: error: {exc}", file=sys.stderr)
+            return 2
     if args.command == "run":
         # run_sweep puts the preset's XLA flag in the environment before JAX starts its
         # backend (importing JAX does not start it).

@@ -49,15 +49,26 @@ def run_in_canonical_frame(vertices, faces, core: Callable, *, name: str) -> np.
       core: `core(vertices [n, 3] float64 canonical, faces [f, 3] int32) -> [n, 3]`.
       name: the method's name, for error messages.
 
+    Parts with nothing to denoise (`consistency.still_faces`: all creases, a lone
+    triangle, no area) come back exactly as given, as from DMD-Net; a mesh of nothing
+    else is not filtered at all.
+
     Returns:
       `[n_vertex, 3]` float64 NumPy array in the input's frame.
     """
+    from dmd_jax.consistency import still_vertices
+
     v, f = validate_mesh(vertices, faces, name=name)
-    frame = canonical_frame(v)
+    frame = canonical_frame(v)  # refuses a mesh of one point first
+    still = still_vertices(v, f)
+    if still[np.unique(f)].all():
+        return v
     out = np.asarray(core(frame.apply(v), f), dtype=np.float64)
     if not np.all(np.isfinite(out)):
         raise FloatingPointError(f"{name}: the filter produced non-finite vertices")
-    return frame.invert(out)
+    out = frame.invert(out)
+    out[still] = v[still]
+    return out
 
 
 def default_params(fn: Callable) -> dict:

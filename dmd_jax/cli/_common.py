@@ -159,6 +159,10 @@ def _check_output(output, inputs, overwrite: bool, *, parents: bool = False, suf
         )
     if not os.access(folder, os.W_OK | os.X_OK):
         raise PermissionError(f"{output}: cannot write in {folder} (permission denied)")
+    if out.parent.is_dir():  # a folder --parents creates later is new and ours
+        from dmd_jax.io._files import check_writable
+
+        check_writable(out)
 
 
 def _make_parent(output) -> None:

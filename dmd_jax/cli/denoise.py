@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import re
 import sys
 from pathlib import Path
 
@@ -87,13 +88,20 @@ def _unfinished(pairs, args):
     """The `(input, output)` pairs still to run, every output checked before any work.
 
     With --skip-existing, pairs whose output exists are left out with a note (the
-    outputs of an interrupted run are complete files: every write is atomic).
+    outputs of an interrupted run are complete files: every write is atomic); an output
+    that is an input (`--out` the input folder) is no finished output, and is refused
+    as without the flag.
     """
     from pathlib import Path
 
+    from dmd_jax.io import same_file
+
+    sources = [src for src, _ in pairs]
     todo = []
     for src, dst in pairs:
         if args.skip_existing and Path(dst).is_file():
+            if any(same_file(s, dst) for s in sources):
+                _check_output(dst, sources, args.overwrite, suffixes=MESH_SUFFIXES)  # refuses
             continue
         _check_output(dst, src, args.overwrite, parents=args.parents, suffixes=MESH_SUFFIXES)
         todo.append((src, dst))
@@ -129,12 +137,14 @@ def _cmd_denoise(args: argparse.Namespace) -> int:
             raise ValueError("--max-memory is for --method dmd (the network)")
         from dmd_jax.memory_plan import format_bytes, parse_memory
 
-        extra["max_memory"] = parse_memory(args.max_memory)
+        extra["max_memory"] = parse_memory(args.max_memory, "--max-memory")
         if extra["max_memory"] < MIN_MAX_MEMORY:
+            unitless = re.fullmatch(r"\s*[0-9.eE+-]+\s*", args.max_memory) is not None
             raise ValueError(
-                f"--max-memory {args.max_memory} is below the least the network runs in, "
-                f"{format_bytes(MIN_MAX_MEMORY)} (its compiled programs and XLA's working "
-                "memory alone)"
+                f"--max-memory {args.max_memory} is {format_bytes(extra['max_memory'])}"
+                f"{' (a number without a unit counts bytes)' if unitless else ''}, below the "
+                f"least the network runs in, {format_bytes(MIN_MAX_MEMORY)} (its compiled "
+                "programs and XLA's working memory alone): write e.g. 8GB"
             )
     if args.relax is not None:
         if args.method != "dmd":

@@ -182,6 +182,34 @@ def same_file(a, b) -> bool:
     return os.path.realpath(a) == os.path.realpath(b)
 
 
+def check_writable(path) -> None:
+    """Refuses, naming `path`, an output its folder will not take: a temporary file is
+    created there and removed (a read-only file system, `/proc`, a full inode table and
+    permissions other than the mode bits show only then), and an existing file in a
+    sticky folder (`/tmp`) owned by another user cannot be replaced.
+
+    Raises:
+      PermissionError or OSError: `X: cannot write in FOLDER (reason)`.
+    """
+    path = Path(path)
+    folder = path.parent
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=temp_prefix(path), suffix=path.suffix, dir=folder)
+    except OSError as exc:
+        raise type(exc)(exc.errno, f"{path}: cannot write in {folder} ({exc.strerror})") from None
+    os.close(fd)
+    os.unlink(tmp)
+    try:
+        info, there = folder.stat(), path.lstat()
+    except OSError:
+        return
+    uid = os.geteuid()
+    if info.st_mode & stat.S_ISVTX and uid not in (0, info.st_uid, there.st_uid):
+        raise PermissionError(
+            f"{path}: cannot replace it (another user's file in a sticky folder, {folder})"
+        )
+
+
 def atomic_write(path, write_fn, *, overwrite: bool = False, protect=()) -> Path:
     """Writes a file by `write_fn(tmp_path)` then renames it into place.
 
@@ -199,7 +227,12 @@ def atomic_write(path, write_fn, *, overwrite: bool = False, protect=()) -> Path
         raise FileExistsError(f"{path}: already exists (pass overwrite=True / --overwrite)")
     if not path.parent.is_dir():
         raise FileNotFoundError(f"{path.parent}: output directory does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=temp_prefix(path), suffix=path.suffix, dir=path.parent)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=temp_prefix(path), suffix=path.suffix, dir=path.parent)
+    except OSError as exc:  # named by the output, not by a hidden temporary name
+        raise type(exc)(
+            exc.errno, f"{path}: cannot write in {path.parent} ({exc.strerror})"
+        ) from None
     os.close(fd)
     try:
         write_fn(tmp)
@@ -207,7 +240,10 @@ def atomic_write(path, write_fn, *, overwrite: bool = False, protect=()) -> Path
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)
-        os.replace(tmp, path)
+        try:
+            os.replace(tmp, path)
+        except OSError as exc:
+            raise type(exc)(exc.errno, f"{path}: cannot write it ({exc.strerror})") from None
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)

@@ -50,6 +50,14 @@ _PLAIN_FLOAT_BYTES = b"0123456789+-.eE"
 _PLAIN_INT_BYTES = b"0123456789+-"
 
 
+class TokenError(ValueError):
+    """A token outside the grammar; `token` is it, for a reader to find its line."""
+
+    def __init__(self, message: str, token: str | bytes):
+        super().__init__(message)
+        self.token = token
+
+
 def lines(text: str) -> list[str]:
     """The lines of `text`, split at `\\n`, `\\r\\n` and `\\r` only."""
     return _LINE_BREAK.split(text)
@@ -75,29 +83,32 @@ def float_of(token: str | bytes) -> float:
     """The value of one real-number token (the grammar of C `strtod`).
 
     Raises:
-      ValueError: `'TOKEN' is not a number`.
+      TokenError: `'TOKEN' is not a number` (a `ValueError`).
     """
     if _match("decimal", token):
         return float(token)
     if _match("hex", token):
         text = token.decode("ascii") if isinstance(token, bytes) else token
-        return float.fromhex(text)
+        try:
+            return float.fromhex(text)
+        except OverflowError:  # strtod gives an infinity (refused as such later)
+            return -math.inf if text.startswith("-") else math.inf
     if _match("special", token):
         text = token.decode("ascii") if isinstance(token, bytes) else token
         value = math.inf if text.lstrip("+-")[:1] in "iI" else math.nan
         return -value if text.startswith("-") else value
-    raise ValueError(f"{_shown(token)} is not a number")
+    raise TokenError(f"{_shown(token)} is not a number", token)
 
 
 def int_of(token: str | bytes) -> int:
     """The value of one integer token (the grammar of C `strtol`, base 10).
 
     Raises:
-      ValueError: `'TOKEN' is not an integer`.
+      TokenError: `'TOKEN' is not an integer` (a `ValueError`).
     """
     if _match("integer", token):
         return int(token)
-    raise ValueError(f"{_shown(token)} is not an integer")
+    raise TokenError(f"{_shown(token)} is not an integer", token)
 
 
 def _plain(items: Sequence[str | bytes], chars: frozenset, chars_bytes: bytes) -> bool:
@@ -140,4 +151,4 @@ def ints(items: Sequence[str | bytes]) -> np.ndarray:
         raise
     except OverflowError:
         big = next(t for t in items if not -(2**63) <= int_of(t) < 2**63)
-        raise ValueError(f"{_shown(big)} is beyond the range of a 64-bit integer") from None
+        raise TokenError(f"{_shown(big)} is beyond the range of a 64-bit integer", big) from None

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from dmd_jax.io import _syntax
-from dmd_jax.io._files import _fan, _MeshText, _text_of, _write_rows, not_this_format
+from dmd_jax.io._files import _fan, _MeshText, _text_of, _write_rows, not_this_format, sniff_format
 
 
 def _read_obj(data: bytes, name: str) -> _MeshText:
@@ -85,8 +85,11 @@ def _read_obj_lines(text: str, name: str) -> _MeshText:
             f"file's {len(coords)} vertices (OBJ indices start at 1)"
         )
     if not coords and not flat:
-        # No `v` or `f` statement at all: another format under an .obj name, most likely.
-        not_this_format(text.encode("utf-8", "replace"), name, "OBJ", "no 'v' or 'f' statement")
+        # No `v` or `f` statement: another format under an .obj name (OFF text, say) is
+        # named as such; an OBJ of comments only holds no faces (`load_mesh` says so).
+        data = text.encode("utf-8", "replace")
+        if sniff_format(data) not in (None, "OBJ"):
+            not_this_format(data, name, "OBJ", "no 'v' or 'f' statement")
     return _MeshText(
         np.array(coords, np.float64).reshape(-1, 3),
         np.array(flat, np.int64).reshape(-1, 3),

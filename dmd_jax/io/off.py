@@ -78,7 +78,7 @@ def _read_off(data: bytes, name: str) -> _MeshText:
         lineno, tokens = row
         try:
             k = _syntax.int_of(tokens[0])
-            corners = [int(c) for c in _syntax.ints(tokens[1 : 1 + max(k, 0)])]
+            corners = [_syntax.int_of(t) for t in tokens[1 : 1 + max(k, 0)]]
             _syntax.floats(tokens[1 + max(k, 0) :])  # a colour, if any
         except ValueError as exc:
             raise ValueError(

@@ -224,9 +224,9 @@ def _numbers(tokens: list[bytes], name: str, what: str, integer: bool = False) -
         if integer:
             return _syntax.ints(tokens).astype(np.float64)
         return _syntax.floats(tokens)
-    except ValueError as exc:
+    except _syntax.TokenError as exc:
         kind = " of an integer type" if integer else ""
-        raise ValueError(f"{name}: {what}{kind}: {exc}") from None
+        raise _syntax.TokenError(f"{name}: {what}{kind}: {exc}", exc.token) from None
 
 
 def _is_int(code: str | None) -> bool:
@@ -315,6 +315,15 @@ def _ply_ascii_element(tokens: list[bytes], t: int, el: _PlyElement, name: str):
     return out, t
 
 
+def _with_line(message: str, data: bytes, body: int, token: bytes, name: str) -> str:
+    """`message` (`NAME: ...`) with the line of `token`'s first place in the body."""
+    for m in re.finditer(rb"[^ \t\n\r\v\f]+", data[body:]):
+        if m.group() == token:
+            line = data[: body + m.start()].count(b"\n") + 1
+            return message.replace(f"{name}: ", f"{name}: line {line}: ", 1)
+    return message
+
+
 def _read_ply(data: bytes, name: str) -> _MeshText:
     """Reads an ASCII or binary PLY: its `vertex` x, y, z and its `face` index lists.
 
@@ -349,8 +358,11 @@ def _read_ply(data: bytes, name: str) -> _MeshText:
     if order is None:
         tokens = data[body:].split()
         t = 0
-        for el in header.elements:
-            found[el.name], t = _ply_ascii_element(tokens, t, el, name)
+        try:
+            for el in header.elements:
+                found[el.name], t = _ply_ascii_element(tokens, t, el, name)
+        except _syntax.TokenError as exc:
+            raise ValueError(_with_line(str(exc), data, body, exc.token, name)) from None
         if t < len(tokens):
             raise ValueError(
                 f"{name}: {len(tokens) - t} values after the last element the header "
