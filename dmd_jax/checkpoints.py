@@ -56,6 +56,9 @@ class ModelBundle(NamedTuple):
     config: ExperimentConfig
     meta: dict
     policy: DenoisePolicy = DenoisePolicy()
+    # The learned smoothing controller (`dmd_jax.controller.ControllerParams`) stored
+    # beside the network, or None.
+    controller: Any = None
 
 
 def write_weights_file(
@@ -168,6 +171,7 @@ def save_weights(
     meta: dict | None = None,
     *,
     policy: DenoisePolicy | None = None,
+    controller=None,
     overwrite: bool = False,
 ) -> Path:
     """Writes params + config + policy + meta to one msgpack file (version 2), atomically.
@@ -178,9 +182,14 @@ def save_weights(
       config: the config that built them.
       meta: provenance (JSON types).
       policy: how `denoise` runs them; None stores the default policy.
+      controller: a `controller.ControllerParams` to store beside them (a `controller`
+        section), or None.
       overwrite: replace an existing file.
     """
     policy = DenoisePolicy() if policy is None else policy
+    sections = {"policy": policy.to_dict()}
+    if controller is not None:
+        sections["controller"] = controller.to_json()
     return write_weights_file(
         path,
         fmt=WEIGHTS_FORMAT,
@@ -189,7 +198,7 @@ def save_weights(
         meta=meta or {},
         params=params,
         overwrite=overwrite,
-        sections={"policy": policy.to_dict()},
+        sections=sections,
     )
 
 
@@ -232,7 +241,14 @@ def load_weights(path) -> ModelBundle:
     if not isinstance(params, dict):
         raise ValueError(f"{path}: params must be a nested dict of arrays")
     check_params(params, config, str(path))
-    return ModelBundle(params=params, config=config, meta=meta, policy=policy)
+    controller = None
+    if "controller" in payload:
+        from dmd_jax.controller import ControllerParams
+
+        controller = _parse_section(path, payload, "controller", ControllerParams.from_dict)
+    return ModelBundle(
+        params=params, config=config, meta=meta, policy=policy, controller=controller
+    )
 
 
 @lru_cache(maxsize=8)

@@ -77,6 +77,12 @@ class ControllerParams(NamedTuple):
             "options": [[o.presmooth, o.update or "", o.passes] for o in self.options],
         }
 
+    def to_json(self) -> dict:
+        """`to_dict` with lists for arrays (a JSON section)."""
+        return {
+            k: v.tolist() if isinstance(v, np.ndarray) else v for k, v in self.to_dict().items()
+        }
+
     @classmethod
     def from_dict(cls, d: dict) -> ControllerParams:
         """The inverse of `to_dict`, checking shapes.
@@ -223,3 +229,46 @@ def evaluate(chosen: np.ndarray, errors: np.ndarray, default: np.ndarray) -> dic
         "to_default": geomean(e / base),
         "capture": float(got / gain) if gain > 0 else float("nan"),
     }
+
+
+class Decision(NamedTuple):
+    """What the controller chose for one mesh, and from what."""
+
+    option: Option
+    features: dict  # name -> value, the statistics it read
+
+    def describe(self) -> str:
+        """One line for `DenoiseInfo` (what it chose and the main statistics behind it)."""
+        o = self.option
+        what = (
+            "none (the mesh as given)"
+            if o.passes == 0 and o.presmooth == 0
+            else f"{o.presmooth} pre-smoothing steps"
+            + (f", {o.passes} passes ({o.update} update)" if o.passes else ", no network pass")
+        )
+        f = self.features
+        return (
+            f"controller: {what}; from roughness {f['rough_q50']:.1f}° (median), "
+            f"Laplacian displacement {f['disp_rms']:.2f} edges, anisotropy "
+            f"{f['disp_anisotropy']:.2f}, normal share {f['disp_normal_share']:.2f}, "
+            f"roughness kept after 16 steps {f['rough_ratio_16']:.2f}"
+        )
+
+
+def decide(params: ControllerParams, vertices, faces) -> Decision:
+    """The controller's choice for one mesh (every vertex referenced).
+
+    Args:
+      params: the trained controller.
+      vertices: `[n_vertex, 3]` noisy positions, any frame.
+      faces: `[n_face, 3]`.
+    """
+    from dmd_jax.controller_features import FEATURE_NAMES, features
+
+    feats = features(vertices, faces)
+    if params.mean.shape[0] != feats.shape[0]:
+        raise ValueError(
+            f"the controller reads {params.mean.shape[0]} statistics, this dmd_jax computes "
+            f"{feats.shape[0]}: retrain it (scripts/train_controller.py)"
+        )
+    return Decision(choose(params, feats), dict(zip(FEATURE_NAMES, feats.tolist(), strict=True)))

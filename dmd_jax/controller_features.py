@@ -32,7 +32,6 @@ FEATURE_NAMES = (
     "disp_normal_share",
     "disp_anisotropy",
     "boundary_share",
-    "log_faces",
 )
 N_FEATURES = len(FEATURE_NAMES)
 
@@ -71,7 +70,7 @@ def features(vertices, faces) -> np.ndarray:
       ratios after 4/16 steps; the share of the displacement along the vertex normals;
       its anisotropy (largest eigenvalue share of the displacement's second moment:
       1/3 for isotropic noise, 1 for noise along one view direction); the share
-      of boundary edges; log10 of the face count.
+      of boundary edges. No size: the controller trained on crops reads whole scans.
     """
     v = np.asarray(vertices, np.float64)
     f = np.asarray(faces, np.int64)
@@ -114,7 +113,6 @@ def features(vertices, faces) -> np.ndarray:
             along,
             aniso,
             float(np.count_nonzero(counts == 1)) / max(len(unique), 1),
-            float(np.log10(max(len(f), 1))),
         ],
         np.float64,
     )

@@ -20,7 +20,8 @@ def _cmd_export_weights(args: argparse.Namespace) -> int:
     check_range("--relax-steps", args.relax_steps, 0, MAX_RELAX_STEPS)
     check_local_path("checkpoint", args.checkpoint)
     check_local_path("--policy-from", args.policy_from)
-    inputs = [args.checkpoint] + ([args.policy_from] if args.policy_from else [])
+    check_local_path("--controller", args.controller)
+    inputs = [args.checkpoint] + [p for p in (args.policy_from, args.controller) if p]
     # The output is never one of the inputs, --overwrite or not.
     _check_output(args.output, inputs, args.overwrite)
     source = Path(args.checkpoint)
@@ -28,12 +29,12 @@ def _cmd_export_weights(args: argparse.Namespace) -> int:
         # A weights file: the same params with a newly fitted inference policy.
         bundle = load_weights(source)
         params, cfg, meta = bundle.params, bundle.config, dict(bundle.meta)
-        policy = bundle.policy
+        policy, controller = bundle.policy, bundle.controller
         step = meta.get("step")
         meta["exported_from"] = str(args.checkpoint)
     else:
         params, cfg = load_params(source)
-        policy = trained_policy(cfg)
+        policy, controller = trained_policy(cfg), None
         step = _latest_step(source)
         meta = {"source": str(args.checkpoint), "platform": platform.platform()}
         if step is not None:
@@ -41,11 +42,23 @@ def _cmd_export_weights(args: argparse.Namespace) -> int:
     if args.policy_from is not None:
         # A fine-tune keeps the policy fitted for the weights it started from; the
         # edits below still apply on top of it.
-        policy = load_weights(args.policy_from).policy
+        donor = load_weights(args.policy_from)
+        policy, controller = donor.policy, donor.controller
         meta["policy_from"] = str(args.policy_from)
     policy = _edited_policy(policy, args)
+    if args.controller is not None:
+        controller = _read_controller(args.controller)
+        meta["controller_from"] = str(args.controller)
     meta.update(meta_edits)
-    path = save_weights(args.output, params, cfg, meta, policy=policy, overwrite=args.overwrite)
+    path = save_weights(
+        args.output,
+        params,
+        cfg,
+        meta,
+        policy=policy,
+        controller=controller,
+        overwrite=args.overwrite,
+    )
     print(
         f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB): "
         + (f"step {step}" if step is not None else "the newest step")
@@ -96,6 +109,26 @@ def _edited_policy(policy, args: argparse.Namespace):
     if args.relax_steps is not None:
         edits["relax_steps"] = args.relax_steps
     return policy.with_edits(edits)
+
+
+def _read_controller(path):
+    """The `ControllerParams` of a `.npz` written by `scripts/train_controller.py`.
+
+    Raises:
+      ValueError: not such a file.
+    """
+    import numpy as np
+
+    from dmd_jax.controller import ControllerParams
+
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            fields = {k: z[k] for k in z.files}
+    except (OSError, ValueError) as err:
+        raise ValueError(f"--controller {path}: not a controller file ({err})") from None
+    if "options" in fields:
+        fields["options"] = fields["options"].tolist()
+    return ControllerParams.from_dict(fields)
 
 
 def _latest_step(checkpoint_dir) -> int | None:
@@ -152,6 +185,13 @@ def add_parser(sub) -> None:
         help="take the inference policy (pass and pre-smoothing rules) from this weights "
         "file instead of the checkpoint's trained policy, e.g. the weights a fine-tune "
         "started from; the options above still edit it",
+    )
+    p.add_argument(
+        "--controller",
+        default=None,
+        metavar="NPZ",
+        help="store this learned smoothing controller (scripts/train_controller.py --out) "
+        "beside the network; denoise then lets it choose pre-smoothing, passes and update",
     )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.set_defaults(func=_cmd_export_weights)

@@ -44,7 +44,7 @@ KINDS = {
 }
 # Patch sizes: the search runs one compiled program per padded size, so examples are
 # crops of about this many faces (the controller's statistics are per-area, not totals).
-PATCH_FACES = (600, 1500)
+PATCH_FACES = (400, 1200)
 
 
 def example_spec(seed: int, index: int, sources: dict[str, int]) -> dict:
@@ -87,7 +87,7 @@ def example_spec(seed: int, index: int, sources: dict[str, int]) -> dict:
         spec["grazing_max_gain"] = float(rng.uniform(1.0, 3.0))
         spec["spike_share"] = float(rng.choice([0.0, 0.001, 0.005]))
         if kind == "scan":
-            spec["resolution"] = int(rng.choice([48, 64, 96]))
+            spec["resolution"] = int(rng.choice([40, 48, 64]))
     return spec
 
 
