@@ -1,4 +1,6 @@
-"""A generator of hostile cases (issue 56, families 3-7), run by `tests/test_hostile2.py`.
+"""A generator of hostile cases: round 2 (issue 56, families 3-7, `cases()`, run by
+`tests/test_hostile2.py`) and round 3 (issue 65, families 2-8, `round3()`, run by
+`tests/test_hostile3.py`); `python tests/hostile_cases.py` runs both.
 
 `cases()` returns every case as a `Case(name, family, run)`; `run(tmp)` does what a
 hostile user would, through the CLI (in process) or the API, in the empty folder `tmp`,
@@ -1250,6 +1252,425 @@ def run_case(case: Case, tmp: Path) -> str | None:
     return None
 
 
+# --------------------------------------------------------------------------------------
+# Round 3 (issue 65): families 2 (number syntax), 3 (line breaks), 4 (arguments outside
+# denoise), 5 (nothing to denoise), 6 (folder mode onto itself), 7 (the experiments
+# runner), 8 (clear messages). Names start with "r3-".
+# --------------------------------------------------------------------------------------
+
+# Number tokens Python's float()/int() read and C strtod/strtol do not (each refused).
+BAD_NUMBERS = ("1_0", "1_000.5", "\uff11", "\u0661", "\U0001d7ce", "1\u00a0", "\u00b2", "0_1")
+
+
+def text_mesh(fmt: str, token: str | None = None, where: str = "coordinate") -> bytes:
+    """The tetrahedron `TET` as OBJ, OFF, ASCII PLY or ASCII STL text, with `token` in
+    place of its first coordinate (or first face index, `where="index"`)."""
+    v = [["0", "0", "0"], ["1", "0", "0"], ["0", "1", "0"], ["0", "0", "1"]]
+    f = [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]
+    if token is not None and where == "coordinate":
+        v[1][0] = token
+    idx = [[str(i + (fmt == "obj")) for i in face] for face in f]
+    if token is not None and where == "index":
+        idx[0][1] = token
+    if fmt == "obj":
+        rows = [f"v {' '.join(p)}" for p in v] + [f"f {' '.join(t)}" for t in idx]
+    elif fmt == "off":
+        rows = ["OFF", "4 4 0"] + [" ".join(p) for p in v] + [f"3 {' '.join(t)}" for t in idx]
+    elif fmt == "ply":
+        rows = [
+            "ply",
+            "format ascii 1.0",
+            "element vertex 4",
+            "property float x",
+            "property float y",
+            "property float z",
+            "element face 4",
+            "property list uchar int vertex_indices",
+            "end_header",
+            *[" ".join(p) for p in v],
+            *[f"3 {' '.join(t)}" for t in idx],
+        ]
+    else:  # ASCII STL: a triangle soup
+        rows = ["solid t"]
+        for face in f:
+            rows += ["facet normal 0 0 0", "outer loop"]
+            rows += [f"vertex {' '.join(v[i])}" for i in face]
+            rows += ["endloop", "endfacet"]
+        rows.append("endsolid t")
+    return ("\n".join(rows) + "\n").encode("utf-8")
+
+
+def _r3_number(fmt: str, token: str, where: str, via: str):
+    def run(tmp: Path) -> None:
+        from dmd_jax.io import load_mesh
+
+        p = tmp / f"n.{fmt}"
+        p.write_bytes(text_mesh(fmt, token, where))
+        if via == "api":
+            expect_value_error(lambda: load_mesh(p), "n." + fmt, "line")
+        else:
+            refused_quietly(tmp, ["denoise", p, "-o", tmp / "o.obj", "--method", "laplacian"])
+
+    return run
+
+
+def _r3_good_number(fmt: str, token: str, value: float):
+    """A token C strtod reads (hexadecimal, exponent, sign) reads as that value."""
+
+    def run(tmp: Path) -> None:
+        from dmd_jax.io import load_mesh
+
+        p = tmp / f"g.{fmt}"
+        p.write_bytes(text_mesh(fmt, token))
+        v, _ = load_mesh(p)
+        assert value in v[:, 0], f"{token!r} read as {sorted(set(v[:, 0]))}, not {value}"
+
+    return run
+
+
+# Line breaks str.splitlines() takes and the formats do not: a statement after one, in a
+# comment, stays in the comment.
+BREAKS = ("\u2028", "\u2029", "\x85", "\x0c", "\x0b", "\x1c", "\x1d", "\x1e")
+
+
+def _r3_break_in_comment(fmt: str, brk: str):
+    def run(tmp: Path) -> None:
+        from dmd_jax.io import load_mesh
+
+        good = text_mesh(fmt).decode()
+        if fmt == "obj":  # a hidden vertex and face would make a fifth vertex
+            text = f"# note{brk}v 9 9 9{brk}f 1 2 5\n" + good
+        elif fmt == "off":
+            text = good.replace("OFF\n", f"OFF\n# note{brk}5 5 0\n", 1)
+        else:  # PLY: a hidden `element` line in a header comment
+            text = good.replace(
+                "format ascii 1.0\n", f"format ascii 1.0\ncomment x{brk}element edge 9\n"
+            )
+        p = tmp / f"c.{fmt}"
+        p.write_bytes(text.encode("utf-8"))
+        v, f = load_mesh(p)
+        assert v.shape == (4, 3) and f.shape == (4, 3), f"read {v.shape}, {f.shape}"
+
+    return run
+
+
+def _r3_argument(fn: str, arg: str, value):
+    """A public function of the root API refuses a bad argument with one ValueError or
+    TypeError naming it, before any work."""
+
+    def run(tmp: Path) -> None:
+        import dmd_jax
+
+        calls = {
+            "add_noise": lambda **kw: dmd_jax.add_noise(
+                kw.get("seed", 0),
+                kw.get("vertices", V),
+                kw.get("faces", F),
+                "scanner" if "view" in kw else "gaussian",
+                0.1,
+                **({"view": kw["view"]} if "view" in kw else {}),
+            ),
+            "simulate_scan": lambda **kw: dmd_jax.simulate_scan(
+                kw.get("seed", 0),
+                kw.get("vertices", V),
+                kw.get("faces", F),
+                view=kw.get("view"),
+                resolution=16,
+            ),
+            "denoise_with": lambda **kw: dmd_jax.denoise_with(
+                "laplacian", kw.get("vertices", V), kw.get("faces", F)
+            ),
+            "build_mesh_graph": lambda **kw: dmd_jax.build_mesh_graph(kw.get("faces", F), len(V)),
+            "save_mesh": lambda **kw: dmd_jax.save_mesh(
+                tmp / "o.ply", kw.get("vertices", V), kw.get("faces", F)
+            ),
+        }
+        word = {"vertices": "vert", "faces": "face", "seed": "seed", "view": "view"}[arg]
+        try:
+            calls[fn](**{arg: value})
+        except (ValueError, TypeError) as exc:
+            text = str(exc)
+            assert "\n" not in text.strip(), f"not one line: {text[:200]!r}"
+            assert word in text.lower(), f"{word!r} not named: {text[:200]!r}"
+            return
+        raise AssertionError(f"{fn}({arg}={value!r}) was taken")
+
+    return run
+
+
+def _faces_with(kind: str) -> np.ndarray:
+    f = F.copy()
+    if kind == "negative":
+        f[0, 1] = -1
+    elif kind == "out-of-range":
+        f[0, 1] = len(V)
+    elif kind == "uint64-huge":
+        f = f.astype(np.uint64)
+        f[0, 1] = 2**63 + 1
+    elif kind == "fractional":
+        f = f + 0.5
+    elif kind == "two-columns":
+        f = f[:, :2]
+    return f
+
+
+def tetrahedron(regular: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    v = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], float)
+    if not regular:
+        v = v * [1.0, 0.7, 1.3] + [[0.1, 0, 0], [0, 0.2, 0], [0, 0, -0.1], [0.05, 0, 0]]
+    return v, np.array([[0, 1, 2], [0, 3, 1], [0, 2, 3], [1, 3, 2]])
+
+
+def icosahedron() -> tuple[np.ndarray, np.ndarray]:
+    t = (1 + 5**0.5) / 2
+    v = np.array(
+        [
+            [-1, t, 0],
+            [1, t, 0],
+            [-1, -t, 0],
+            [1, -t, 0],
+            [0, -1, t],
+            [0, 1, t],
+            [0, -1, -t],
+            [0, 1, -t],
+            [t, 0, -1],
+            [t, 0, 1],
+            [-t, 0, -1],
+            [-t, 0, 1],
+        ],
+        float,
+    )
+    f = [
+        [0, 11, 5],
+        [0, 5, 1],
+        [0, 1, 7],
+        [0, 7, 10],
+        [0, 10, 11],
+        [1, 5, 9],
+        [5, 11, 4],
+        [11, 10, 2],
+        [10, 7, 6],
+        [7, 1, 8],
+        [3, 9, 4],
+        [3, 4, 2],
+        [3, 2, 6],
+        [3, 6, 8],
+        [3, 8, 9],
+        [4, 9, 5],
+        [2, 4, 11],
+        [6, 2, 10],
+        [8, 6, 7],
+        [9, 8, 1],
+    ]
+    return v, np.array(f)
+
+
+def still_mesh(kind: str) -> tuple[np.ndarray, np.ndarray]:
+    """Meshes with nothing to denoise (`consistency.still_faces`)."""
+    if kind == "tetrahedron":
+        return tetrahedron()
+    if kind == "irregular-tetrahedron":
+        return tetrahedron(regular=False)
+    if kind == "octahedron":
+        return sphere(0)
+    if kind == "icosahedron":
+        return icosahedron()
+    if kind == "one-triangle":
+        return np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0.0]]), np.array([[0, 1, 2]])
+    if kind == "collinear":  # every face of zero area: points on one line
+        x = np.linspace(0.0, 1.0, 6)
+        v = np.stack([x * 0.1, x * 0.3, x * 0.7], 1)
+        return v, np.array([[0, 1, 2], [1, 2, 3], [2, 3, 4], [3, 4, 5], [0, 2, 5]])
+    if kind == "two-tetrahedra":
+        a, fa = tetrahedron()
+        b, _ = tetrahedron(regular=False)
+        return np.concatenate([a, b + 5.0]), np.concatenate([fa, fa + 4])
+    raise ValueError(kind)
+
+
+def _r3_still(kind: str, method: str):
+    def run(tmp: Path) -> None:
+        import dmd_jax
+
+        v, f = still_mesh(kind)
+        out = dmd_jax.denoise_with(method, v, f)
+        assert np.array_equal(out, v), f"{method} moved {kind} by {np.abs(out - v).max():.3g}"
+
+    return run
+
+
+def _r3_folder_onto_itself(how: str):
+    def run(tmp: Path) -> None:
+        folder = tmp / "meshes"
+        folder.mkdir()
+        write(folder / "a.obj")
+        write(folder / "b.off")
+        out = {"same": folder, "dot": folder / ".", "dotdot": folder / ".." / "meshes"}[how]
+        argv = ["denoise", folder, "--out", out, "--skip-existing", "--method", "laplacian"]
+        refused_quietly(tmp, argv, "input")
+
+    return run
+
+
+def _r3_experiments(command: str, where: str):
+    def run(tmp: Path) -> None:
+        import subprocess
+        import sys
+
+        paths = {
+            "missing": tmp / "nothing",
+            "empty": tmp / "empty",
+            "file": tmp / "file.txt",
+            "bad-json": tmp / "bad",
+        }
+        (tmp / "empty").mkdir()
+        (tmp / "file.txt").write_text("x")
+        (tmp / "bad").mkdir()
+        (tmp / "bad" / "plan.json").write_text("{not json")
+        (tmp / "bad" / "p").mkdir()
+        (tmp / "bad" / "p" / "summary.json").write_text("[1,")
+        before = snapshot(tmp)
+        got = subprocess.run(
+            [sys.executable, "-m", "experiments", command, str(paths[where])],
+            cwd=REPO,
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        refused((got.returncode, got.stdout, got.stderr), str(paths[where].name))
+        assert "Traceback" not in got.stderr, got.stderr[-300:]
+        assert snapshot(tmp) == before, "files changed"
+
+    return run
+
+
+def _r3_message(kind: str):
+    def run(tmp: Path) -> None:
+        import gzip
+
+        from dmd_jax.io import load_mesh
+
+        src = write(tmp / "m.off")
+        if kind.startswith("gzip"):
+            ext = kind.split("-")[1]
+            good = write(tmp / f"g.{ext}")
+            p = tmp / f"z.{ext}"
+            p.write_bytes(gzip.compress(good.read_bytes()))
+            expect_value_error(lambda: load_mesh(p), "z." + ext, "gzip")
+        elif kind == "off-in-obj":
+            p = tmp / "x.obj"
+            p.write_bytes(src.read_bytes())
+            expect_value_error(lambda: load_mesh(p), "x.obj", "OFF")
+        elif kind == "ply-faces-element":
+            p = tmp / "x.ply"
+            text = text_mesh("ply").replace(b"element face", b"element faces")
+            p.write_bytes(text)
+            expect_value_error(lambda: load_mesh(p), "x.ply", "'face' element", "faces")
+        elif kind.startswith("max-memory"):
+            value = kind.split(":", 1)[1]
+            word = {"1e3": "1000 bytes", "1e400GB": "more than any", "0.5": "less than one"}
+            refused_quietly(
+                tmp,
+                ["denoise", src, "-o", tmp / "o.obj", "--max-memory", value],
+                "--max-memory",
+                word[value],
+            )
+        elif kind == "unwritable":
+            ro = tmp / "ro"
+            ro.mkdir()
+            import dmd_jax.io._files as files
+
+            real = files.tempfile.mkstemp
+
+            def refuse(*args, **kwargs):  # what a read-only or foreign folder does
+                if str(kwargs.get("dir", "")).startswith(str(ro)):
+                    raise PermissionError(13, "Permission denied")
+                return real(*args, **kwargs)
+
+            files.tempfile.mkstemp = refuse
+            try:
+                argv = ["denoise", src, "-o", ro / "o.obj", "--method", "laplacian"]
+                refused_quietly(tmp, argv, "o.obj", "cannot write")
+            finally:
+                files.tempfile.mkstemp = real
+
+    return run
+
+
+def round3() -> list[Case]:
+    out = []
+    for fmt in ("obj", "off", "ply", "stl"):
+        for i, token in enumerate(BAD_NUMBERS):
+            for via in ("api", "cli") if i < 2 else ("api",):
+                out.append(
+                    Case(
+                        f"r3-f2-{fmt}-coord-{i}-{via}", 2, _r3_number(fmt, token, "coordinate", via)
+                    )
+                )
+        if fmt != "stl":
+            for i, token in enumerate(("1_0", "\uff12", "2.0", "0x2", "2e0")):
+                out.append(
+                    Case(f"r3-f2-{fmt}-index-{i}", 2, _r3_number(fmt, token, "index", "api"))
+                )
+        for token, value in (("0x1p-2", 0.25), ("+1e0", 1.0), ("1.", 1.0), ("-.5E1", -5.0)):
+            out.append(Case(f"r3-f2-{fmt}-good-{token}", 2, _r3_good_number(fmt, token, value)))
+    for fmt in ("obj", "off", "ply"):
+        for brk in BREAKS:
+            out.append(Case(f"r3-f3-{fmt}-{ord(brk):04x}", 3, _r3_break_in_comment(fmt, brk)))
+    bad = {
+        "seed": (1.5, "1", None, True, np.float64(2.0), 2**64, np.zeros(3, np.uint32)),
+        "faces": tuple(
+            _faces_with(k)
+            for k in ("negative", "out-of-range", "uint64-huge", "fractional", "two-columns")
+        ),
+        "view": ([0, 0, 0], [np.nan, 0, 1], "up", [1, 2]),
+        "vertices": (np.full((4, 3), np.nan), "abc", V[:, :2]),
+    }
+    takes = {
+        "add_noise": ("seed", "faces", "view", "vertices"),
+        "simulate_scan": ("seed", "faces", "view", "vertices"),
+        "denoise_with": ("faces", "vertices"),
+        "build_mesh_graph": ("faces",),
+        "save_mesh": ("faces", "vertices"),
+    }
+    for fn, args in takes.items():
+        for arg in args:
+            for i, value in enumerate(bad[arg]):
+                if fn == "build_mesh_graph" and i == 3:
+                    continue  # fractional faces: a graph takes integral floats only too
+                out.append(Case(f"r3-f4-{fn}-{arg}-{i}", 4, _r3_argument(fn, arg, value)))
+    for kind in (
+        "tetrahedron",
+        "irregular-tetrahedron",
+        "octahedron",
+        "icosahedron",
+        "one-triangle",
+        "collinear",
+        "two-tetrahedra",
+    ):
+        for method in (*CLASSIC, "cnr", "dmd"):
+            out.append(Case(f"r3-f5-{kind}-{method}", 5, _r3_still(kind, method)))
+    for how in ("same", "dot", "dotdot"):
+        out.append(Case(f"r3-f6-{how}", 6, _r3_folder_onto_itself(how)))
+    for command in ("aggregate", "index"):
+        for where in ("missing", "empty", "file", "bad-json"):
+            out.append(Case(f"r3-f7-{command}-{where}", 7, _r3_experiments(command, where)))
+    for kind in (
+        "gzip-stl",
+        "gzip-obj",
+        "gzip-ply",
+        "gzip-off",
+        "off-in-obj",
+        "ply-faces-element",
+        "max-memory:1e3",
+        "max-memory:1e400GB",
+        "max-memory:0.5",
+        "unwritable",
+    ):
+        out.append(Case(f"r3-f8-{kind}", 8, _r3_message(kind)))
+    return out
+
+
 if __name__ == "__main__":  # python tests/hostile_cases.py: count the failures
     import sys
     import tempfile
@@ -1257,7 +1678,8 @@ if __name__ == "__main__":  # python tests/hostile_cases.py: count the failures
     sys.path.insert(0, str(REPO / "tests"))
     only = sys.argv[1:]
     failed = 0
-    chosen = [c for c in cases() if not only or any(c.name.startswith(o) for o in only)]
+    every = cases() + round3()
+    chosen = [c for c in every if not only or any(c.name.startswith(o) for o in only)]
     for c in chosen:
         with tempfile.TemporaryDirectory() as d:
             why = run_case(c, Path(d))

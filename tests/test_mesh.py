@@ -244,10 +244,14 @@ def test_vertex_edges_and_face_adjacency_match_trimesh():
 
 
 def test_build_mesh_graph_rejects_bad_faces():
-    with pytest.raises(ValueError, match="shape"):
+    with pytest.raises(ValueError, match="must be triangles"):
         build_mesh_graph(np.zeros((2, 4), int), 5)
-    with pytest.raises(ValueError, match="indices must lie"):
+    with pytest.raises(ValueError, match="out of range"):
         build_mesh_graph(np.array([[0, 1, 5]]), 5)
+    with pytest.raises(ValueError, match="ragged"):
+        build_mesh_graph([[None, 1, 2]], 5)
+    with pytest.raises(TypeError, match="n_vertex"):
+        build_mesh_graph(np.array([[0, 1, 2]]), 5.0)
 
 
 # --------------------------------------------------------------------------------------
