@@ -105,6 +105,9 @@ class DenoiseInfo:
         triangle, no area: `consistency.still_faces`), returned exactly as given.
       unchanged: why the whole mesh came back as given, without any work (`path` is
         then `"unchanged"`); None when the network ran.
+      controller: what the learned smoothing controller chose and from what, in one
+        line (`controller.Decision.describe`), when it chose; None otherwise. With
+        `path` `"no network"`, it chose no network pass.
 
     Its `repr` is a summary of at most `INFO_REPR_MAX` characters (fields that are None
     left out, arrays shown by shape, long sequences by length); every field stays
@@ -129,6 +132,7 @@ class DenoiseInfo:
     scale_groups: int = 1
     still_vertices: int = 0
     unchanged: str | None = None
+    controller: str | None = None
 
     def __repr__(self) -> str:
         parts = (
@@ -151,15 +155,14 @@ def whole_mesh_graph(faces: np.ndarray, n_vertex: int, aggregation: str):
     return with_aggregation_layout(graph, aggregation)
 
 
-def _denoise_whole(v, f, bundle, policy: DenoisePolicy, aggregation: str, held=None):
-    """The whole mesh at once; float64 positions in the input frame and the passes run
-    (`held`: vertices kept where they are, `policy.run_passes`)."""
+def _whole_mesh_pass(v, f, bundle, aggregation: str):
+    """`(frame, one_pass)`: the network's frame of the whole mesh `v` and one network
+    pass over it (frame positions -> frame positions, float64 on the host)."""
     # The padded graph does not change between passes: build it (edge lists, ELL
     # tables) and move it to the device once, not once per pass.
     graph = whole_mesh_graph(f, v.shape[0], aggregation)
     edges = undirected_vertex_edges(graph)
     frame = mesh_frame(bundle.config.model.encoding, v, f, edges=edges)
-    x = frame.apply(v)
     # `device_put`, not `jnp.asarray`: the same transfer without a copy program per
     # array shape, each traced and compiled in a fresh process (docs/cold-start.md).
     graph = jax.tree.map(jax.device_put, graph)
@@ -174,8 +177,40 @@ def _denoise_whole(v, f, bundle, policy: DenoisePolicy, aggregation: str, held=N
             np.float64
         )
 
-    x, done = run_passes(one_pass, x, policy, held)
+    return frame, one_pass
+
+
+def _denoise_whole(v, f, bundle, policy: DenoisePolicy, aggregation: str, held=None):
+    """The whole mesh at once; float64 positions in the input frame and the passes run
+    (`held`: vertices kept where they are, `policy.run_passes`)."""
+    frame, one_pass = _whole_mesh_pass(v, f, bundle, aggregation)
+    x, done = run_passes(one_pass, frame.apply(v), policy, held)
     return frame.invert(x), done
+
+
+def network_passes(vertices, faces, bundle, passes: int, aggregation: str = "auto"):
+    """Yields the mesh after each of `passes` network passes, as `denoise` chains them
+    in one frame (no pre-smoothing, no held vertices, no relaxation): the search over
+    pass counts of `dmd_jax.data.smoothing_set` reads every count from one run.
+
+    Args:
+      vertices: `[n_vertex, 3]` float64, every vertex referenced.
+      faces: `[n_face, 3]` consistently wound.
+      bundle: a `ModelBundle`.
+      passes: how many.
+      aggregation: as `denoise`'s.
+
+    Yields:
+      `[n_vertex, 3]` float64 positions in the input frame, after pass 1, 2, ...
+    """
+    v = np.asarray(vertices, np.float64)
+    frame, one_pass = _whole_mesh_pass(v, np.asarray(faces), bundle, aggregation)
+    x = frame.apply(v)
+    for _ in range(passes):
+        x = one_pass(x)
+        if not np.all(np.isfinite(x)):
+            raise ValueError("the network produced non-finite vertices (broken weights?)")
+        yield frame.invert(x)
 
 
 def _referenced(v: np.ndarray, f: np.ndarray):
@@ -224,6 +259,7 @@ def denoise(
     progress: bool | None = None,
     devices=None,
     config=None,
+    controller: bool | None = None,
     return_info: bool = False,
 ):
     """Denoises a triangle mesh with a trained DMD-Net, in bounded memory.
@@ -273,6 +309,11 @@ def denoise(
         terminal and there are several patches).
       devices: the devices patches run on (default `jax.local_devices()`).
       config: the experiment config, only with raw params.
+      controller: whether the learned smoothing controller stored with the weights
+        (`dmd_jax.controller`) chooses the pre-smoothing steps, the passes and the
+        vertex update from the mesh's statistics. None (default): when the weights hold
+        one and the caller fixed none of `policy`, `iterations` and `presmooth`; True:
+        always (a `ValueError` when the weights hold none); False: never.
       return_info: also return a `DenoiseInfo` saying how the call ran.
 
     Returns:
@@ -317,7 +358,8 @@ def denoise(
     referenced = _referenced(v, f)
     if referenced is not None:
         used, v, f = referenced
-    args = (bundle, run, presmooth, aggregation, max_memory, patch_size, devices, progress)
+    chooser = _controller_for(bundle, controller, policy, iterations, presmooth)
+    args = (bundle, run, presmooth, aggregation, max_memory, patch_size, devices, progress, chooser)
     groups = scale_groups(v, f)
     if groups is None:
         out, fields = _denoise_referenced(v, f, in_dtype, *args)
@@ -349,8 +391,41 @@ def denoise(
     return out, DenoiseInfo(**fields, relax_steps=relax_steps, unused_vertices=unused, policy=run)
 
 
+def _controller_for(bundle, controller, policy, iterations, presmooth):
+    """The `ControllerParams` that choose the amount of smoothing of this call, or None
+    (`denoise`'s `controller` argument).
+
+    Raises:
+      ValueError: `controller=True` with weights that hold none, or not a bool/None.
+    """
+    if controller is not None and not isinstance(controller, bool):
+        raise ValueError(f"controller must be True, False or None, got {controller!r}")
+    if controller is False:
+        return None
+    if bundle.controller is None:
+        if controller:
+            raise ValueError(
+                "controller=True, but these weights hold no smoothing controller "
+                "(dmd-jax export-weights --controller adds one)"
+            )
+        return None
+    fixed = policy is not None or iterations is not None or presmooth is not None
+    return bundle.controller if controller or not fixed else None
+
+
 def _denoise_referenced(
-    v, f, in_dtype, bundle, run, presmooth, aggregation, max_memory, patch_size, devices, progress
+    v,
+    f,
+    in_dtype,
+    bundle,
+    run,
+    presmooth,
+    aggregation,
+    max_memory,
+    patch_size,
+    devices,
+    progress,
+    chooser=None,
 ):
     """`denoise` of a mesh whose every vertex is referenced, in one frame: its winding
     made consistent and its exact vertices (to the precision of `in_dtype`, the caller's
@@ -383,6 +458,17 @@ def _denoise_referenced(
     held = exact_vertices(x, f, exact_tolerance(in_dtype, v, f)) | still
     if not held.any():
         held = None  # a noisy mesh: every path exactly as without the test
+    decision = None
+    if chooser is not None:
+        from dmd_jax.controller import decide
+
+        decision = decide(chooser, x, f)
+        presmooth = decision.option.presmooth
+        if decision.option.passes:
+            model = bundle.config.model.replace(vertex_update=decision.option.update)
+            bundle = bundle._replace(config=bundle.config.replace(model=model))
+            run = run.replace(max_passes=decision.option.passes, pass_tolerance=0.0)
+    network = decision is None or decision.option.passes > 0
     pre = presmooth_plan(run, x, f, presmooth, free=None if held is None else ~held)
     if pre.steps:
         start, x = x, laplacian_steps(x, f, pre.steps)
@@ -390,7 +476,9 @@ def _denoise_referenced(
             x[held] = start[held]
     memory = plan(bundle.config.model, x.shape[0], f.shape[0], max_memory, patch_size)
     extra = {}
-    if memory.whole:
+    if not network:
+        passes = 0
+    elif memory.whole:
         x, passes = _denoise_whole(x, f, bundle, run, aggregation, held)
     else:
         x, stats = denoise_patches(
@@ -404,7 +492,7 @@ def _denoise_referenced(
         if held is not None:
             x[held] = start[held]
     fields = dict(
-        path="whole" if memory.whole else "patches",
+        path="no network" if not network else "whole" if memory.whole else "patches",
         budget_bytes=memory.budget,
         passes=passes,
         presmooth_steps=pre.steps,
@@ -412,8 +500,11 @@ def _denoise_referenced(
         flipped_faces=flipped,
         exact_vertices=0 if held is None else int((held & ~still).sum()),
         still_vertices=int(still.sum()),
+        controller=None if decision is None else decision.describe(),
         **extra,
     )
     out = x * scale + centre
+    if not network and not pre.steps and not run.relax_steps:
+        out = v.copy()  # the controller chose nothing: the mesh exactly as given
     out[still] = v[still]  # exactly as given, not through the frame's rounding
     return out, fields

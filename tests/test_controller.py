@@ -124,3 +124,92 @@ def test_malformed_controller_sections_are_refused():
     ):
         with pytest.raises(ValueError, match="controller section"):
             controller.ControllerParams.from_dict(broken)
+
+
+def _always(option, opts, n_feat=N_FEATURES):
+    """A controller that picks `option` whatever it reads."""
+    b2 = np.zeros(len(opts))
+    b2[opts.index(option)] = 10.0
+    return controller.ControllerParams(
+        mean=np.zeros(n_feat),
+        scale=np.ones(n_feat),
+        w1=np.zeros((n_feat, 2)),
+        b1=np.zeros(2),
+        w2=np.zeros((2, len(opts))),
+        b2=b2,
+        options=tuple(opts),
+    )
+
+
+def test_denoise_runs_what_the_controller_chooses(sphere, tmp_path):
+    v, f = sphere
+    noisy = add_noise(5, v, f, "gaussian", 0.3, units="edge", direction="normal")
+    bundle = load_pretrained()
+    opts = controller.options((0, 3), ("jacobi", "solve"), 3)
+    pick = controller.Option(3, "solve", 2)
+    with_ctrl = bundle._replace(controller=_always(pick, opts))
+    out, info = denoise(noisy, f, with_ctrl, return_info=True)
+    solve = smoothing_set._with_update(bundle, "solve")
+    np.testing.assert_array_equal(out, denoise(noisy, f, solve, presmooth=3, iterations=2))
+    assert info.passes == 2 and info.presmooth_steps == 3
+    assert info.controller.startswith("controller: 3 pre-smoothing steps, 2 passes (solve")
+    # None: the mesh as given; pre-smoothing alone: no network pass.
+    none = bundle._replace(controller=_always(controller.Option(0, None, 0), opts))
+    out, info = denoise(noisy, f, none, return_info=True)
+    np.testing.assert_array_equal(out, noisy)
+    assert (
+        info.path == "no network"
+        and info.passes == 0
+        and "none (the mesh as given)" in info.controller
+    )
+    # The caller's choices win; controller=False ignores it; True needs one.
+    np.testing.assert_array_equal(
+        denoise(noisy, f, with_ctrl, iterations=1), denoise(noisy, f, bundle, iterations=1)
+    )
+    np.testing.assert_array_equal(
+        denoise(noisy, f, with_ctrl, controller=False), denoise(noisy, f, bundle)
+    )
+    with pytest.raises(ValueError, match="hold no smoothing controller"):
+        denoise(noisy, f, bundle, controller=True)
+    with pytest.raises(ValueError, match="controller must be True, False or None"):
+        denoise(noisy, f, bundle, controller="yes")
+
+
+def test_the_controller_travels_in_the_weights_file(tmp_path):
+    from dmd_jax import cli
+    from dmd_jax.checkpoints import load_weights, pretrained_path
+
+    opts = controller.options((0, 3), ("jacobi", "solve"), 3)
+    params = _always(controller.Option(3, "jacobi", 1), opts)
+    np.savez(tmp_path / "c.npz", **params.to_dict())
+    out = tmp_path / "w.msgpack"
+    assert (
+        cli.main(
+            [
+                "export-weights",
+                str(pretrained_path()),
+                "-o",
+                str(out),
+                "--controller",
+                str(tmp_path / "c.npz"),
+            ]
+        )
+        == 0
+    )
+    back = load_weights(out).controller
+    assert back.options == params.options
+    np.testing.assert_allclose(back.b2, params.b2)
+    (tmp_path / "bad.npz").write_bytes(b"nope")
+    assert (
+        cli.main(
+            [
+                "export-weights",
+                str(pretrained_path()),
+                "-o",
+                str(tmp_path / "x.msgpack"),
+                "--controller",
+                str(tmp_path / "bad.npz"),
+            ]
+        )
+        == 2
+    )
