@@ -256,19 +256,23 @@ class Decision(NamedTuple):
 
 
 def decide(params: ControllerParams, vertices, faces) -> Decision:
-    """The controller's choice for one mesh (every vertex referenced).
+    """The controller's choice for one mesh (every vertex referenced): read whole when it
+    is small, else in crops (`controller_features.crops`), the scores averaged.
 
     Args:
       params: the trained controller.
       vertices: `[n_vertex, 3]` noisy positions, any frame.
       faces: `[n_face, 3]`.
     """
-    from dmd_jax.controller_features import FEATURE_NAMES, features
+    from dmd_jax.controller_features import FEATURE_NAMES, crops, features
 
-    feats = features(vertices, faces)
-    if params.mean.shape[0] != feats.shape[0]:
+    feats = np.array([features(v, f) for v, f in crops(vertices, faces)])
+    if params.mean.shape[0] != feats.shape[1]:
         raise ValueError(
             f"the controller reads {params.mean.shape[0]} statistics, this dmd_jax computes "
-            f"{feats.shape[0]}: retrain it (scripts/train_controller.py)"
+            f"{feats.shape[1]}: retrain it (scripts/train_controller.py)"
         )
-    return Decision(choose(params, feats), dict(zip(FEATURE_NAMES, feats.tolist(), strict=True)))
+    # A large mesh is read crop by crop: the option best on average over its crops.
+    best = int(np.argmax(scores(params, feats).mean(axis=0)))
+    mean = feats.mean(axis=0)
+    return Decision(params.options[best], dict(zip(FEATURE_NAMES, mean.tolist(), strict=True)))

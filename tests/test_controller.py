@@ -213,3 +213,24 @@ def test_the_controller_travels_in_the_weights_file(tmp_path):
         )
         == 2
     )
+
+
+def test_a_large_mesh_is_read_in_crops_of_the_training_size():
+    from dmd_jax.controller_features import CROP_VERTICES, CROPS, crops
+
+    v, f = icosphere(5)  # 10,242 vertices
+    v, f = np.asarray(v, np.float64), np.asarray(f, np.int64)
+    noisy = add_noise(2, v, f, "gaussian", 0.2, units="edge", direction="normal")
+    pieces = crops(noisy, f)
+    assert len(pieces) == CROPS
+    for pv, pf in pieces:
+        assert len(pv) <= CROP_VERTICES and 400 <= len(pf) <= 1200  # the training crops' range
+        assert pf.min() == 0 and pf.max() == len(pv) - 1
+    again = crops(noisy, f)
+    assert all(np.array_equal(a[1], b[1]) for a, b in zip(pieces, again, strict=True))
+    # Homogeneous noise: each crop reads the whole mesh's roughness.
+    whole = features(noisy, f)[FEATURE_NAMES.index("rough_q50")]
+    for pv, pf in pieces:
+        assert features(pv, pf)[FEATURE_NAMES.index("rough_q50")] == pytest.approx(whole, rel=0.15)
+    small_v, small_f = icosphere(2)
+    assert len(crops(small_v, small_f)) == 1  # read whole
