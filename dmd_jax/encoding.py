@@ -40,8 +40,11 @@ inference.
 
 from __future__ import annotations
 
+from typing import Any, NamedTuple
+
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from dmd_jax import geometry, ops
 from dmd_jax.constants import (  # noqa: F401  (the layout is re-exported from here)
@@ -241,6 +244,63 @@ def candidate_consistency(candidates, graph):
     rough = rough / jnp.maximum(count, 1.0)[:, None]
     fidelity = 1.0 - jnp.sum(candidates * candidates[:, :1], axis=-1)
     return jnp.concatenate([rough, fidelity], axis=-1)
+
+
+class LocalInputs(NamedTuple):
+    """The parameter-free part of the `"local"` encoding, computed once outside a model call.
+
+    `local_features` of one noisy mesh (or one padded group), minus its face columns,
+    which are `candidates.reshape(n_face, -1)`. `DMDNet(...)(..., local=LocalInputs(...))`
+    uses them instead of computing them from the positions: the same network inputs, so
+    the same outputs (`tests/test_candidate_pool.py`). The filters are rotation
+    equivariant and translation invariant, so the inputs of a rotated mesh are these with
+    every 3-column block rotated (`rotate_local_inputs`).
+
+    Attributes:
+      vertex: `[n_vertex, V]` the vertex columns (`local_dims`).
+      candidates: `[n_face, K, 3]` the candidate normals (`n_candidates`).
+    """
+
+    vertex: Any
+    candidates: Any
+
+
+def local_inputs(x, graph, config) -> LocalInputs:
+    """`local_features` of `x` with the filters of a `ModelConfig` (what `DMDNet` computes).
+
+    Args:
+      x: `[n_vertex, 3]` noisy positions in the edge-unit frame (`mesh_frame`).
+      graph: the (padded) `MeshGraph` of `x`.
+      config: the model's `ModelConfig` (`filter_iterations`, `taubin_iterations`,
+        `filter_sigmas`).
+
+    Returns:
+      `LocalInputs(vertex [n_vertex, V], candidates [n_face, K, 3])`.
+    """
+    vertex, _, candidates = local_features(
+        x,
+        graph,
+        filter_iterations=config.filter_iterations,
+        taubin_iterations=config.taubin_iterations,
+        filter_sigmas=config.filter_sigmas,
+    )
+    return LocalInputs(vertex, candidates)
+
+
+def rotate_local_inputs(local: LocalInputs, rotation) -> LocalInputs:
+    """The local inputs of the mesh rotated by `rotation` `[3, 3]` (`x @ rotation.T`).
+
+    Every vertex column block (Laplacian coordinate, normals, Taubin displacements) and
+    every candidate normal is a 3-vector that rotates with the mesh; the rest of the
+    encoding is invariant. Works on NumPy or JAX arrays, `[..., n, V]` and `[..., n, K, 3]`.
+    """
+    xp = np if isinstance(local.vertex, np.ndarray) else jnp
+    r = xp.asarray(rotation, local.vertex.dtype)
+    v = local.vertex
+    blocks = v.reshape(*v.shape[:-1], v.shape[-1] // 3, 3) @ r.T
+    return LocalInputs(
+        blocks.reshape(v.shape), local.candidates @ r.T.astype(local.candidates.dtype)
+    )
 
 
 def local_features(

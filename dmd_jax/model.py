@@ -570,12 +570,27 @@ class DMDNet(nn.Module):
     pools of disjoint vertex sets over the patches of a large mesh, then runs each patch
     with the whole mesh's pools, so every other operation sees only a neighbourhood.
     Without these arguments the model is unchanged.
+
+    `local`, optional (`"local"` encoding only): the encoding's parameter-free inputs of
+    `vertices` on `graph` (`encoding.LocalInputs`: vertex columns `[n_vertex, V]`,
+    candidate normals `[n_face, K, 3]`), computed beforehand, e.g. once per cached noisy
+    draw in training (`pipeline.CandidatePool`); the call then skips the pre-filters.
+    Given exactly what `encoding.local_inputs(vertices, graph, config)` returns, the
+    outputs are those of the call without it.
     """
 
     config: ModelConfig
 
     @nn.compact
-    def __call__(self, vertices, graph: MeshGraph, *, deterministic: bool = True, pooled=None):
+    def __call__(
+        self,
+        vertices,
+        graph: MeshGraph,
+        *,
+        deterministic: bool = True,
+        pooled=None,
+        local: encoding.LocalInputs | None = None,
+    ):
         cfg = self.config
         n_vertex = graph.vertex_graph.shape[0]
         if vertices.ndim != 2 or vertices.shape != (n_vertex, 3):
@@ -586,7 +601,14 @@ class DMDNet(nn.Module):
         xyz = jnp.asarray(vertices).astype(_param_dtype(cfg))
         aux = {}
         face_x = candidates = None
-        if cfg.encoding == "local":
+        if cfg.encoding == "local" and local is not None:
+            # Computed once outside the call (`encoding.local_inputs`, the training
+            # pipeline's candidate pool): they have no parameters, so the step need not
+            # recompute them.
+            x_in = jnp.asarray(local.vertex).astype(xyz.dtype)
+            candidates = jnp.asarray(local.candidates).astype(xyz.dtype)
+            face_x = candidates.reshape(candidates.shape[0], -1)
+        elif cfg.encoding == "local":
             x_in, face_x, candidates = encoding.local_features(
                 xyz,
                 graph,

@@ -43,6 +43,7 @@ from jax.sharding import PartitionSpec as P
 
 from dmd_jax import geometry, losses, parallel
 from dmd_jax.config import SCHEMES, ExperimentConfig, LossConfig, ModelConfig
+from dmd_jax.encoding import LocalInputs
 from dmd_jax.graph import MeshGraph
 from dmd_jax.model import DMDNet
 
@@ -122,6 +123,7 @@ def loss_terms(
     *,
     loss: LossConfig,
     rng=None,
+    local: LocalInputs | None = None,
 ) -> dict[str, losses.Term]:
     """The loss terms (sums and counts) of one padded group of meshes.
 
@@ -137,6 +139,9 @@ def loss_terms(
       graph: the group's padded `MeshGraph`.
       loss: the weights of the phase (`phase_loss`).
       rng: dropout key, or None (deterministic).
+      local: the `"local"` encoding's inputs of `noisy` on `graph`, computed beforehand
+        (`encoding.LocalInputs`; the candidate pool's), or None: the model computes them.
+        Only the first pass uses them; later passes start from another mesh.
     """
     deterministic = rng is None
     target_feats = None
@@ -157,6 +162,7 @@ def loss_terms(
             rngs=None
             if deterministic
             else {"dropout": rng if k == 0 else jax.random.fold_in(rng, k)},
+            local=local if k == 0 else None,
         )
         if feats is not None and target_feats is None:
             target_feats = geometry.vertex_features(clean, graph.faces)
@@ -193,8 +199,10 @@ def make_train_step(cfg: ExperimentConfig, phase: str, mesh: Mesh) -> Callable:
       mesh: a one-axis device mesh (`parallel.batch_mesh`); one device is a mesh too.
 
     Returns:
-      `step(state, noisy, clean, graph, rng) -> (state, metrics)`: `noisy`, `clean` are
-      `[n_group, n_vertex, 3]` and `graph` a `MeshGraph` of `[n_group, ...]` arrays,
+      `step(state, noisy, clean, graph, rng, local=None) -> (state, metrics)`: `noisy`,
+      `clean` are `[n_group, n_vertex, 3]`, `graph` a `MeshGraph` of `[n_group, ...]`
+      arrays and `local` None or the batch's precomputed `encoding.LocalInputs` (stacked
+      groups, `pipeline.CandidatePool`),
       one group per device along the batch axis (`parallel.shard_batch`); `state` is
       replicated (`parallel.replicate`); `rng` is the step's dropout key. The new state
       and the metrics (`loss`, `grad_norm` and every term's mean) come back replicated.
@@ -205,19 +213,21 @@ def make_train_step(cfg: ExperimentConfig, phase: str, mesh: Mesh) -> Callable:
     use_dropout = cfg.model.dropout > 0
     axis = parallel.BATCH_AXIS
 
-    def group_terms(index, params, noisy, clean, graph, rng):
+    def group_terms(index, params, noisy, clean, graph, rng, local):
         # One device's block: its group, with a leading axis of 1.
-        noisy, clean, graph = jax.tree.map(lambda x: x[0], (noisy, clean, graph))
+        noisy, clean, graph, local = jax.tree.map(lambda x: x[0], (noisy, clean, graph, local))
         group_rng = jax.random.fold_in(rng, index) if use_dropout else None
-        return loss_terms(model, cfg, params, noisy, clean, graph, loss=loss, rng=group_rng)
+        return loss_terms(
+            model, cfg, params, noisy, clean, graph, loss=loss, rng=group_rng, local=local
+        )
 
     batch_terms = parallel.sum_over_groups(
-        group_terms, mesh, in_specs=(P(), P(axis), P(axis), P(axis), P())
+        group_terms, mesh, in_specs=(P(), P(axis), P(axis), P(axis), P(), P(axis))
     )
 
-    def step(state: TrainState, noisy, clean, graph, rng):
+    def step(state: TrainState, noisy, clean, graph, rng, local=None):
         def loss_of(halves):
-            terms = batch_terms(merge_params(halves), noisy, clean, graph, rng)
+            terms = batch_terms(merge_params(halves), noisy, clean, graph, rng, local)
             return losses.reduce_terms(terms, loss)
 
         (total, means), grads = jax.value_and_grad(loss_of, has_aux=True)(state.params)
