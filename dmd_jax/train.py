@@ -20,6 +20,7 @@ resumed run is bit-identical to an uninterrupted one.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import math
@@ -49,10 +50,14 @@ from dmd_jax.model import DMDNet
 from dmd_jax.model import init_params as init_model_params
 from dmd_jax.pipeline import (
     Batch,
+    CandidatePool,
     MeshExample,
+    Prefetcher,
     evaluation_batches,
     largest_sizes,
     make_examples,
+    size_classes,
+    step_sizes,
     training_batch,
     unpadded_mesh,
 )
@@ -82,7 +87,11 @@ from dmd_jax.train_step import (
 # meets; the least padding, right for long runs), or every step to the largest batch
 # the data can form (one program; right for short runs, where compiling, ~15 s of CPU a
 # program for the `test` preset on 2 cores, costs more than the padding).
-PAD_MODES = ("bucket", "largest")
+# `"classes"`: every step to the smallest of `PAD_CLASSES` sizes that holds it
+# (`pipeline.size_classes`), every one compiled before the first step: a few programs,
+# known up front, and less padding than `"largest"` (the candidate pool's default).
+PAD_MODES = ("bucket", "largest", "classes")
+PAD_CLASSES = 3
 # `train_and_evaluate(pad="auto")` pads every batch to one shape for runs of at most this
 # many steps (the test preset's 40 compile once instead of 5-6 times on a tiny dataset).
 AUTO_PAD_MAX_STEPS = 500
@@ -157,7 +166,10 @@ class Trainer:
         step = int(state.step)
         rng = jax.random.fold_in(jax.random.PRNGKey(self.cfg.train.seed + 1), step)
         placed = parallel.shard_batch(self.mesh, batch)
-        return self.step_fn(step)(state, placed.noisy, placed.clean, placed.graph, rng)
+        fn = self.step_fn(step)
+        if placed.local is None:
+            return fn(state, placed.noisy, placed.clean, placed.graph, rng)
+        return fn(state, placed.noisy, placed.clean, placed.graph, rng, placed.local)
 
     # ---------------------------------------------------------------- eval
     def _predict(self, params, noisy, graph):
@@ -326,7 +338,9 @@ def train(
       pad_to: `"bucket"` (each training batch and evaluation mesh padded to its own
         vertex bucket) or `"largest"` (every training batch to the largest the training
         set can form, every evaluation mesh to the largest evaluation mesh: one training
-        and one evaluation program); `PAD_MODES`.
+        and one evaluation program) or `"classes"` (every training batch to the smallest
+        of `PAD_CLASSES` sizes that holds it, `pipeline.size_classes`, each compiled
+        before the first step; evaluation as `"largest"`); `PAD_MODES`.
       verbose: print a line when a program is compiled and how long it took.
       hooks: `TrainHook`s, called in order at every step (e.g. `StopAfter`, `InjectNaN`).
 
@@ -353,13 +367,44 @@ def train(
         )
     trainer = Trainer(cfg, mesh)
     mine = parallel.local_groups(mesh)
-    train_sizes = eval_sizes = None
+    train_sizes = eval_sizes = classes = None
     if pad_to == "largest":
         train_sizes = largest_sizes(train_examples, -(-t.batch_size // mesh.size))
+    if pad_to == "classes":
+        classes = size_classes(train_examples, -(-t.batch_size // mesh.size), PAD_CLASSES)
+        every_eval = [ex for exs in (eval_sets or {}).values() for ex in exs]
+        eval_sizes = largest_sizes(every_eval, 1) if every_eval else None
         every_eval = [ex for exs in (eval_sets or {}).values() for ex in exs]
         eval_sizes = largest_sizes(every_eval, 1) if every_eval else None
 
-    def make_batch(step: int) -> Batch:
+    pool = None
+    if t.candidate_pool > 0:
+        pool = CandidatePool(
+            train_examples,
+            cfg.model,
+            noise=cfg.noise,
+            batch_size=t.batch_size,
+            seed=t.seed,
+            draws=t.candidate_pool,
+            uses=t.candidate_uses,
+            rotate=t.rotate,
+            n_group=mesh.size,
+            groups=mine,
+            sizes=train_sizes,
+        )
+
+    def make_batch(step: int, sizes=None) -> Batch:
+        if sizes is None and classes is not None:
+            sizes = step_sizes(
+                train_examples,
+                step,
+                classes,
+                batch_size=t.batch_size,
+                seed=t.seed,
+                n_group=mesh.size,
+            )
+        if pool is not None:
+            return pool.batch(step, sizes)
         return training_batch(
             train_examples,
             step,
@@ -370,7 +415,7 @@ def train(
             encoding=cfg.model.encoding,
             n_group=mesh.size,
             groups=mine,
-            sizes=train_sizes,
+            sizes=train_sizes if sizes is None else sizes,
         )
 
     # Data-parallel processes share one workdir: only the first writes the run's files.
@@ -423,14 +468,47 @@ def train(
         if verbose and primary:
             tqdm.write(message)
 
-    with open(log_path if primary else os.devnull, "a") as log:
+    if classes is not None and start < end:
+        # Every class's program compiled now, on a coming step's batch padded up to it
+        # (its update discarded), so that no step of the run compiles.
+        def class_of(step):
+            return step_sizes(
+                train_examples,
+                step,
+                classes,
+                batch_size=t.batch_size,
+                seed=t.seed,
+                n_group=mesh.size,
+            )
+
+        for c in classes:
+            warm = next(
+                (s for s in range(start, start + 1000) if class_of(s).n_vertex <= c.n_vertex),
+                None,
+            )
+            if warm is None:
+                continue  # no batch this small soon: it would compile when one comes
+            started = time.perf_counter()
+            jax.block_until_ready(trainer.train_step(state, make_batch(warm, c))[1])
+            say(
+                f"compiled the training step for {c.n_vertex:,} padded vertices in "
+                f"{time.perf_counter() - started:.1f} s ({trainer.compiles} program(s), "
+                "pad_to='classes')"
+            )
+
+    # With the pool, a background thread builds the next batches during the step.
+    source = Prefetcher(make_batch, start) if pool is not None and start < end else None
+    with (
+        open(log_path if primary else os.devnull, "a") as log,
+        contextlib.closing(source) if source is not None else contextlib.nullcontext(),
+    ):
         if log.tell():
             with open(log_path, "rb") as fh:
                 fh.seek(-1, 2)
                 if fh.read(1) != b"\n":
                     log.write("\n")  # a killed run's cut-off row must not swallow the next
         for step in range(start, end):
-            batch = make_batch(step)
+            batch = make_batch(step) if source is None else source.get(step)
             for hook in hooks:
                 batch = hook.before_step(step, batch)
             compiled = trainer.compiles
@@ -532,7 +610,8 @@ def train_and_evaluate(
       pad: `"bucket"`, `"largest"` (`train`'s `pad_to`) or `"auto"`: `"largest"` for
         runs of at most `AUTO_PAD_MAX_STEPS` steps, where compiling one program per
         vertex bucket (~15 s of CPU each for the test preset on 2 cores) would cost more
-        than the padding, else `"bucket"`.
+        than the padding, else `"bucket"`, or `"classes"` for a run with a candidate
+        pool (`PAD_CLASSES` programs, all compiled before its first step).
       data_parallel: split each batch over every device of every process (`train`).
       progress: a progress bar (process 0 only).
       verbose: print what is trained on, and when a program compiles (process 0 only).
@@ -568,7 +647,11 @@ def train_and_evaluate(
     if cfg.train.init_from is not None:
         init = init_params_from(cfg.train.init_from, cfg)
     if pad == "auto":
-        pad = "largest" if cfg.train.steps <= AUTO_PAD_MAX_STEPS else "bucket"
+        # With the candidate pool: a few programs, all compiled before the first step.
+        if cfg.train.steps <= AUTO_PAD_MAX_STEPS:
+            pad = "largest"
+        else:
+            pad = "classes" if cfg.train.candidate_pool > 0 else "bucket"
     t0 = time.time()
     result = train(
         cfg,

@@ -434,6 +434,14 @@ class TrainConfig(_ConfigMixin):
         pass count `denoise` runs is a trained setting (`DenoisePolicy.max_passes`),
         not a fitted threshold. Evaluation during training runs the same passes. At
         most `MAX_TRAIN_PASSES`.
+      candidate_pool: noisy draws kept per training mesh whose `"local"` encoding inputs
+        (the candidate normal fields, `encoding.LocalInputs`) are computed once, outside
+        the step, instead of in every step (`pipeline.CandidatePool`); 0 (the default):
+        every batch is drawn and encoded afresh (`pipeline.training_batch`). Batches
+        stay a function of `(seed, step)`; each use of a draw gets its own rotation.
+      candidate_uses: with a pool, how many times each cached draw is trained on (once
+        per visit of its mesh, `candidate_pool` visits apart) before it is replaced by
+        a fresh draw; the encoding's cost per step falls about this many times.
     """
 
     lr: float = _static(1e-4)
@@ -457,6 +465,8 @@ class TrainConfig(_ConfigMixin):
     seed: int = _static(0)
     init_from: str | None = _static(None)
     passes: int = _static(1)
+    candidate_pool: int = _static(0)
+    candidate_uses: int = _static(4)
 
     @property
     def learning_rate(self) -> float:
@@ -487,6 +497,8 @@ class TrainConfig(_ConfigMixin):
         _check_positive_int("seed", self.seed, minimum=0)
         _check_path("init_from", self.init_from)
         _check_positive_int("passes", self.passes)
+        _check_positive_int("candidate_pool", self.candidate_pool, minimum=0)
+        _check_positive_int("candidate_uses", self.candidate_uses)
         _check(
             self.passes <= MAX_TRAIN_PASSES,
             f"passes must be at most {MAX_TRAIN_PASSES}, got {self.passes}",
