@@ -75,6 +75,13 @@ bench-inference-scale: $(STAMP)
 		--faces 1000000 3000000 --append
 	$(BIN)/python benchmarks/bench_io.py --faces 2000000 20000000
 
+# The long run's training steps per CPU second with the candidate pool
+# (train.candidate_pool) against today's recipe, in one process (issue 62 item 3):
+# results/train_long_speed.md. No GLIBC_TUNABLES: the run is started without them.
+.PHONY: bench-train
+bench-train: $(STAMP)
+	$(BIN)/python benchmarks/bench_train_long.py
+
 bench-training: $(STAMP)
 	$(HUGE) $(BIN)/python benchmarks/bench_training.py --presets test
 	$(HUGE) $(BIN)/python benchmarks/bench_training.py --presets small --append
@@ -178,3 +185,20 @@ ablate-gpu: $(STAMP)
 # real ones, SIZE=tiny shrinks them anywhere).
 bench-device: $(STAMP)
 	$(BIN)/python -m experiments.device_bench $(if $(SIZE),--size $(SIZE))
+
+# The learned smoothing controller (dmd_jax/controller.py, docs/controller.md): the
+# generated set (every noise kind; one search over pre-smoothing x update x passes per
+# example; resumable, one process per core) into data/smoothing, then the controller
+# trained on it (minutes; chosen on its validation split, reported on its test split) and
+# stored beside the bundled network in runs/dmd_controller.msgpack.
+SMOOTHING_EXAMPLES ?= 2000
+.PHONY: controller-data controller
+controller-data: $(STAMP)
+	$(BIN)/python -m dmd_jax.data.smoothing_set --out data/smoothing --examples $(SMOOTHING_EXAMPLES) --shard 0/2 & \
+	$(BIN)/python -m dmd_jax.data.smoothing_set --out data/smoothing --examples $(SMOOTHING_EXAMPLES) --shard 1/2; wait
+
+controller: $(STAMP)
+	$(BIN)/python scripts/train_controller.py data/smoothing --out runs/controller.npz \
+		--report benchmarks/results/controller.md
+	$(BIN)/dmd-jax export-weights dmd_jax/weights/dmd_small.msgpack -o runs/dmd_controller.msgpack \
+		--controller runs/controller.npz --overwrite

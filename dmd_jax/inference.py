@@ -311,9 +311,10 @@ def denoise(
       config: the experiment config, only with raw params.
       controller: whether the learned smoothing controller stored with the weights
         (`dmd_jax.controller`) chooses the pre-smoothing steps, the passes and the
-        vertex update from the mesh's statistics. None (default): when the weights hold
-        one and the caller fixed none of `policy`, `iterations` and `presmooth`; True:
-        always (a `ValueError` when the weights hold none); False: never.
+        vertex update from the mesh's statistics. None (default): as the weights'
+        policy says (`DenoisePolicy.controller`), unless the caller fixed `policy`,
+        `iterations` or `presmooth`; True: always (a `ValueError` when the weights hold
+        none); False: never.
       return_info: also return a `DenoiseInfo` saying how the call ran.
 
     Returns:
@@ -409,8 +410,10 @@ def _controller_for(bundle, controller, policy, iterations, presmooth):
                 "(dmd-jax export-weights --controller adds one)"
             )
         return None
+    if controller:
+        return bundle.controller
     fixed = policy is not None or iterations is not None or presmooth is not None
-    return bundle.controller if controller or not fixed else None
+    return bundle.controller if bundle.policy.controller and not fixed else None
 
 
 def _denoise_referenced(

@@ -81,6 +81,9 @@ class DenoisePolicy(_ConfigMixin):
         mean edge, and the rule starts where the roughness of heavier noise begins.
       relax_steps: steps of feature-preserving tangential relaxation after the network
         (`dmd_jax.relax.relax_tangential`); 0 leaves the result as the network made it.
+      controller: whether `denoise` lets the learned smoothing controller stored with
+        the weights (`dmd_jax.controller`) choose pre-smoothing, passes and vertex update
+        when the caller fixes none of them, instead of the two rules above.
     """
 
     max_passes: int = _static(1)
@@ -88,6 +91,7 @@ class DenoisePolicy(_ConfigMixin):
     presmooth_start: float = _static(0.0)
     presmooth_per_step: float = _static(5.0)
     relax_steps: int = _static(0)
+    controller: bool = _static(False)
 
     def __post_init__(self):
         _check_positive_int("max_passes", self.max_passes)
@@ -107,6 +111,10 @@ class DenoisePolicy(_ConfigMixin):
             f"presmooth_per_step must be at least 0.001 degrees, got {self.presmooth_per_step}",
         )
         _check_positive_int("relax_steps", self.relax_steps, minimum=0)
+        _check(
+            isinstance(self.controller, bool),
+            f"controller must be true or false, got {self.controller!r}",
+        )
         _check(
             self.relax_steps <= MAX_RELAX_STEPS,
             f"relax_steps must be at most {MAX_RELAX_STEPS}, got {self.relax_steps}",

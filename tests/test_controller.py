@@ -147,7 +147,12 @@ def test_denoise_runs_what_the_controller_chooses(sphere, tmp_path):
     bundle = load_pretrained()
     opts = controller.options((0, 3), ("jacobi", "solve"), 3)
     pick = controller.Option(3, "solve", 2)
-    with_ctrl = bundle._replace(controller=_always(pick, opts))
+    stored = bundle._replace(controller=_always(pick, opts))  # stored, off by default
+    with_ctrl = stored._replace(policy=stored.policy.replace(controller=True))
+    np.testing.assert_array_equal(denoise(noisy, f, stored), denoise(noisy, f, bundle))
+    np.testing.assert_array_equal(
+        denoise(noisy, f, stored, controller=True), denoise(noisy, f, with_ctrl)
+    )
     out, info = denoise(noisy, f, with_ctrl, return_info=True)
     solve = smoothing_set._with_update(bundle, "solve")
     np.testing.assert_array_equal(out, denoise(noisy, f, solve, presmooth=3, iterations=2))
@@ -155,7 +160,7 @@ def test_denoise_runs_what_the_controller_chooses(sphere, tmp_path):
     assert info.controller.startswith("controller: 3 pre-smoothing steps, 2 passes (solve")
     # None: the mesh as given; pre-smoothing alone: no network pass.
     none = bundle._replace(controller=_always(controller.Option(0, None, 0), opts))
-    out, info = denoise(noisy, f, none, return_info=True)
+    out, info = denoise(noisy, f, none, controller=True, return_info=True)
     np.testing.assert_array_equal(out, noisy)
     assert (
         info.path == "no network"
@@ -197,7 +202,10 @@ def test_the_controller_travels_in_the_weights_file(tmp_path):
         == 0
     )
     back = load_weights(out).controller
-    assert back.options == params.options
+    assert back.options == params.options and not load_weights(out).policy.controller
+    on = tmp_path / "on.msgpack"
+    args = ["export-weights", str(out), "-o", str(on), "--controller-default", "on"]
+    assert cli.main(args) == 0 and load_weights(on).policy.controller
     np.testing.assert_allclose(back.b2, params.b2)
     (tmp_path / "bad.npz").write_bytes(b"nope")
     assert (

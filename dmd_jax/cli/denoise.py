@@ -173,6 +173,10 @@ def _cmd_denoise(args: argparse.Namespace) -> int:
             extra["presmooth"] = steps
         else:
             extra["presmooth"] = "rule"
+    if args.controller is not None:
+        if args.method != "dmd":
+            raise ValueError("--controller is for --method dmd (the network)")
+        extra["controller"] = args.controller == "on"
     pairs = _denoise_inputs(args)
     if args.out is None:  # one file: refused by its size before the weights are read too
         _check_size(pairs[0][0] if pairs else args.input[0], extra.get("max_memory"))
@@ -281,6 +285,8 @@ def _denoise_one(args, src, dst, weights, extra, denoise_with, save_mesh) -> int
         how += f" ({info.passes} passes)"
     if info is not None and info.path == "patches":
         how += f" in {info.patches} patches of {info.patch_size:,} vertices"
+    if info is not None and info.controller:
+        how += f" [{info.controller}]"
     print(
         f"denoised {src} ({len(vertices)} vertices, {len(faces)} faces) with "
         f"{args.method}{how} in {elapsed:.2f} s -> {dst}"
@@ -343,6 +349,14 @@ def add_parser(sub) -> None:
         metavar="STEPS",
         help="uniform Laplacian steps before the network (default, or 'rule': the "
         "roughness rule stored with the weights' policy; 0: none)",
+    )
+    p.add_argument(
+        "--controller",
+        choices=("on", "off"),
+        default=None,
+        help="on: the learned smoothing controller stored with the weights chooses the "
+        "pre-smoothing, passes and vertex update per mesh; off: the policy's rules "
+        "(default: as the weights' policy says)",
     )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.add_argument(

@@ -49,6 +49,10 @@ def _cmd_export_weights(args: argparse.Namespace) -> int:
     if args.controller is not None:
         controller = _read_controller(args.controller)
         meta["controller_from"] = str(args.controller)
+    if args.controller_default is not None:
+        if controller is None:
+            raise ValueError("--controller-default needs weights with a controller (--controller)")
+        policy = policy.replace(controller=args.controller_default == "on")
     meta.update(meta_edits)
     path = save_weights(
         args.output,
@@ -192,6 +196,14 @@ def add_parser(sub) -> None:
         metavar="NPZ",
         help="store this learned smoothing controller (scripts/train_controller.py --out) "
         "beside the network; denoise then lets it choose pre-smoothing, passes and update",
+    )
+    p.add_argument(
+        "--controller-default",
+        choices=("on", "off"),
+        default=None,
+        help="on: denoise lets the stored controller choose unless the caller fixes the "
+        "passes or pre-smoothing (the policy's 'controller'); off: only when asked "
+        "(denoise(controller=True), dmd-jax denoise --controller)",
     )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.set_defaults(func=_cmd_export_weights)
