@@ -129,10 +129,23 @@ def noisy_example(spec: dict, clean: np.ndarray, faces: np.ndarray):
         return clean, add_noise(seed, clean, faces, "impulse", spec["level"], units="edge"), faces
     model = scanner_model(spec)
     if kind == "scan":
-        scan = simulate_scan(
-            seed, clean, faces, resolution=spec["resolution"], level=spec["level"], model=model
-        )
-        return scan.clean, scan.noisy, scan.faces
+        # A view that sees nothing (a thin part edge-on) is refused by simulate_scan:
+        # the next seeds draw other views, deterministically.
+        for attempt in range(8):
+            try:
+                scan = simulate_scan(
+                    seed + attempt,
+                    clean,
+                    faces,
+                    resolution=spec["resolution"],
+                    level=spec["level"],
+                    model=model,
+                )
+            except ValueError:
+                continue
+            if len(scan.faces) >= 100:
+                return scan.clean, scan.noisy, scan.faces
+        raise ValueError(f"example {spec['index']}: no view of its mesh gives a scan")
     import jax
 
     noisy = noise.scanner_noise(
@@ -300,7 +313,11 @@ def build(
             continue
         spec = example_spec(seed, index, counts)
         clean, faces = sources.mesh(spec)
-        clean, noisy, faces = noisy_example(spec, clean, faces)
+        try:
+            clean, noisy, faces = noisy_example(spec, clean, faces)
+        except ValueError as err:
+            say(f"skipped: {err}")
+            continue
         feats = features(noisy, faces)
         errors, first = pass_errors(noisy, clean, faces, bundle)
         # Today's default call, for the controller's report (its gain over the default).
