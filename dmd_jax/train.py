@@ -91,7 +91,7 @@ from dmd_jax.train_step import (
 # (`pipeline.size_classes`), every one compiled before the first step: a few programs,
 # known up front, and less padding than `"largest"` (the candidate pool's default).
 PAD_MODES = ("bucket", "largest", "classes")
-PAD_CLASSES = 3
+PAD_CLASSES = 4
 # `train_and_evaluate(pad="auto")` pads every batch to one shape for runs of at most this
 # many steps (the test preset's 40 compile once instead of 5-6 times on a tiny dataset).
 AUTO_PAD_MAX_STEPS = 500
