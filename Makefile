@@ -80,7 +80,7 @@ bench-inference-scale: $(STAMP)
 # results/train_long_speed.md. No GLIBC_TUNABLES: the run is started without them.
 .PHONY: bench-train
 bench-train: $(STAMP)
-	$(BIN)/python benchmarks/bench_train_long.py
+	$(BIN)/python benchmarks/bench_train_long.py --uses 4 8
 
 bench-training: $(STAMP)
 	$(HUGE) $(BIN)/python benchmarks/bench_training.py --presets test
