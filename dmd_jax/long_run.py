@@ -39,7 +39,7 @@ import numpy as np
 
 from dmd_jax.io import write_text_atomic
 from dmd_jax.io._files import atomic_write
-from dmd_jax.train import TrainHook, _same_config
+from dmd_jax.train import TrainHook
 
 FORMAT = "dmd_jax.long_run/1"
 # The local export a checkpoint writes, and the record of what the workdir grew from.
@@ -191,11 +191,12 @@ class LongRun(TrainHook):
             self._seconds0 = float(_origin(self.workdir).get("seconds", 0.0))
             return self._begin(state)
         meta = read_meta(self.state_file)
-        if not _same_config(meta["config"], self.config):
+        difference = recipe_difference(meta["config"], self.config)
+        if difference:
             raise StateConflictError(
                 f"{self.state_file} holds a run of another recipe (its config differs from "
-                f"this run's: {_first_difference(meta['config'], self.config)}); start the "
-                "new recipe with another state file, or run the committed one's recipe"
+                f"this run's: {difference}); start the new recipe with another state "
+                "file, or run the committed one's recipe"
             )
         sha = file_sha(self.state_file)
         if local_step > meta["step"]:
@@ -252,6 +253,22 @@ class LongRun(TrainHook):
         _write_bytes(self.workdir / LOCAL_STATE, data)
 
 
+def recipe_difference(stored: dict, current: dict) -> str:
+    """The first setting in which two runs' configs differ, or "" when they are one recipe.
+
+    Stricter than a workdir's resume check (`train._same_config`): a setting the stored
+    config lacks (added to the code since) counts as its default, so switching a new
+    setting on is another recipe, not a silent change of the committed run.
+    """
+    from dmd_jax.config import ExperimentConfig
+
+    try:
+        filled = ExperimentConfig.from_dict(stored).to_dict()
+    except (TypeError, ValueError) as err:
+        return f"the stored config is unreadable ({err})"
+    return _first_difference(filled, current)
+
+
 def _first_difference(a: dict, b: dict, prefix: str = "") -> str:
     for key in sorted(set(a) | set(b)):
         x, y = a.get(key), b.get(key)
@@ -259,7 +276,7 @@ def _first_difference(a: dict, b: dict, prefix: str = "") -> str:
             found = _first_difference(x, y, f"{prefix}{key}.")
             if found:
                 return found
-        elif x != y and key in a:
+        elif x != y:
             return f"{prefix}{key} is {x!r} there, {y!r} here"
     return ""
 

@@ -2,7 +2,10 @@
 # The long training run of the learned model, which outlives sessions (issue 62,
 # dmd_jax/long_run.py): the bundled network fine-tuned through the converged vertex
 # update (model.vertex_update=solve) on the paper's noise plus scanner noise (a quarter
-# of the draws), simulated scans of every training mesh and the stress family.
+# of the draws), simulated scans of every training mesh and the stress family. The
+# parameter-free candidate fields are computed once per noisy draw and each draw trained
+# on 4 times (train.candidate_pool: 2.1x the steps per CPU-second of the recipe without,
+# benchmarks/results/train_long_speed.md).
 #
 #   make train-long          # resume from training/long_run.msgpack, nice 19, background
 #   make train-long-status   # one line: step, steps/h, last validation figures
@@ -31,7 +34,8 @@ CMD=("${TRAIN[@]}" --workdir "$OUT/ft" --init-from dmd_jax/weights/dmd_small.msg
   --set train.steps="$STEPS" train.lr=2e-4 train.eval_every=500 train.ckpt_every=100
   "${LAST_FINETUNE[@]}" train.seed=11 "$WIDE" model.vertex_update=solve
   model.vertex_tangent_weight=0.1
-  noise.p_scanner=0.25 data.stress_copies=2 data.scan_views=1 data.scan_resolution=64)
+  noise.p_scanner=0.25 data.stress_copies=2 data.scan_views=1 data.scan_resolution=64
+  train.candidate_pool=1 train.candidate_uses=4)
 if [ -n "${FOREGROUND:-}" ]; then
   exec nice -n 19 "${CMD[@]}"
 fi

@@ -129,6 +129,13 @@ def test_starting_state_takes_keeps_or_refuses_without_training(tmp_path, setup)
         start(tmp_path / "x", at[0], other)
     with pytest.raises(long_run.StateConflictError, match="did not grow from the committed"):
         start(tmp_path / "foreign", at[5])  # ahead, but of unknown lineage
+    # A setting added to the code since the state was written counts as its default:
+    # switching it on is another recipe, leaving it alone resumes.
+    older = cfg.to_dict()
+    del older["train"]["candidate_pool"]
+    assert long_run.recipe_difference(older, cfg.to_dict()) == ""
+    pooled = cfg.with_edits({"train": {"candidate_pool": 1}}).to_dict()
+    assert "train.candidate_pool is 0 there, 1 here" in long_run.recipe_difference(older, pooled)
     (tmp_path / "new" / long_run.LOCAL_STATE).write_bytes(
         long_run.state_bytes(at[5], cfg.to_dict(), parent="", seconds=9.0)
     )
