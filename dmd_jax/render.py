@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from dmd_jax.io import atomic_write
-from dmd_jax.mesh import canonical_frame, face_normals_np
+from dmd_jax.mesh import canonical_frame, face_normals_np, validate_mesh
 
 # A fixed view so renders of different methods compare pixel for pixel.
 _ELEV, _AZIM = 20.0, -60.0
@@ -469,12 +469,14 @@ def render_meshes(
         zoom_at = check_zoom_point(zoom_at, meshes)
     prepared, frames = [], []
     for i, (v, f) in enumerate(meshes):
-        v = np.asarray(v, np.float64)
-        f = np.asarray(f, np.int64)
-        if f.shape[0] > max_faces:
-            raise ValueError(f"mesh {i} has {f.shape[0]} faces; render supports ≤ {max_faces}")
-        if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
+        if np.shape(f)[:1] and np.shape(f)[0] > max_faces:
+            raise ValueError(f"mesh {i} has {np.shape(f)[0]} faces; render supports ≤ {max_faces}")
+        if np.ndim(f) != 2 or np.shape(f)[1] != 3 or len(f) == 0:
             raise ValueError(f"mesh {i}: faces must be a non-empty [n_face, 3] array")
+        # The same checks as denoise's (indices in range, finite coordinates): one
+        # ValueError naming the mesh, never an IndexError from deep in the drawing.
+        v, f = validate_mesh(v, f, name=f"mesh {i}")
+        v, f = v.astype(np.float64), f.astype(np.int64)
         if crop_face is not None and not 0 <= crop_face < len(f):
             raise ValueError(f"crop_face {crop_face} is out of range for mesh {i}")
         frames.append(canonical_frame(v))
