@@ -539,7 +539,7 @@ _LATER_FIELDS = {
         "scan_views": 0,
         "scan_resolution": 64,
     },
-    "train": {"init_from": None},
+    "train": {"init_from": None, "candidate_pool": 0, "candidate_uses": 4},
     "loss": {"crease_weight": 1.0},
     "noise": {"p_scanner": 0.0, "scanner_levels": None},
 }

@@ -210,6 +210,14 @@ def check_writable(path) -> None:
         )
 
 
+def _named(exc: OSError, what: str) -> OSError:
+    """`exc` said of the output (`what`), keeping its type, errno and reason."""
+    reason = exc.strerror or str(exc)
+    if exc.errno is None:
+        return type(exc)(f"{what} ({reason})")
+    return type(exc)(exc.errno, f"{what} ({reason})")
+
+
 def atomic_write(path, write_fn, *, overwrite: bool = False, protect=()) -> Path:
     """Writes a file by `write_fn(tmp_path)` then renames it into place.
 
@@ -230,9 +238,7 @@ def atomic_write(path, write_fn, *, overwrite: bool = False, protect=()) -> Path
     try:
         fd, tmp = tempfile.mkstemp(prefix=temp_prefix(path), suffix=path.suffix, dir=path.parent)
     except OSError as exc:  # named by the output, not by a hidden temporary name
-        raise type(exc)(
-            exc.errno, f"{path}: cannot write in {path.parent} ({exc.strerror})"
-        ) from None
+        raise _named(exc, f"{path}: cannot write in {path.parent}") from None
     os.close(fd)
     try:
         write_fn(tmp)
@@ -243,7 +249,7 @@ def atomic_write(path, write_fn, *, overwrite: bool = False, protect=()) -> Path
         try:
             os.replace(tmp, path)
         except OSError as exc:
-            raise type(exc)(exc.errno, f"{path}: cannot write it ({exc.strerror})") from None
+            raise _named(exc, f"{path}: cannot write it") from None
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from dmd_jax.io import _syntax
+import dmd_jax.io._syntax as _syntax
 from dmd_jax.io._files import _fan, _MeshText, _text_of, _write_rows, not_this_format
 
 

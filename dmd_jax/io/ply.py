@@ -8,7 +8,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from dmd_jax.io import _syntax
+import dmd_jax.io._syntax as _syntax
 from dmd_jax.io._files import _BOM, _MeshText
 
 # PLY's scalar types and their NumPy codes (without byte order).

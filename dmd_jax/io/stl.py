@@ -7,7 +7,7 @@ import warnings
 
 import numpy as np
 
-from dmd_jax.io import _syntax
+import dmd_jax.io._syntax as _syntax
 from dmd_jax.io._files import _BOM, _MeshText, _text_of
 
 
