@@ -54,6 +54,7 @@ def test_features_read_noise_strength_and_direction(sphere):
     assert light["boundary_share"] == 0.0
 
 
+@pytest.mark.slow  # 20-40 s on 2 cores (two vertex updates compiled); `make test-slow`
 def test_the_search_is_what_denoise_does(sphere):
     """Entry [p, u, k] of the search is `denoise(presmooth=p, iterations=k)` with that
     vertex update (a noisy sphere: no vertex is held)."""
