@@ -203,12 +203,13 @@ def add_parser(sub) -> None:
     )
     p.add_argument(
         "--pad",
-        choices=("auto", "bucket", "largest"),
+        choices=("auto", "bucket", "largest", "classes"),
         default="auto",
         help="bucket: each batch padded to its own vertex bucket (one compiled program per "
         "bucket, least padding); largest: every batch to the largest the data can form (one "
-        "program); auto: largest for runs of at most 500 steps "
-        "(dmd_jax.train.AUTO_PAD_MAX_STEPS)",
+        "program); classes: the smallest of four size classes (four programs, compiled "
+        "before the first step); auto: largest for runs of at most 500 steps "
+        "(dmd_jax.train.AUTO_PAD_MAX_STEPS), classes with train.candidate_pool, else bucket",
     )
     p.add_argument(
         "--json", action="store_true", help="print the final evaluation as JSON, not one line"
