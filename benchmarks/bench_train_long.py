@@ -146,16 +146,7 @@ class Pooled:
         t = cfg.train
         self.cfg, self.uses = cfg, uses
         self.trainer = train.Trainer(cfg)
-        self.pool = pipeline.CandidatePool(
-            examples,
-            cfg.model,
-            noise=cfg.noise,
-            batch_size=t.batch_size,
-            seed=t.seed,
-            draws=t.candidate_pool,
-            uses=t.candidate_uses,
-            rotate=t.rotate,
-        )
+        self.pool = pipeline.CandidatePool.from_config(examples, cfg)
         self.examples = examples
         # The run's padding with a pool (`train_and_evaluate`'s "auto"): size classes.
         self.classes = pipeline.size_classes(examples, t.batch_size, train.PAD_CLASSES)

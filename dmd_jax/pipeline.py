@@ -527,6 +527,24 @@ class CandidatePool:
       n_group, groups, sizes: as in `training_batch`.
     """
 
+    @classmethod
+    def from_config(cls, examples: Sequence[MeshExample], cfg, **kw) -> CandidatePool:
+        """The pool of an `ExperimentConfig`'s run: its model, noise, batch size, seed,
+        rotation and `train.candidate_pool` / `candidate_uses`; `kw`: `n_group`,
+        `groups`, `sizes`."""
+        t = cfg.train
+        return cls(
+            examples,
+            cfg.model,
+            noise=cfg.noise,
+            batch_size=t.batch_size,
+            seed=t.seed,
+            draws=t.candidate_pool,
+            uses=t.candidate_uses,
+            rotate=t.rotate,
+            **kw,
+        )
+
     def __init__(
         self,
         examples: Sequence[MeshExample],

@@ -379,18 +379,8 @@ def train(
 
     pool = None
     if t.candidate_pool > 0:
-        pool = CandidatePool(
-            train_examples,
-            cfg.model,
-            noise=cfg.noise,
-            batch_size=t.batch_size,
-            seed=t.seed,
-            draws=t.candidate_pool,
-            uses=t.candidate_uses,
-            rotate=t.rotate,
-            n_group=mesh.size,
-            groups=mine,
-            sizes=train_sizes,
+        pool = CandidatePool.from_config(
+            train_examples, cfg, n_group=mesh.size, groups=mine, sizes=train_sizes
         )
 
     def make_batch(step: int, sizes=None) -> Batch:

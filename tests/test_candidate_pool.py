@@ -29,18 +29,7 @@ def _meshes():
 
 
 def _pool(cfg, examples, **kw):
-    t = cfg.train
-    return pipeline.CandidatePool(
-        examples,
-        cfg.model,
-        noise=cfg.noise,
-        batch_size=t.batch_size,
-        seed=t.seed,
-        draws=t.candidate_pool,
-        uses=t.candidate_uses,
-        rotate=t.rotate,
-        **kw,
-    )
+    return pipeline.CandidatePool.from_config(examples, cfg, **kw)
 
 
 @pytest.mark.slow
