@@ -47,6 +47,12 @@ LOCAL_STATE = "state.msgpack"
 ORIGIN = "long_run.json"
 STOP_FILE = "STOP"
 PID_FILE = "pid"
+# Milestones (issue 62): the run's state at every multiple of MILESTONE_EVERY steps, kept
+# in <workdir>/milestones/step_NNNNNN/ (`milestone_dir`) because the rolling checkpoints
+# (`train.ckpt_keep`) and the local export are overwritten within minutes.
+MILESTONE_EVERY = 10_000
+MILESTONES = "milestones"
+MILESTONE_INFO = "milestone.json"
 CURVE_FIELDS = ("step", "kind", "name", "value")
 
 
@@ -164,15 +170,28 @@ class LongRun(TrainHook):
       state_file: the committed state file (read here; written by `save`).
       config: the run's `ExperimentConfig.to_dict()`.
       checkpoint_seconds: the longest wall time between two checkpoints.
+      milestone_every: keep the first checkpoint at or past every multiple of this many
+        steps that the run crosses (`keep_milestone`; 0: none).
       say: where the hook's one-line notes go.
     """
 
-    def __init__(self, workdir, state_file, config: dict, *, checkpoint_seconds=600.0, say=print):
+    def __init__(
+        self,
+        workdir,
+        state_file,
+        config: dict,
+        *,
+        checkpoint_seconds=600.0,
+        milestone_every: int = MILESTONE_EVERY,
+        say=print,
+    ):
         self.workdir = Path(workdir)
         self.state_file = Path(state_file)
         self.config = config
         self.checkpoint_seconds = float(checkpoint_seconds)
+        self.milestone_every = int(milestone_every)
         self.say = say
+        self._checkpointed = 0  # the step of the last checkpoint (or of the start)
         self._stop = False
         self._last = time.monotonic()
         self._seconds0 = 0.0
@@ -226,6 +245,7 @@ class LongRun(TrainHook):
 
     def _begin(self, state):
         self._started = self._last = time.monotonic()
+        self._checkpointed = int(np.asarray(state.step))
         for sig in (signal.SIGTERM, signal.SIGINT):
             try:
                 signal.signal(sig, self._on_signal)
@@ -251,6 +271,60 @@ class LongRun(TrainHook):
             state, self.config, parent=origin.get("resumed_from", ""), seconds=seconds
         )
         _write_bytes(self.workdir / LOCAL_STATE, data)
+        step = int(np.asarray(state.step))
+        every = self.milestone_every
+        if every > 0 and step // every > self._checkpointed // every:
+            milestone = (step // every) * every
+            where = keep_milestone(self.workdir, milestone, step, data)
+            self.say(f"long run: milestone {milestone:,} kept at step {step} in {where}")
+        self._checkpointed = step
+
+
+def milestone_dir(workdir, milestone: int) -> Path:
+    """`<workdir>/milestones/step_NNNNNN`: where the milestone of that step is kept."""
+    return Path(workdir) / MILESTONES / f"step_{int(milestone):06d}"
+
+
+def keep_milestone(workdir, milestone: int, step: int, data: bytes) -> Path:
+    """Keeps a checkpoint as the run's milestone and returns its folder.
+
+    The folder (`milestone_dir`) gets the state file's bytes `data` (`state.msgpack`,
+    the long-run format), a copy of the Orbax checkpoint of `step` when the workdir has
+    one (`checkpoint/<step>`: an Orbax manager folder, what `dmd-jax export-weights`
+    reads) and `milestone.json` (the milestone, the exact step it was kept at, when).
+    An existing milestone is left alone. Written beside and renamed into place, so a
+    folder that exists is whole.
+    """
+    import shutil
+
+    target = milestone_dir(workdir, milestone)
+    if target.exists():
+        return target
+    tmp = target.with_name(target.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    (tmp / LOCAL_STATE).write_bytes(data)
+    orbax = Path(workdir) / "checkpoints" / "latest" / str(int(step))
+    if orbax.is_dir():
+        shutil.copytree(orbax, tmp / "checkpoint" / str(int(step)))
+    info = {
+        "milestone": int(milestone),
+        "step": int(step),
+        "kept": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    }
+    (tmp / MILESTONE_INFO).write_text(json.dumps(info, indent=2) + "\n")
+    tmp.rename(target)
+    return target
+
+
+def milestones(workdir) -> list[dict]:
+    """The kept milestones of a run, oldest first: each `milestone.json` plus `dir`."""
+    out = []
+    for info in sorted((Path(workdir) / MILESTONES).glob(f"step_*/{MILESTONE_INFO}")):
+        row = json.loads(info.read_text())
+        row["dir"] = str(info.parent)
+        out.append(row)
+    return sorted(out, key=lambda r: r["milestone"])
 
 
 def recipe_difference(stored: dict, current: dict) -> str:

@@ -189,3 +189,65 @@ def test_bad_state_files_and_the_command_line(tmp_path, capsys):
     (tmp_path / "w" / long_run.PID_FILE).write_text(f"{os.getpid()}\n")
     with pytest.raises(long_run.StateConflictError, match="still running"):
         long_run.save(tmp_path / "w", bad, tmp_path / "c.csv")
+
+
+@pytest.mark.slow  # 25 s on 2 busy cores (a compiled run); the next test is its cheap twin
+def test_milestones_are_kept_when_the_run_crosses_them(tmp_path, setup):
+    cfg, examples = setup
+    cfg = cfg.with_edits({"train": {"ckpt_every": 3}})  # checkpoints at steps 3 and 4
+    state = tmp_path / "none.msgpack"
+    _run(cfg, examples, tmp_path / "w", state, milestone_every=2)
+    kept = long_run.milestones(tmp_path / "w")
+    # Milestone 2 has no checkpoint of its own: the first one past it (3) is kept, and
+    # says so; milestone 4 is the run's step-4 checkpoint.
+    assert [(m["milestone"], m["step"]) for m in kept] == [(2, 3), (4, 4)]
+    for m in kept:
+        folder = long_run.milestone_dir(tmp_path / "w", m["milestone"])
+        assert folder == tmp_path / "w" / "milestones" / f"step_{m['milestone']:06d}"
+        assert long_run.read_meta(folder / long_run.LOCAL_STATE)["step"] == m["step"]
+        assert (folder / "checkpoint" / str(m["step"])).is_dir()
+    from dmd_jax.checkpoints import load_params
+
+    params, stored = load_params(long_run.milestone_dir(tmp_path / "w", 2) / "checkpoint")
+    assert stored.to_dict() == cfg.to_dict() and params
+    assert not list((tmp_path / "w" / "milestones").glob("*.tmp"))
+
+
+def test_a_milestone_is_kept_once_and_not_on_resume(tmp_path, setup):
+    """No step is compiled: the hook's checkpoint callback on states written directly."""
+    cfg, examples = setup
+    trainer = train.Trainer(cfg, train.parallel.batch_mesh(jax.devices()[:1]))
+    batch = pipeline.training_batch(
+        examples, 0, batch_size=2, seed=0, noise=cfg.noise, encoding=cfg.model.encoding
+    )
+    fresh = trainer.init(batch)
+    at = {n: fresh._replace(step=np.int32(n)) for n in (0, 9, 10, 12, 25)}
+
+    def hook():
+        return long_run.LongRun(
+            tmp_path,
+            tmp_path / "none.msgpack",
+            cfg.to_dict(),
+            milestone_every=10,
+            say=lambda _: None,
+        )
+
+    orbax = tmp_path / "checkpoints" / "latest" / "10"  # the checkpoint train() wrote
+    orbax.mkdir(parents=True)
+    (orbax / "commit_success.txt").write_text("ok")
+    h = hook()
+    h.starting_state(at[0])
+    h.on_checkpoint(at[9])
+    assert long_run.milestones(tmp_path) == []
+    h.on_checkpoint(at[10])
+    h.on_checkpoint(at[12])  # past 10 again: the milestone stays the step-10 one
+    assert [(m["milestone"], m["step"]) for m in long_run.milestones(tmp_path)] == [(10, 10)]
+    kept = long_run.milestone_dir(tmp_path, 10)
+    assert (kept / "checkpoint" / "10" / "commit_success.txt").read_text() == "ok"
+    assert long_run.read_meta(kept / long_run.LOCAL_STATE)["step"] == 10
+    # A run resumed past 20 did not cross it in this process: no milestone 20 at step 25.
+    h = hook()
+    h.starting_state(at[25])
+    h.on_checkpoint(at[25])
+    assert [m["milestone"] for m in long_run.milestones(tmp_path)] == [10]
+    assert long_run.LongRun(tmp_path, tmp_path / "x", {}).milestone_every == 10_000
