@@ -249,9 +249,10 @@ class Decision(NamedTuple):
         f = self.features
         return (
             f"controller: {what}; from roughness {f['rough_q50']:.1f}° (median), "
-            f"Laplacian displacement {f['disp_rms']:.2f} edges, anisotropy "
-            f"{f['disp_anisotropy']:.2f}, normal share {f['disp_normal_share']:.2f}, "
-            f"roughness kept after 16 steps {f['rough_ratio_16']:.2f}"
+            f"distance to the neighbours' planes {f['plane_rms']:.3f} edges, tangential "
+            f"{f['tangent_rms']:.2f} edges, edge spread {f['edge_spread']:.2f}, anisotropy "
+            f"{f['disp_anisotropy']:.2f}, roughness kept after 16 steps "
+            f"{f['rough_ratio_16']:.2f}"
         )
 
 

@@ -4,20 +4,32 @@ How much to smooth depends on how strong the noise is relative to the mesh's sam
 how far it is correlated along the surface, whether it moves vertices along one
 direction (a depth camera's view) or along the normals, and how much of the mesh is
 boundary. Each statistic here is invariant to translation, rotation and uniform scale
-(lengths are in mean edges, angles in degrees), so the controller trained on generated
-meshes reads the same numbers on a user's scan at any size and pose.
+(lengths are in local mean edges, angles in degrees), so the controller trained on
+generated meshes reads the same numbers on a user's scan at any size and pose.
+
+They must also not read an irregular triangulation as noise. A vertex of a clean but
+irregular mesh sits far from its neighbours' mean (the umbrella vector), but on their
+plane: the noise statistics are the distances to the plane fitted through each vertex's
+neighbours, in that vertex's own mean edge, weighted by area; the umbrella vector's
+tangential part, which irregular sampling and isotropic noise both give, is one
+statistic of its own beside the triangulation's own irregularity (edge-length spread,
+smallest angles) so the controller can tell them apart.
 
 `features(vertices, faces)` returns `[N_FEATURES]` float64, named by `FEATURE_NAMES`.
-Cost: a few sparse sweeps over the mesh (about 2 % of a default `denoise` call at
-100k faces; `benchmarks/results/controller.md`).
+Cost: a few sparse sweeps over a crop (`crops`; `benchmarks/controller_cost.py`).
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import numpy as np
 
 from dmd_jax import presmooth
 
+# Which statistics these are: stored with every generated example (data.smoothing_set),
+# which refuses to mix examples of another version.
+FEATURES_VERSION = 2
 # Laplacian steps after which the roughness is measured again: noise correlated over a
 # few edges survives more steps than white noise (the ratios read the correlation length).
 SMOOTH_PROBES = (1, 4, 16)
@@ -30,10 +42,12 @@ FEATURE_NAMES = (
     *(f"rough_q{int(q * 100)}" for q in QUANTILES),
     *(f"rough_ratio_{k}" for k in SMOOTH_PROBES),
     "bend_share",
-    "disp_rms",
-    *(f"disp_ratio_{k}" for k in SMOOTH_PROBES[1:]),
-    "disp_normal_share",
+    "plane_rms",
+    *(f"plane_ratio_{k}" for k in SMOOTH_PROBES[1:]),
+    "tangent_rms",
     "disp_anisotropy",
+    "edge_spread",
+    "angle_q10",
     "boundary_share",
 )
 N_FEATURES = len(FEATURE_NAMES)
@@ -90,6 +104,64 @@ def crops(vertices, faces, *, n_crops: int = CROPS, crop_vertices: int = CROP_VE
     return out or [(v, f)]
 
 
+def _weighted_quantile(x: np.ndarray, w: np.ndarray, q) -> np.ndarray:
+    """Quantiles `q` of `x [n]` under weights `w [n]` (the lower value at each step)."""
+    if len(x) == 0:
+        return np.zeros(len(np.atleast_1d(q)))
+    order = np.argsort(x)
+    cum = np.cumsum(w[order])
+    at = np.searchsorted(cum, np.asarray(q) * cum[-1])
+    return x[order][np.minimum(at, len(x) - 1)]
+
+
+class _Rings(NamedTuple):
+    """A mesh's 1-rings as index arrays: vertex `i[k]` neighbours `j[k]`; `count [n]`."""
+
+    i: np.ndarray
+    j: np.ndarray
+    count: np.ndarray
+
+
+def _rings(edges: np.ndarray, n: int) -> _Rings:
+    i = np.concatenate([edges[:, 0], edges[:, 1]])
+    j = np.concatenate([edges[:, 1], edges[:, 0]])
+    return _Rings(i, j, np.bincount(i, minlength=n))
+
+
+def _plane_residuals(x: np.ndarray, rings: _Rings, local_edge: np.ndarray):
+    """Each vertex's distance to the least-squares plane of its neighbours (not itself:
+    the plane is not pulled toward its own noise) and the umbrella vector's part in that
+    plane, both in the vertex's own mean edge.
+
+    Args:
+      x: `[n, 3]` positions.
+      rings: the 1-rings.
+      local_edge: `[n]` each vertex's mean incident edge length.
+
+    Returns:
+      `(normal [n], tangent [n], ok [n] bool)`: ok where the plane is defined (3 or
+      more neighbours).
+    """
+    n = len(x)
+    cnt = np.maximum(rings.count, 1)[:, None]
+    centre = np.stack([np.bincount(rings.i, x[rings.j, d], n) for d in range(3)], 1) / cnt
+    d = x[rings.j] - centre[rings.i]
+    cov = np.stack(
+        [np.bincount(rings.i, d[:, a] * d[:, b], n) for a in range(3) for b in range(3)], 1
+    ).reshape(n, 3, 3)
+    normal = np.linalg.eigh(cov)[1][:, :, 0]  # the smallest spread's direction
+    u = centre - x  # the umbrella vector
+    along = np.sum(u * normal, axis=1)
+    tangent = np.linalg.norm(u - along[:, None] * normal, axis=1)
+    scale = np.where(local_edge > 0, local_edge, 1.0)
+    return np.abs(along) / scale, tangent / scale, rings.count >= 3
+
+
+def _weighted_rms(x: np.ndarray, w: np.ndarray) -> float:
+    total = float(np.sum(w))
+    return float(np.sqrt(np.sum(w * x**2) / total)) if total > 0 else 0.0
+
+
 def features(vertices, faces) -> np.ndarray:
     """The controller's statistics of one mesh (`FEATURE_NAMES`).
 
@@ -99,54 +171,96 @@ def features(vertices, faces) -> np.ndarray:
 
     Returns:
       `[N_FEATURES]` float64: roughness quantiles (angles between edge-adjacent face
-      normals, degrees) and their ratios after 1/4/16 Laplacian steps; the bend share
-      (`presmooth.bend_share`); the rms Laplacian displacement in mean edges and its
-      ratios after 4/16 steps; the share of the displacement along the vertex normals;
-      its anisotropy (largest eigenvalue share of the displacement's second moment:
-      1/3 for isotropic noise, 1 for noise along one view direction); the share
-      of boundary edges. No size: the controller trained on crops reads whole scans.
+      normals, degrees, weighted by the two faces' area) and the median's ratios after
+      1/4/16 Laplacian steps; the bend share (`presmooth.bend_share`); the area-weighted
+      rms distance of the vertices to their neighbours' plane in local mean edges, and its
+      ratios after 4/16 steps; the rms tangential part of the umbrella vector in local
+      mean edges; the umbrella vector's anisotropy (largest eigenvalue share of its
+      second moment: 1/3 for isotropic noise, 1 for noise along one view direction); the
+      spread of the edge lengths (standard deviation over the mean of each edge's length
+      over its ends' local mean edge); the 10th percentile of the triangles' smallest
+      angles (degrees); the share of boundary edges. No size: the controller trained on
+      crops reads whole scans.
     """
     v = np.asarray(vertices, np.float64)
     f = np.asarray(faces, np.int64)
     edges = np.sort(f[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
     unique, counts = np.unique(edges, axis=0, return_counts=True)
-    mean_edge = float(np.linalg.norm(v[unique[:, 0]] - v[unique[:, 1]], axis=1).mean())
+    length = np.linalg.norm(v[unique[:, 0]] - v[unique[:, 1]], axis=1)
+    mean_edge = float(length.mean())
     if not mean_edge > 0:
         raise ValueError("the mesh's edges all have zero length")
     v = (v - v.mean(axis=0)) / mean_edge
-    a, b = presmooth._edge_pairs(f, len(v))
+    length = length / mean_edge
+    n = len(v)
+    rings = _rings(unique, n)
+    # Each vertex's own mean edge: the unit of its displacements where sizes vary.
+    local_edge = np.bincount(rings.i, np.concatenate([length, length]), n) / np.maximum(
+        rings.count, 1
+    )
+    spread_ratio = length / np.maximum(
+        0.5 * (local_edge[unique[:, 0]] + local_edge[unique[:, 1]]), 1e-12
+    )
+    edge_spread = float(np.std(spread_ratio) / max(np.mean(spread_ratio), 1e-12))
+
+    e1, e2 = v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]
+    face_area = 0.5 * np.linalg.norm(np.cross(e1, e2), axis=1)
+    vertex_area = np.bincount(f.ravel(), np.repeat(face_area / 3.0, 3), n)
+    a, b = presmooth._edge_pairs(f, n)
+    pair_area = face_area[a] + face_area[b]
     rough = _dihedral_deg(v, f, a, b)
-    q = np.quantile(rough, QUANTILES) if len(rough) else np.zeros(len(QUANTILES))
-    step = presmooth._laplacian_operator(f, len(v))
-    disp0 = step(v, 1.0) - v  # the umbrella Laplacian: toward the neighbours' mean
-    rms0 = float(np.sqrt(np.mean(np.sum(disp0**2, axis=1))))
-    ratios, disp_ratios = [], []
+    q = _weighted_quantile(rough, pair_area, QUANTILES)
+
+    def plane_rms(x):
+        normal, _, ok = _plane_residuals(x, rings, local_edge)
+        return _weighted_rms(normal, vertex_area * ok)
+
+    plane0 = plane_rms(v)
+    ratios, plane_ratios = [], []
     x, done = v, 0
     for k in SMOOTH_PROBES:
         x = presmooth.laplacian_steps(x, f, k - done)
         done = k
-        med = float(np.median(_dihedral_deg(x, f, a, b))) if len(a) else 0.0
+        med = float(_weighted_quantile(_dihedral_deg(x, f, a, b), pair_area, [0.5])[0])
         ratios.append(med / max(q[1], 1e-9))
         if k != SMOOTH_PROBES[0]:
-            d = step(x, 1.0) - x
-            disp_ratios.append(float(np.sqrt(np.mean(np.sum(d**2, axis=1)))) / max(rms0, 1e-12))
+            plane_ratios.append(plane_rms(x) / max(plane0, 1e-12))
+    _, tangent, ok = _plane_residuals(v, rings, local_edge)
+    tangent_rms = _weighted_rms(tangent, vertex_area * ok)
     # Noise's own direction: the energy-weighted second moment of the displacement one
     # umbrella step removes (a sphere's own curvature adds an isotropic part that the
     # weighting keeps small: measured 0.92-0.97 for scanner noise, 0.34 for isotropic).
+    step = presmooth._laplacian_operator(f, n)
+    disp0 = step(v, 1.0) - v
     energy = max(float(np.sum(disp0**2)), 1e-24)
     aniso = float(np.linalg.eigvalsh(disp0.T @ disp0 / energy)[-1])
-    normals = _vertex_normals(v, f)
-    along = float(np.sum(np.sum(disp0 * normals, axis=1) ** 2)) / energy
+    angle_q10 = float(np.quantile(_smallest_angles_deg(v, f), 0.1)) if len(f) else 60.0
     return np.array(
         [
             *q,
             *ratios,
             presmooth.bend_share(v, f),
-            rms0,
-            *disp_ratios,
-            along,
+            plane0,
+            *plane_ratios,
+            tangent_rms,
             aniso,
+            edge_spread,
+            angle_q10,
             float(np.count_nonzero(counts == 1)) / max(len(unique), 1),
         ],
         np.float64,
     )
+
+
+def _smallest_angles_deg(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """`[n_face]` each triangle's smallest interior angle (degrees; 0 for a degenerate one)."""
+    p = v[f]  # [n_face, 3, 3]
+    out = np.full(len(f), 180.0)
+    for k in range(3):
+        u = p[:, (k + 1) % 3] - p[:, k]
+        w = p[:, (k + 2) % 3] - p[:, k]
+        nu, nw = np.linalg.norm(u, axis=1), np.linalg.norm(w, axis=1)
+        cos = np.sum(u * w, axis=1) / np.maximum(nu * nw, 1e-300)
+        angle = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+        out = np.minimum(out, np.where((nu > 0) & (nw > 0), angle, 0.0))
+    return out

@@ -42,16 +42,76 @@ def test_features_read_noise_strength_and_direction(sphere):
     light = named(add_noise(0, v, f, "gaussian", 0.05, units="edge", direction="normal"))
     heavy = named(add_noise(0, v, f, "gaussian", 0.5, units="edge", direction="normal"))
     assert heavy["rough_q50"] > 3 * light["rough_q50"]
-    assert heavy["disp_rms"] > light["disp_rms"]
+    assert heavy["plane_rms"] > 3 * light["plane_rms"]
     iso = named(add_noise(0, v, f, "gaussian", 0.5, units="edge"))
     scan = named(add_noise(0, v, f, "scanner", 0.5, units="edge", view=[0.0, 0.0, 1.0]))
     # One view direction: the noise directions' second moment is one-dimensional.
     assert scan["disp_anisotropy"] > 0.8 and iso["disp_anisotropy"] < 0.5
-    # Along the normals: the displacement is nearly all normal; isotropic noise a third.
-    assert heavy["disp_normal_share"] > 0.8 and iso["disp_normal_share"] < 0.6
+    # Along the normals: little tangential displacement; isotropic noise moves vertices
+    # within the surface as much as across it.
+    assert iso["tangent_rms"] > 2 * heavy["tangent_rms"]
     # Correlated noise survives Laplacian steps that white noise does not.
     assert scan["rough_ratio_16"] > heavy["rough_ratio_16"]
     assert light["boundary_share"] == 0.0
+
+
+def test_an_irregular_triangulation_is_not_read_as_noise():
+    """A clean sphere re-triangulated irregularly (vertices moved within the surface) has
+    a large tangential umbrella vector, as isotropic noise has, but its vertices stay on
+    their neighbours' planes: its noise statistic is the clean mesh's, far below light
+    noise's, and the triangulation statistics say what changed. (A finer sphere than the
+    other tests': on a coarse one the curvature alone puts vertices off their neighbours'
+    planes by as much as noise of 0.05 edges.)"""
+    v, f = icosphere(4)
+    v, f = np.asarray(v, np.float64), np.asarray(f, np.int32)
+
+    def light_noise(x, ff):  # 0.1 mean edges along the normals (numpy: no compilation)
+        e = np.sort(ff[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+        edge = np.linalg.norm(x[e[:, 0]] - x[e[:, 1]], axis=1).mean()
+        n = x / np.linalg.norm(x, axis=1, keepdims=True)  # a sphere's normals
+        return x + 0.1 * edge * np.random.default_rng(0).standard_normal((len(x), 1)) * n
+
+    named = lambda x, ff: dict(zip(FEATURE_NAMES, features(x, ff), strict=True))  # noqa: E731
+    jitter = {"triangulation": {"kind": "jitter", "seed": 1, "sigma": 0.3}}
+    vj, fj = smoothing_set.retriangulate(v, f, jitter)
+    clean, irregular = named(v, f), named(vj, fj)
+    light = named(light_noise(v, f), f)
+    assert irregular["tangent_rms"] > 5 * clean["tangent_rms"]
+    assert irregular["plane_rms"] < 1.3 * clean["plane_rms"] < light["plane_rms"] / 2
+    assert irregular["edge_spread"] > 3 * clean["edge_spread"]
+    assert irregular["angle_q10"] < clean["angle_q10"] / 2
+    # Area-weighted and in local edges: the same with the triangle sizes varied.
+    noisy_irregular = named(light_noise(vj, fj), fj)
+    assert noisy_irregular["plane_rms"] == pytest.approx(light["plane_rms"], rel=0.25)
+
+
+def test_retriangulations_keep_a_clean_mesh_of_the_crop(sphere):
+    v, f = sphere
+    for t in (
+        {"kind": "given"},
+        {"kind": "jitter", "seed": 0, "sigma": 0.2},
+        {"kind": "decimated", "keep": 0.4},
+        {"kind": "coarse", "faces": 120},
+        {"kind": "anisotropic", "stretch": 3.0, "axis": [1.0, 2.0, 0.5]},
+    ):
+        rv, rf = smoothing_set.retriangulate(v, f, {"patch_faces": 500, "triangulation": t})
+        assert rv.dtype == np.float64 and rf.dtype == np.int32 and rf.max() < len(rv)
+        want = {"given": len(f), "decimated": 500, "coarse": 120}.get(t["kind"], len(f))
+        assert abs(len(rf) - want) <= 0.05 * want + 2, t
+        # Every re-triangulation keeps the vertices on a smooth closed surface (their
+        # distance from the centre: the sphere's, or the stretched ellipsoid's range).
+        r = np.linalg.norm(rv - rv.mean(axis=0), axis=1)
+        if t["kind"] in ("given", "jitter"):
+            assert np.ptp(r) < 0.02
+        elif t["kind"] != "anisotropic":
+            assert np.ptp(r) < 0.15  # decimated: vertices placed on the chords
+    again = smoothing_set.retriangulate(
+        v, f, {"triangulation": {"kind": "jitter", "seed": 0, "sigma": 0.2}}
+    )
+    rv, _ = smoothing_set.retriangulate(
+        v, f, {"triangulation": {"kind": "jitter", "seed": 0, "sigma": 0.2}}
+    )
+    np.testing.assert_array_equal(again[0], rv)  # a pure function of the spec
 
 
 @pytest.mark.slow  # 20-40 s on 2 cores (two vertex updates compiled); `make test-slow`
@@ -85,6 +145,83 @@ def test_example_specs_are_pure_and_cover_every_kind():
     scanners = [s for s in specs if s["kind"] in ("scanner", "scan")]
     lengths = [s["correlation_length"] for s in scanners]
     assert min(lengths) < 3 and max(lengths) > 12  # the scanner model varied widely
+    # The first build's examples (below TRIANGULATION_FROM) regenerate as they were
+    # searched: no triangulation field; later ones draw every re-triangulation.
+    assert all("triangulation" not in s for s in specs)
+    first = smoothing_set.TRIANGULATION_FROM
+    later = [smoothing_set.example_spec(0, i, counts) for i in range(first, first + 400)]
+    assert {s["triangulation"]["kind"] for s in later} == set(smoothing_set.TRIANGULATIONS)
+    assert all(s["triangulation"]["kind"] == "given" for s in later if s["kind"] == "scan")
+    # The new draws come from a stream of their own: the rest of a spec is unchanged.
+    same = smoothing_set.example_spec(0, first, counts)
+    del same["triangulation"]
+    assert same == {k: v for k, v in later[0].items() if k != "triangulation"}
+
+
+def test_stale_statistics_are_refused_and_recomputed(tmp_path, monkeypatch):
+    """An example whose statistics are of another version is refused by `load` and
+    recomputed by `refeature` from its regenerated mesh (the search kept); one whose
+    regenerated mesh is not the one searched is moved aside."""
+    from dmd_jax import controller_features
+
+    v, f = icosphere(2)
+    v, f = np.asarray(v, np.float64), np.asarray(f, np.int32)
+
+    class OneMesh:
+        def counts(self):
+            return {"stress": 1}
+
+        def mesh(self, spec):
+            return v, f
+
+    sources = OneMesh()
+    (tmp_path / "examples").mkdir()
+    (tmp_path / "manifest.json").write_text(json.dumps({"sources": sources.counts()}))
+    errors = np.arange(2 * 2 * 3, dtype=np.float64).reshape(2, 2, 3)
+    for i, n_faces in ((0, len(f)), (1, len(f) + 1)):
+        spec = {
+            "index": i,
+            "source": "stress",
+            "mesh": 0,
+            "kind": "gaussian_normal",
+            "level": 0.2,
+            "noise_seed": i,
+        }
+        np.savez(
+            tmp_path / "examples" / f"{i:05d}.npz",
+            features=np.zeros(3),
+            errors=errors,
+            first_pass=np.zeros(2),
+            default_error=1.0,
+            spec=json.dumps(spec),
+            n_faces=n_faces,
+        )  # no features_version: the first statistics
+    with pytest.raises(ValueError, match="--refeature"):
+        smoothing_set.load(tmp_path)
+    report = smoothing_set.refeature(tmp_path, sources=sources, say=lambda _: None)
+    assert report["rewritten"] == 1 and report["rejected"] == ["00001.npz"]
+    data = smoothing_set.load(tmp_path)
+    spec = data["specs"][0]
+    _, noisy, _ = smoothing_set.noisy_example(spec, v, f)
+    np.testing.assert_array_equal(data["features"][0], features(noisy, f))
+    np.testing.assert_array_equal(data["errors"][0], errors)
+    assert (tmp_path / "rejected" / "00001.npz").is_file()
+    # Now current, with a digest: nothing to do; a new version makes it stale again.
+    assert smoothing_set.refeature(tmp_path, sources=sources)["rewritten"] == 0
+    monkeypatch.setattr(controller_features, "FEATURES_VERSION", 99)
+    with pytest.raises(ValueError, match="another version"):
+        smoothing_set.load(tmp_path)
+    assert smoothing_set.refeature(tmp_path, sources=sources)["digest_checked"] == 1
+
+
+def test_a_set_of_the_first_build_takes_the_new_manifest_fields(tmp_path):
+    manifest = {"seed": 0, "sources": {"stress": 1}, "kinds": smoothing_set.KINDS}
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    smoothing_set.check_manifest(
+        tmp_path, {**manifest, "triangulations": {}, "triangulation_from": 5}
+    )
+    with pytest.raises(ValueError, match="other settings"):
+        smoothing_set.check_manifest(tmp_path, {**manifest, "seed": 1})
 
 
 def test_a_fit_learns_a_choice_that_depends_on_the_statistics():

@@ -12,15 +12,29 @@ every `p` of `PRESMOOTH_GRID` and `k` from 0 to `SEARCH_PASSES` (one run of
 `SEARCH_PASSES` passes gives every pass count).
 
 Every example is a pure function of `(seed, index)` and the sources, written as one
-`.npz` (`examples/NNNNN.npz`: `features`, `errors [n_presmooth, n_update, passes + 1]`,
-`spec` as JSON): a build resumes where it stopped, and two builds agree file by file.
+`.npz` (`examples/NNNNN.npz`: `features`, `features_version`, `errors [n_presmooth,
+n_update, passes + 1]`, `spec` as JSON): a build resumes where it stopped, and two builds
+agree file by file.
+
+From index `TRIANGULATION_FROM` on, half the examples also re-triangulate their clean
+crop (`TRIANGULATIONS`: tangentially jittered, decimated, stretched or coarse), so the
+controller sees irregular triangulations clean and noisy; the examples below that index
+were built before and keep their meshes' own triangulation (their specs have no
+`triangulation` field and regenerate exactly).
+
+When the statistics change (`controller_features.FEATURES_VERSION`), `--refeature`
+recomputes them for every example from its regenerated noisy mesh (about 0.1 s each)
+instead of redoing the search (10-15 s each); `load` refuses a set whose examples carry
+statistics of another version.
 
     python -m dmd_jax.data.smoothing_set --out data/smoothing --examples 2000
+    python -m dmd_jax.data.smoothing_set --out data/smoothing --refeature
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import sys
@@ -42,6 +56,20 @@ KINDS = {
     "fine": 0.12,
     "clean": 0.08,
 }
+# Re-triangulations of the clean crop and their share (examples from TRIANGULATION_FROM
+# on; a simulated scan resamples the surface itself and keeps "given"). A real mesh's
+# irregular triangulation gives the umbrella displacement a tangential part that the
+# first set, all near-regular, never showed the controller (common3d_ogre in
+# benchmarks/results/controller_val.md).
+TRIANGULATIONS = {
+    "given": 0.5,  # the source's own triangulation
+    "jitter": 0.15,  # vertices moved within their tangent planes: irregular, same surface
+    "decimated": 0.15,  # quadric edge collapse of a larger crop: sizes follow curvature
+    "anisotropic": 0.1,  # stretched along one axis: long thin triangles
+    "coarse": 0.1,  # decimated to 80-300 faces: a coarse CAD-like part
+}
+# Every example of the first build (indices 0-1575 written, seed 0) is below this index.
+TRIANGULATION_FROM = 1576
 # Patch sizes: the search runs one compiled program per padded size, so examples are
 # crops of about this many faces (the controller's statistics are per-area, not totals).
 PATCH_FACES = (400, 1200)
@@ -88,7 +116,65 @@ def example_spec(seed: int, index: int, sources: dict[str, int]) -> dict:
         spec["spike_share"] = float(rng.choice([0.0, 0.001, 0.005]))
         if kind == "scan":
             spec["resolution"] = int(rng.choice([40, 48, 64]))
+    if index >= TRIANGULATION_FROM:
+        # A stream of its own: the draws above stay those of the first build.
+        spec["triangulation"] = triangulation_spec(np.random.default_rng([seed, index, 1]))
+        if kind == "scan":
+            spec["triangulation"] = {"kind": "given"}
     return spec
+
+
+def triangulation_spec(rng: np.random.Generator) -> dict:
+    """One draw of `TRIANGULATIONS` and its parameters (JSON-able)."""
+    names = list(TRIANGULATIONS)
+    kind = names[int(rng.choice(len(names), p=np.array(list(TRIANGULATIONS.values()))))]
+    out: dict = {"kind": kind, "seed": int(rng.integers(2**31))}
+    if kind == "jitter":
+        out["sigma"] = float(rng.uniform(0.1, 0.35))  # mean edges, per tangent axis
+    elif kind == "decimated":
+        out["keep"] = float(rng.uniform(0.2, 0.5))  # faces kept of a crop 1/keep larger
+    elif kind == "anisotropic":
+        out["stretch"] = float(np.exp(rng.uniform(np.log(1.5), np.log(4.0))))
+        out["axis"] = [float(a) for a in rng.standard_normal(3)]
+    elif kind == "coarse":
+        out["faces"] = int(rng.integers(80, 300))
+    return out
+
+
+def retriangulate(vertices, faces, spec: dict) -> tuple[np.ndarray, np.ndarray]:
+    """A clean crop re-triangulated as `spec["triangulation"]` says (the ground truth
+    of the example is the result: a clean mesh with another triangulation).
+
+    Args:
+      vertices: `[m, 3]` float64 clean crop (for "decimated", a crop `1/keep` larger).
+      faces: `[k, 3]`.
+      spec: the example's spec.
+
+    Returns:
+      `(vertices [m', 3] float64, faces [k', 3] int32)`.
+    """
+    from dmd_jax.data.repair import decimate
+
+    t = spec.get("triangulation", {"kind": "given"})
+    v, f = np.asarray(vertices, np.float64), np.asarray(faces, np.int64)
+    if t["kind"] == "jitter":
+        from dmd_jax.controller_features import _vertex_normals
+
+        edges = np.sort(f[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+        mean_edge = float(np.linalg.norm(v[edges[:, 0]] - v[edges[:, 1]], axis=1).mean())
+        n = _vertex_normals(v, f)
+        move = np.random.default_rng(t["seed"]).standard_normal(v.shape) * t["sigma"] * mean_edge
+        move -= np.sum(move * n, axis=1, keepdims=True) * n  # tangential: the surface stays
+        v = v + move
+    elif t["kind"] == "decimated":
+        v, f = decimate(v, f, spec["patch_faces"])
+    elif t["kind"] == "coarse":
+        v, f = decimate(v, f, t["faces"])
+    elif t["kind"] == "anisotropic":
+        a = np.asarray(t["axis"], np.float64)
+        a /= np.linalg.norm(a)
+        v = v + (t["stretch"] - 1.0) * (v @ a)[:, None] * a
+    return np.asarray(v, np.float64), np.asarray(f, np.int32)
 
 
 def scanner_model(spec: dict):
@@ -188,7 +274,18 @@ class Sources:
         return self._real
 
     def mesh(self, spec: dict) -> tuple[np.ndarray, np.ndarray]:
-        """The clean crop of a spec: `(vertices [m, 3] float64, faces [k, 3] int32)`."""
+        """The clean crop of a spec, re-triangulated as it says (`retriangulate`):
+        `(vertices [m, 3] float64, faces [k, 3] int32)`."""
+        t = spec.get("triangulation", {"kind": "given"})
+        if t["kind"] == "decimated":
+            # A crop 1/keep larger, decimated back to the spec's size.
+            larger = {**spec, "patch_faces": int(spec["patch_faces"] / t["keep"])}
+            v, f = self._crop(larger)
+        else:
+            v, f = self._crop(spec)
+        return retriangulate(v, f, spec)
+
+    def _crop(self, spec: dict) -> tuple[np.ndarray, np.ndarray]:
         from dmd_jax.data.real import patch_mesh
         from dmd_jax.data.stress import subdivide
 
@@ -278,15 +375,17 @@ def build(
     sources: Sources,
     bundle=None,
     shard: tuple[int, int] = (0, 1),
+    first: int = 0,
     say=print,
 ) -> int:
-    """Writes examples `0 .. n_examples-1` that `out/examples/` lacks; returns how many
-    it wrote. Each is written whole or not at all (a stopped build resumes).
+    """Writes examples `first .. n_examples-1` that `out/examples/` lacks; returns how
+    many it wrote. Each is written whole or not at all (a stopped build resumes).
 
     `shard=(k, n)` writes only the examples whose index is `k` modulo `n` (one process
-    per core, each its own shard)."""
+    per core, each its own shard); `first` skips the indices below it (a build that
+    writes the newest examples first; a later build without it fills the gaps)."""
     from dmd_jax import denoise, load_pretrained
-    from dmd_jax.controller_features import features
+    from dmd_jax.controller_features import FEATURES_VERSION, features
     from dmd_jax.io._files import atomic_write, write_text_atomic
     from dmd_jax.metrics import face_normal_errors_deg
 
@@ -301,13 +400,14 @@ def build(
         "updates": UPDATES,
         "search_passes": SEARCH_PASSES,
         "kinds": KINDS,
+        "triangulations": TRIANGULATIONS,
+        "triangulation_from": TRIANGULATION_FROM,
     }
-    mpath = out / "manifest.json"
-    if mpath.is_file() and json.loads(mpath.read_text()) != json.loads(json.dumps(manifest)):
-        raise ValueError(f"{out} holds a set built with other settings (manifest.json)")
-    write_text_atomic(mpath, json.dumps(manifest, indent=2))
+    check_manifest(out, manifest)
+    write_text_atomic(out / "manifest.json", json.dumps(manifest, indent=2))
     written, t0 = 0, time.time()
-    for index in range(shard[0], n_examples, shard[1]):
+    start = shard[0] + max(first - shard[0] + shard[1] - 1, 0) // shard[1] * shard[1]
+    for index in range(start, n_examples, shard[1]):
         path = out / "examples" / f"{index:05d}.npz"
         if path.exists():
             continue
@@ -325,18 +425,29 @@ def build(
             np.mean(face_normal_errors_deg(denoise(noisy, faces, bundle), clean, faces))
         )
 
+        digest = mesh_digest(noisy, faces)
+
         def write(
-            tmp, feats=feats, errors=errors, spec=spec, faces=faces, first=first, default=default
+            tmp,
+            feats=feats,
+            errors=errors,
+            spec=spec,
+            faces=faces,
+            first=first,
+            default=default,
+            digest=digest,
         ):
             with open(tmp, "wb") as fh:
                 np.savez(
                     fh,
                     features=feats,
+                    features_version=FEATURES_VERSION,
                     errors=errors,
                     first_pass=first,
                     default_error=default,
                     spec=json.dumps(spec),
                     n_faces=len(faces),
+                    noisy_digest=digest,
                 )
 
         atomic_write(path, write, overwrite=False)
@@ -349,17 +460,139 @@ def build(
     return written
 
 
+# Manifest fields added after the first build: a set built before them is the same set
+# (its examples all lie below TRIANGULATION_FROM, where the re-triangulation is off).
+_ADDED_FIELDS = ("triangulations", "triangulation_from")
+
+
+def check_manifest(out, manifest: dict) -> None:
+    """Raises `ValueError` if `out` holds a set built with other settings."""
+    path = Path(out) / "manifest.json"
+    if not path.is_file():
+        return
+    old, new = json.loads(path.read_text()), json.loads(json.dumps(manifest))
+    for key in _ADDED_FIELDS:
+        if key not in old:
+            new.pop(key, None)
+    if old != new:
+        raise ValueError(f"{out} holds a set built with other settings (manifest.json)")
+
+
+def mesh_digest(vertices, faces) -> str:
+    """SHA-1 of a mesh's float32 positions and faces: that a regenerated example is the
+    one that was searched (`refeature`)."""
+    h = hashlib.sha1(np.ascontiguousarray(vertices, np.float32).tobytes())
+    h.update(np.ascontiguousarray(faces, np.int32).tobytes())
+    return h.hexdigest()
+
+
+def _example_files(out) -> list[Path]:
+    # Not a build's temporary files (".NAME.xxx.npz", renamed into place when whole).
+    return sorted(p for p in Path(out, "examples").glob("*.npz") if not p.name.startswith("."))
+
+
+def _features_version(z) -> int:
+    # Examples written before the field existed carry the first statistics.
+    return int(z["features_version"]) if "features_version" in z.files else 1
+
+
 def load(out) -> dict:
     """A built set as arrays: `features [n, N_FEATURES]`, `errors [n, P, U, K + 1]`,
-    `first_pass [n, 2]`, `default_error [n]` and `specs` (a list of dicts)."""
-    files = sorted(Path(out, "examples").glob("*.npz"))
+    `first_pass [n, 2]`, `default_error [n]` and `specs` (a list of dicts).
+
+    Raises:
+      ValueError: an example's statistics are of another `FEATURES_VERSION` than this
+        dmd_jax computes (run `--refeature`), so stale statistics are never mixed in.
+    """
+    from dmd_jax.controller_features import FEATURES_VERSION
+
+    files = _example_files(out)
     out = {"features": [], "errors": [], "first_pass": [], "default_error": [], "specs": []}
+    stale = []
     for path in files:
         with np.load(path) as z:
+            if _features_version(z) != FEATURES_VERSION:
+                stale.append(path.name)
             for key in ("features", "errors", "first_pass", "default_error"):
                 out[key].append(z[key])
             out["specs"].append(json.loads(str(z["spec"])))
+    if stale:
+        raise ValueError(
+            f"{len(stale)} examples (e.g. {stale[0]}) carry statistics of another version than "
+            f"{FEATURES_VERSION}: python -m dmd_jax.data.smoothing_set --out "
+            f"{files[0].parents[1]} --refeature"
+        )
     return {k: v if k == "specs" else np.array(v) for k, v in out.items()}
+
+
+def refeature(out, *, sources: Sources, verify=None, say=print) -> dict:
+    """Recomputes the statistics of every example whose `features_version` is not
+    today's, from its regenerated noisy mesh (the search is kept: it does not depend on
+    the statistics). Each file is rewritten whole.
+
+    An example whose regenerated mesh is not the one that was searched (its stored
+    digest, or for examples written before digests its face count, differs: a scan built
+    before a fix to `noisy_example`) cannot be refeatured; it is moved to `out/rejected/`
+    and a later build writes it again, consistent with today's code.
+
+    Args:
+      out: the set's folder.
+      sources: its clean meshes.
+      verify: optional `(noisy [m, 3], faces [k, 3], fields) -> reason or None`, a
+        further check of an example without a digest (e.g. that its stored statistics
+        are those of the old version on the regenerated mesh).
+      say: progress lines.
+
+    Returns:
+      `{"rewritten", "digest_checked", "rejected": [names]}`.
+    """
+    from dmd_jax.controller_features import FEATURES_VERSION, features
+    from dmd_jax.io._files import atomic_write
+
+    counts = sources.counts()
+    manifest = json.loads(Path(out, "manifest.json").read_text())
+    if manifest["sources"] != counts:
+        raise ValueError(f"the sources changed since {out} was built: {counts}")
+    report = {"rewritten": 0, "digest_checked": 0, "rejected": []}
+    for path in _example_files(out):
+        with np.load(path) as z:
+            if _features_version(z) == FEATURES_VERSION:
+                continue
+            fields = {k: z[k] for k in z.files}
+        spec = json.loads(str(fields["spec"]))
+        clean, faces = sources.mesh(spec)
+        try:
+            _, noisy, faces = noisy_example(spec, clean, faces)
+        except ValueError as err:
+            reason = str(err)
+        else:
+            digest = mesh_digest(noisy, faces)
+            if "noisy_digest" in fields:
+                reason = None if str(fields["noisy_digest"]) == digest else "digest differs"
+                report["digest_checked"] += 1
+            elif int(fields["n_faces"]) != len(faces):
+                reason = f"{len(faces)} faces where {int(fields['n_faces'])} were searched"
+            else:
+                reason = verify(noisy, faces, fields) if verify is not None else None
+        if reason is not None:
+            (Path(out) / "rejected").mkdir(exist_ok=True)
+            path.rename(Path(out) / "rejected" / path.name)
+            report["rejected"].append(path.name)
+            say(f"{path.name} moved to rejected/: {reason}")
+            continue
+        fields["noisy_digest"] = digest
+        fields["features"] = features(noisy, faces)
+        fields["features_version"] = FEATURES_VERSION
+
+        def write(tmp, fields=fields):
+            with open(tmp, "wb") as fh:
+                np.savez(fh, **fields)
+
+        atomic_write(path, write, overwrite=True)
+        report["rewritten"] += 1
+        if report["rewritten"] % 100 == 0:
+            say(f"{report['rewritten']} examples' statistics recomputed")
+    return report
 
 
 def main(argv=None) -> int:
@@ -370,13 +603,34 @@ def main(argv=None) -> int:
     parser.add_argument("--data", default="data/gen_v2", help="procedural dataset")
     parser.add_argument("--real", default="../shared/meshes/train", help="real meshes")
     parser.add_argument("--shard", default="0/1", help="K/N: every N-th example from K")
+    parser.add_argument("--first", type=int, default=0, help="skip the indices below this")
+    parser.add_argument(
+        "--refeature",
+        action="store_true",
+        help="recompute stale statistics of the built examples instead of building",
+    )
     args = parser.parse_args(argv)
     sources = Sources(
         args.data if Path(args.data).is_dir() else None,
         args.real if Path(args.real).is_dir() else None,
     )
+    if args.refeature:
+        report = refeature(args.out, sources=sources)
+        print(
+            f"recomputed {report['rewritten']} examples' statistics ({report['digest_checked']} "
+            f"checked by digest, the others by face count); {len(report['rejected'])} moved to "
+            "rejected/"
+        )
+        return 0
     k, _, n = args.shard.partition("/")
-    wrote = build(args.out, args.examples, seed=args.seed, sources=sources, shard=(int(k), int(n)))
+    wrote = build(
+        args.out,
+        args.examples,
+        seed=args.seed,
+        sources=sources,
+        shard=(int(k), int(n)),
+        first=args.first,
+    )
     print(f"wrote {wrote} examples to {args.out}", file=sys.stderr)
     return 0
 
