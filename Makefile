@@ -127,7 +127,9 @@ notebook: $(STAMP)
 # ahead) at nice 19 in the background, bit-identically; train-long-save stops it cleanly
 # and commits its state and curve; train-long-status prints one line. OUT=dir picks the
 # run folder (default runs/long). Every session: train-long at its start, save at its end.
-.PHONY: train-long train-long-save train-long-status
+# train-long-milestone scores the run's latest milestone (STEP=10000: that one), kept every
+# 10,000 steps, against the bundled weights and appends the verdict to train_long.md.
+.PHONY: train-long train-long-save train-long-status train-long-milestone
 train-long: $(STAMP)
 	scripts/train_long.sh $(if $(OUT),$(OUT),runs/long)
 
@@ -137,6 +139,9 @@ train-long-save: $(STAMP)
 train-long-status: $(STAMP)
 	@$(BIN)/python -m dmd_jax.long_run status --workdir $(if $(OUT),$(OUT),runs/long)/ft \
 		--state training/long_run.msgpack
+
+train-long-milestone: $(STAMP)
+	STEP=$(STEP) scripts/train_long_milestone.sh $(if $(OUT),$(OUT),runs/long)
 
 # The paper's Table II protocol, the same six meshes whole under scanner noise and as
 # simulated scans with the stress shapes (sota_scan.md), and the DMD-Net vs CNR table,
