@@ -259,9 +259,29 @@ def test_malformed_controller_sections_are_refused():
         {**good, "b2": np.zeros(5)},
         {**good, "w1": np.full_like(good["w1"], np.nan)},
         {**good, "options": [[0, "", "x"]]},
+        {**good, "transform": "sqrt"},
     ):
         with pytest.raises(ValueError, match="controller section"):
             controller.ControllerParams.from_dict(broken)
+
+
+def test_the_statistics_transform_is_stored_and_read():
+    """A controller reads its statistics through the transform it was trained with; one
+    stored before the field existed reads them as computed."""
+    rng = np.random.default_rng(0)
+    feats = np.abs(rng.standard_normal((50, 3))) * [1.0, 30.0, 0.1]
+    opts = [controller.Option(0, None, 0), controller.Option(0, "jacobi", 1)]
+    errors = rng.uniform(1.0, 2.0, (50, 2))
+    params = controller.fit(feats, errors, opts, hidden=4, steps=20)
+    assert params.transform == "log1p"
+    np.testing.assert_allclose(params.mean, np.log1p(feats).mean(axis=0))
+    back = controller.ControllerParams.from_dict(params.to_json())
+    assert back.transform == "log1p"
+    np.testing.assert_allclose(
+        controller.scores(back, feats), controller.scores(params, feats), rtol=1e-5, atol=1e-5
+    )
+    old = {k: v for k, v in params.to_dict().items() if k != "transform"}
+    assert controller.ControllerParams.from_dict(old).transform == "identity"
 
 
 def _always(option, opts, n_feat=N_FEATURES):
