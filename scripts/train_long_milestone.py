@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import json
 import subprocess
 import sys
 import time
@@ -135,43 +136,50 @@ def table(header, rows) -> str:
     return "\n".join(lines)
 
 
-def score_noisy(weights: Path, baseline: Path, out: Path, *, max_meshes: int, echo) -> dict:
-    """Runs sota-lite's val set for both weights; returns `{family: [condition rows]}`."""
+def score_noisy(tag: str, weights: Path, out: Path, *, max_meshes: int, echo) -> dict:
+    """Runs sota-lite's val set for one weights file (`tag`: bundled or milestone) into
+    `<out>/val_<part>_<tag>.csv` (an existing one is reused); returns `{part: path}`."""
     from benchmarks.quality import sota_lite
     from dmd_jax import protocol
 
-    by_family: dict = defaultdict(list)
+    csvs = {}
     for part, (conditions, max_faces, reuse) in NOISY_RUNS.items():
-        csvs = {}
-        for tag, w in (("bundled", baseline), ("milestone", weights)):
-            name = f"val_{part}_{tag}"
-            csvs[tag] = out / f"{name}.csv"
-            if csvs[tag].is_file():
-                echo(f"reusing {csvs[tag]} (delete it to rerun)")
-                continue
-            started = time.perf_counter()
-            sota_lite.run(
-                val_dir=protocol.validation_dir(),
-                weights=str(w),
-                conditions=tuple(protocol.parse_condition(c) for c in conditions),
-                name=name,
-                out_dir=out,
-                reuse_from=(reuse,),
-                sets=("val",),
-                max_faces=max_faces,
-                max_meshes=max_meshes,
-                echo=echo,
-            )
-            echo(f"{name}: {time.perf_counter() - started:.0f} s")
-        for row in compare(read_rows(csvs["bundled"]), read_rows(csvs["milestone"])):
-            by_family[row["cond"][0]].append(row)
-    return by_family
+        name = f"val_{part}_{tag}"
+        csvs[part] = out / f"{name}.csv"
+        if csvs[part].is_file():
+            echo(f"reusing {csvs[part]} (delete it to rerun)")
+            continue
+        started = time.perf_counter()
+        sota_lite.run(
+            val_dir=protocol.validation_dir(),
+            weights=str(weights),
+            conditions=tuple(protocol.parse_condition(c) for c in conditions),
+            name=name,
+            out_dir=out,
+            reuse_from=(reuse,),
+            sets=("val",),
+            max_faces=max_faces,
+            max_meshes=max_meshes,
+            echo=echo,
+        )
+        echo(f"{name}: {time.perf_counter() - started:.0f} s")
+    return csvs
 
 
-def score_clean(weights: Path, baseline: Path, out: Path, *, max_meshes: int, echo) -> Path:
-    """no_harm.py's clean meshes through both weights and the other methods, once each;
-    writes and returns `<out>/clean.csv` (set, mesh, method, normal change, max move)."""
-    path = out / "clean.csv"
+def by_family(old: dict, new: dict) -> dict:
+    """`{family: [condition rows of compare]}` of the bundled and milestone CSVs."""
+    out: dict = defaultdict(list)
+    for part in NOISY_RUNS:
+        for row in compare(read_rows(old[part]), read_rows(new[part])):
+            out[row["cond"][0]].append(row)
+    return out
+
+
+def score_clean(tag: str, weights: Path, out: Path, *, max_meshes: int, echo) -> Path:
+    """no_harm.py's clean meshes through one weights file (`tag`), and with the bundled
+    weights also through the other methods (`CLEAN_OTHERS`); writes and returns
+    `<out>/clean_<tag>.csv` (set, mesh, method, normal change, max move; reused)."""
+    path = out / f"clean_{tag}.csv"
     if path.is_file():
         echo(f"reusing {path} (delete it to rerun)")
         return path
@@ -181,45 +189,41 @@ def score_clean(weights: Path, baseline: Path, out: Path, *, max_meshes: int, ec
     from dmd_jax.mesh import mean_edge_length
     from dmd_jax.metrics import face_normal_errors_deg
 
-    bundles = {
-        "bundled": dmd_jax.load_weights(baseline),
-        "milestone": dmd_jax.load_weights(weights),
-    }
+    bundle = dmd_jax.load_weights(weights)
+    methods = (tag, *CLEAN_OTHERS) if tag == "bundled" else (tag,)
     rows = []
     started = time.perf_counter()
     for mesh_set, name, v, f in no_harm.meshes(
         protocol.shared_meshes_dir(), no_harm.SETS, max_meshes
     ):
         h = mean_edge_length(v, f)
-        for method in (*bundles, *CLEAN_OTHERS):
-            if method in bundles:
-                moved = dmd_jax.denoise(v, f, bundles[method])
+        for method in methods:
+            if method == tag:
+                moved = dmd_jax.denoise(v, f, bundle)
             else:
                 moved = baselines.run_baseline(method, v, f)
             turn = float(np.mean(face_normal_errors_deg(moved, v, f)))
-            rows.append(
-                [mesh_set, name, method, f"{turn:.6g}", f"{np.abs(moved - v).max() / h:.6g}"]
-            )
-        echo(
-            f"  clean {mesh_set} {name}: "
-            + "  ".join(f"{r[2]} {float(r[3]):.2f}°" for r in rows[-5:])
-        )
+            move = float(np.abs(moved - v).max() / h)
+            rows.append([mesh_set, name, method, f"{turn:.6g}", f"{move:.6g}"])
+        done = "  ".join(f"{r[2]} {float(r[3]):.2f}°" for r in rows[-len(methods) :])
+        echo(f"  clean {mesh_set} {name}: {done}")
     tmp = path.with_suffix(".tmp")
     with open(tmp, "w", newline="") as fh:
         w = csv.writer(fh, lineterminator="\n")
         w.writerow(["set", "mesh", "method", "normal_change_deg", "max_move_edges"])
         w.writerows(rows)
     tmp.rename(path)
-    echo(f"clean: {time.perf_counter() - started:.0f} s")
+    echo(f"clean_{tag}: {time.perf_counter() - started:.0f} s")
     return path
 
 
-def clean_rows(path: Path) -> tuple[list[list[str]], dict[str, float]]:
+def clean_rows(paths) -> tuple[list[list[str]], dict[str, float]]:
     """Per clean set: the summary row and `{set: geometric mean milestone / bundled}`."""
     turn: dict = defaultdict(lambda: defaultdict(dict))
-    with open(path, newline="") as fh:
-        for r in csv.DictReader(fh):
-            turn[r["set"]][r["mesh"]][r["method"]] = float(r["normal_change_deg"])
+    for path in paths:
+        with open(path, newline="") as fh:
+            for r in csv.DictReader(fh):
+                turn[r["set"]][r["mesh"]][r["method"]] = float(r["normal_change_deg"])
     rows, means = [], {}
     for mesh_set, meshes in turn.items():
         names = sorted(meshes)
@@ -256,7 +260,7 @@ def _git(*args) -> str:
     return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True).stdout.strip()
 
 
-def report(args, by_family: dict, clean_csv: Path, seconds: float, dirty: str) -> str:
+def report(args, families: dict, clean_csvs, seconds: float, dirty: str) -> str:
     from benchmarks.common import file_sha256
 
     header = [
@@ -271,14 +275,14 @@ def report(args, by_family: dict, clean_csv: Path, seconds: float, dirty: str) -
     ]
     per_condition, per_family, verdicts = [], [], {}
     for family in FAMILIES:
-        rows = by_family.get(family, [])
+        rows = families.get(family, [])
         for r in rows:
             per_condition.append(summary_row(f"{family} {r['cond'][1]:g}", [r]))
         if rows:
             line = summary_row(f"**{family}**", rows)
             per_family.append(line)
             verdicts[family] = float(line[2]) < 1.0
-    crow, cmeans = clean_rows(clean_csv)
+    crow, cmeans = clean_rows(clean_csvs)
     clean_ok = all(v <= CLEAN_TOLERANCE for v in cmeans.values())
     missing = [f for f in FAMILIES if f not in verdicts]
     bundle = not missing and all(verdicts.values()) and clean_ok
@@ -346,12 +350,24 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--weights", type=Path, required=True, help="the milestone's weights")
     parser.add_argument("--baseline", type=Path, default=BUNDLED, help="default: bundled")
-    parser.add_argument("--step", type=int, required=True, help="the run's exact step")
+    parser.add_argument(
+        "--step",
+        type=int,
+        default=0,
+        help="the run's exact step (default: from milestone.json beside the weights)",
+    )
     parser.add_argument("--milestone", type=int, default=0, help="the milestone it stands for")
     parser.add_argument("--out", type=Path, required=True, help="folder for reports and CSVs")
     parser.add_argument("--append", type=Path, help="markdown report to append the section to")
     parser.add_argument("--max-meshes", type=int, default=0, help="first N meshes (a check)")
     parser.add_argument("--command", default="", help="the command to quote in the report")
+    parser.add_argument(
+        "--wait",
+        type=float,
+        default=0.0,
+        help="seconds to wait for the milestone's weights file after scoring the bundled "
+        "weights (it may be exported while they run)",
+    )
     args = parser.parse_args(argv)
     args.command = args.command or " ".join(["python", *sys.argv])
     args.out.mkdir(parents=True, exist_ok=True)
@@ -367,13 +383,28 @@ def main(argv=None) -> int:
     def echo(line):
         print(line, flush=True)
 
-    by_family = score_noisy(
-        args.weights, args.baseline, args.out, max_meshes=args.max_meshes, echo=echo
-    )
-    clean_csv = score_clean(
-        args.weights, args.baseline, args.out, max_meshes=args.max_meshes, echo=echo
-    )
-    text = report(args, by_family, clean_csv, time.perf_counter() - started, dirty)
+    kw = {"max_meshes": args.max_meshes, "echo": echo}
+    # The bundled weights first (with the other methods' clean rows), then the milestone,
+    # in this one process: the same code scores both.
+    old = score_noisy("bundled", args.baseline, args.out, **kw)
+    clean_old = score_clean("bundled", args.baseline, args.out, **kw)
+    waited = time.perf_counter()
+    while not args.weights.is_file():
+        if time.perf_counter() - waited > args.wait:
+            print(f"error: no milestone weights at {args.weights}", file=sys.stderr)
+            return 2
+        time.sleep(10)
+    waited = time.perf_counter() - waited
+    if waited > 10:
+        echo(f"waited {waited:.0f} s for {args.weights}")
+    info = args.weights.parent / "milestone.json"
+    if not args.step and info.is_file():
+        kept = json.loads(info.read_text())
+        args.step, args.milestone = int(kept["step"]), args.milestone or int(kept["milestone"])
+    new = score_noisy("milestone", args.weights, args.out, **kw)
+    clean_new = score_clean("milestone", args.weights, args.out, **kw)
+    seconds = time.perf_counter() - started - waited
+    text = report(args, by_family(old, new), (clean_old, clean_new), seconds, dirty)
     (args.out / "milestone.md").write_text(text)
     print(text)
     if args.append:
