@@ -219,6 +219,7 @@ def profile(today: Today, step: int) -> list[tuple[str, float]]:
     import jax.numpy as jnp
 
     from dmd_jax import encoding, parallel, pipeline, train
+    from dmd_jax import graph as graph_lib
     from dmd_jax.model import DMDNet
     from dmd_jax.vertex_update import solve_vertices_to_normals
 
@@ -248,7 +249,7 @@ def profile(today: Today, step: int) -> list[tuple[str, float]]:
     solve_fwd = jax.jit(solve)
     solve_grad = jax.jit(jax.grad(lambda n: jnp.sum(solve(n) ** 2)))
     stacked = jax.tree.map(lambda x: x[None], local)
-    ell = pipeline.with_fixed_ell(
+    ell = graph_lib.with_fixed_ell(
         jax.tree.map(lambda x: np.asarray(x[0]), batch.graph),
         pipeline.ell_widths(today.examples),
     )

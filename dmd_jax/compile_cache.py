@@ -572,9 +572,14 @@ def executable(name: str, jitted, args, identity: str):
       A `jax.stages.Compiled`; stored for the next process when the store is on and the
       program can be serialised.
     """
+    return lookup(name, jitted, args, identity)[0]
+
+
+def lookup(name: str, jitted, args, identity: str):
+    """`executable`, and whether it was loaded from the store: `(compiled, loaded)`."""
     entries = store()
     if entries is None:
-        return jitted.lower(*args).compile()
+        return jitted.lower(*args).compile(), False
     tree, shapes = signature(args)
     key = hashlib.sha256(
         repr((name, identity, str(tree), shapes, fingerprint())).encode()
@@ -585,7 +590,7 @@ def executable(name: str, jitted, args, identity: str):
     loaded = _load(entries, key)
     if loaded is not None:
         monitoring.record_event(HIT_EVENT)
-        return loaded
+        return loaded, True
     monitoring.record_event(MISS_EVENT)
     # Compiled here, not loaded from JAX's persistent cache: XLA:CPU cannot serialise
     # again an executable it deserialised (the copy fails at run time, "Function ...
@@ -593,7 +598,7 @@ def executable(name: str, jitted, args, identity: str):
     with _without_jax_cache():
         compiled = jitted.lower(*args).compile()
     _save(entries, key, compiled)
-    return compiled
+    return compiled, False
 
 
 def _without_jax_cache():

@@ -18,6 +18,7 @@ tracing, lowering and compiling the network again (`docs/cold-start.md`).
 from __future__ import annotations
 
 import threading
+import time
 from functools import lru_cache
 
 import jax
@@ -28,6 +29,11 @@ from dmd_jax.config import ExperimentConfig, ModelConfig
 # JAX's persistent cache for the other (small) programs of a call: configured here, on
 # the import of the first module that compiles the network, never at `import dmd_jax`.
 compile_cache.configure_jax()
+
+
+# `(program name, seconds)` of every program this process compiled (not loaded from the
+# on-disk cache): the CLI notes a compile a warm-up would have saved.
+COMPILED: list[tuple[str, float]] = []
 
 
 class Program:
@@ -51,6 +57,8 @@ class Program:
         self.jitted = jax.jit(fn)
         self.identity = identity
         self._compiled: dict = {}
+        self._loaded: dict = {}
+        self._locks: dict = {}
         self._lock = threading.Lock()
 
     def __call__(self, *args):
@@ -63,12 +71,28 @@ class Program:
         sig = compile_cache.signature(args)
         found = self._compiled.get(sig)
         if found is None:
-            with self._lock:  # patch threads: one compile per signature
+            with self._lock:
+                lock = self._locks.setdefault(sig, threading.Lock())
+            with lock:  # one compile per signature; others may compile beside it
                 found = self._compiled.get(sig)
                 if found is None:
-                    found = compile_cache.executable(self.name, self.jitted, args, self.identity)
+                    start = time.perf_counter()
+                    found, self._loaded[sig] = compile_cache.lookup(
+                        self.name, self.jitted, args, self.identity
+                    )
+                    if not self._loaded[sig]:
+                        COMPILED.append((self.name, time.perf_counter() - start))
                     self._compiled[sig] = found
         return found
+
+    def prepare(self, *args) -> str:
+        """Makes the executable for `args`' signature ready; says how: `"ready"` (this
+        process had it), `"loaded"` (from the on-disk cache) or `"compiled"`."""
+        sig = compile_cache.signature(args)
+        if sig in self._compiled:
+            return "ready"
+        self.compiled(*args)
+        return "loaded" if self._loaded.get(sig) else "compiled"
 
     def lower(self, *args):
         """`jax.jit(fn).lower(*args)`, whose `.compile()` goes through the cache."""

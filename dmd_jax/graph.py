@@ -43,7 +43,13 @@ class EllLayout(NamedTuple):
 
 
 def ell_layout(
-    senders, receivers, edge_weight, n_node: int, *, max_fill: float | None = None
+    senders,
+    receivers,
+    edge_weight,
+    n_node: int,
+    *,
+    max_fill: float | None = None,
+    max_width: int | None = None,
 ) -> EllLayout | None:
     """Builds the ELL layout of the operator `out[r] += w * x[s]` on the host (NumPy).
 
@@ -62,10 +68,12 @@ def ell_layout(
       n_node: number of nodes.
       max_fill: return None, before allocating the table, when it would hold more than
         this many slots (`n_node × max_degree`) per distinct edge (None: no limit).
+      max_width: return None, before allocating the table, when a row has more than
+        this many slots (None: no limit).
 
     Returns:
       An `EllLayout`; pass it as `ops.gcn_aggregate_ell(features, *layout)`. None if
-      `max_fill` is exceeded.
+      `max_fill` or `max_width` is exceeded.
 
     Raises:
       ValueError: on mismatched shapes, indices outside `[0, n_node)`, or an edge whose
@@ -101,6 +109,8 @@ def ell_layout(
     degree = np.bincount(r, minlength=n_node)
     width = max(int(degree.max()), 1)
     if max_fill is not None and n_node * width > max_fill * max(key.size, 1):
+        return None
+    if max_width is not None and width > max_width:
         return None
     slot = np.arange(key.size) - (np.cumsum(degree) - degree)[r]
     rows = np.arange(n_node)
@@ -447,7 +457,11 @@ def pad_mesh_graph(graph: MeshGraph, sizes: PaddedSizes) -> MeshGraph:
 
 
 def with_ell_layout(
-    graph: MeshGraph, *, slot_multiple: int = 4, max_fill: float | None = None
+    graph: MeshGraph,
+    *,
+    slot_multiple: int = 4,
+    max_fill: float | None = None,
+    max_width: int | None = None,
 ) -> MeshGraph:
     """`graph` with `vertex_ell` and `face_ell` built from its edge lists (host, NumPy).
 
@@ -470,6 +484,8 @@ def with_ell_layout(
       slot_multiple: the table width is a multiple of this (≥ 1).
       max_fill: leave out a table with more than this many slots per edge (None: keep
         every table).
+      max_width: leave out a table whose widest row, self loop included, has more than
+        this many slots (None: keep every table).
 
     Returns:
       `graph` with `vertex_ell` (`[n_vertex, width_v]` tables) and `face_ell`
@@ -488,7 +504,7 @@ def with_ell_layout(
     def layout(senders, receivers, weight, n_node):
         # The fill is judged before rounding: the rounding slots add at most
         # slot_multiple - 1 per row, the same for every mesh.
-        ell = ell_layout(senders, receivers, weight, n_node, max_fill=max_fill)
+        ell = ell_layout(senders, receivers, weight, n_node, max_fill=max_fill, max_width=max_width)
         if ell is None:
             return None
         width = ell.neighbours.shape[1]
@@ -540,6 +556,55 @@ def with_aggregation_layout(graph: MeshGraph, aggregation: str) -> MeshGraph:
     if aggregation == "segment_sum":
         return graph
     return with_ell_layout(graph, max_fill=AUTO_MAX_FILL if aggregation == "auto" else None)
+
+
+# A neighbour table wider than this is left out (segment sums instead): one vertex of
+# high valence (the stress family's fans: 104 slots) would make the table that wide for
+# every row. Typical widths: 8-12 (vertex), 4 (face). Training's run-wide tables
+# (`pipeline.ell_widths`) and inference's (`shape_ladder.with_tables`) share it.
+MAX_ELL_WIDTH = 16
+
+
+def widen_ell_layout(layout: EllLayout, width: int) -> EllLayout:
+    """An ELL table with `width` slots: the extra ones point at their own row, weight 0,
+    their own reverse slot (as `with_ell_layout`'s rounding slots), so the operator is
+    unchanged and graphs of different valences share one table shape.
+
+    Raises:
+      ValueError: a table already wider than `width`.
+    """
+    n, have = layout.neighbours.shape
+    if have > width:
+        raise ValueError(f"an ELL table of {have} slots does not fit in {width}")
+    rows = np.arange(n, dtype=layout.neighbours.dtype)[:, None]
+    slots = np.arange(have, width, dtype=layout.reverse_slot.dtype)[None, :]
+    extra = width - have
+    return EllLayout(
+        np.concatenate([layout.neighbours, np.broadcast_to(rows, (n, extra))], 1),
+        np.concatenate([layout.weights, np.zeros((n, extra), layout.weights.dtype)], 1),
+        np.concatenate([layout.reverse_slot, np.broadcast_to(slots, (n, extra))], 1),
+    )
+
+
+def with_fixed_ell(
+    graph: MeshGraph, widths: tuple[int | None, int | None], *, natural: MeshGraph | None = None
+) -> MeshGraph:
+    """`with_ell_layout(graph)` with tables `widths = (vertex, face)` slots wide.
+
+    The ELL tables are the segment sums' operators as gathers (several times faster on
+    CPU, the same operator up to float summation order); fixed widths keep one program.
+    A width of None leaves that table out.
+
+    Args:
+      graph: a padded `MeshGraph` (NumPy).
+      widths: slots of the vertex and face tables, or None.
+      natural: `graph` with its tables already built (`with_ell_layout`), to reuse.
+    """
+    g = with_ell_layout(graph) if natural is None else natural
+    return graph._replace(
+        vertex_ell=None if widths[0] is None else widen_ell_layout(g.vertex_ell, widths[0]),
+        face_ell=None if widths[1] is None else widen_ell_layout(g.face_ell, widths[1]),
+    )
 
 
 def pad_vertex_array(x: np.ndarray, n_vertex: int, value: float = 0.0) -> np.ndarray:

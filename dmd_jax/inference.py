@@ -14,6 +14,7 @@ import dataclasses
 import jax
 import numpy as np
 
+from dmd_jax import shape_ladder
 from dmd_jax.checkpoints import as_bundle
 from dmd_jax.consistency import (
     STILL_REASON,
@@ -28,12 +29,9 @@ from dmd_jax.forward import predictor
 from dmd_jax.graph import (
     build_mesh_graph,
     check_aggregation,
-    fine_padded_sizes_for,
     pad_mesh_graph,
     pad_vertex_array,
-    padded_sizes_for,
     undirected_vertex_edges,
-    with_aggregation_layout,
 )
 from dmd_jax.memory_plan import plan
 from dmd_jax.mesh import validate_mesh
@@ -48,12 +46,6 @@ from dmd_jax.policy import (
     run_passes,
 )
 
-# From this many faces the whole-mesh path pads each count to within 6 %
-# (`fine_padded_sizes_for`) instead of the shared coarse buckets: at 100k faces those
-# carry 129k face rows, and the network ran about 25 % faster on 100k rows
-# (docs/design-decisions.md). Smaller meshes keep the coarse buckets: there a
-# compilation costs more than the padding, and similar meshes share a program.
-FINE_PADDING_MIN_FACES = 20_000
 # The most owned vertices a caller may force per patch (a bound on one patch's graph).
 MAX_PATCH_SIZE = 2**31 - 1
 # The longest `repr(DenoiseInfo)`: a summary a notebook prints on one screen.
@@ -145,14 +137,13 @@ class DenoiseInfo:
 
 
 def whole_mesh_graph(faces: np.ndarray, n_vertex: int, aggregation: str):
-    """The padded graph the whole-mesh path runs on (edge lists, and ELL tables unless
-    `aggregation="segment_sum"`), as NumPy."""
+    """The padded graph the whole-mesh path runs on, as NumPy: padded to its rung of the
+    shape ladder, with the tables `aggregation` asks for at fixed widths
+    (`shape_ladder.with_tables`), so that a compiled program serves every mesh of its
+    rung (`dmd-jax warmup` compiles them in advance)."""
     graph = build_mesh_graph(faces, n_vertex)
-    if faces.shape[0] >= FINE_PADDING_MIN_FACES:
-        graph = pad_mesh_graph(graph, fine_padded_sizes_for(graph))
-    else:
-        graph = pad_mesh_graph(graph, padded_sizes_for(graph))
-    return with_aggregation_layout(graph, aggregation)
+    graph = pad_mesh_graph(graph, shape_ladder.padded_sizes(graph))
+    return shape_ladder.with_tables(graph, aggregation)
 
 
 def _whole_mesh_pass(v, f, bundle, aggregation: str):

@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dmd_jax import compile_cache
+from dmd_jax import compile_cache, shape_ladder
 from dmd_jax.config import ModelConfig
 from dmd_jax.forward import patch_predictor
 from dmd_jax.graph import (
@@ -26,7 +26,6 @@ from dmd_jax.graph import (
     pad_mesh_graph,
     pad_vertex_array,
     padded_sizes_for,
-    sizes_for_vertices,
     with_ell_layout,
 )
 
@@ -60,6 +59,15 @@ RUNTIME_BYTES = 512 * 2**20
 # Below this many faces a whole-mesh run is taken without measuring the network (a
 # compilation): `paper`, the widest preset, needs about 0.6 GB there.
 SMALL_MESH_FACES = 20_000
+# An upper bound on `network_bytes_per_vertex` that needs no compile: this many bytes per
+# padded vertex per unit of the model's width, plus `NETWORK_BOUND_BASE`. Measured (XLA's
+# memory analysis, `_measured_bytes_per_vertex`): 275 (`test`, width 8), 125 (`small`,
+# 32) and 105 (`paper`, 512) bytes per unit of width; `tests/test_inference.py` checks
+# the bound for every preset and the attention and STN variants. A mesh that fits the
+# budget under the bound runs whole without the measurement's compile (seconds of a
+# first call); a larger one is measured.
+NETWORK_BOUND_PER_WIDTH = 1000
+NETWORK_BOUND_BASE = 4000
 _UNITS = {"": 1, "b": 1, "k": 10**3, "m": 10**6, "g": 10**9, "t": 10**12}
 _UNITS.update({"kb": 10**3, "mb": 10**6, "gb": 10**9, "tb": 10**12})
 _UNITS.update({"kib": 2**10, "mib": 2**20, "gib": 2**30, "tib": 2**40})
@@ -226,10 +234,9 @@ def _abstract_pools(config: ModelConfig) -> dict:
 
 
 def padded_vertices_estimate(n_vertex: int, n_face: int) -> int:
-    """The padded vertex count of a mesh's whole-mesh graph, from its counts alone."""
-    # Edge counts of a triangle mesh: e ~ 1.5 f (primal, both ways plus loops: 3f + v) and
-    # 3 f dual edges (plus loops: 4 f), as `graph.sizes_for_vertices` sizes them.
-    return sizes_for_vertices(n_vertex, n_face, 3 * n_face + n_vertex, 4 * n_face, 1).n_vertex
+    """The padded vertex count of a mesh's whole-mesh graph, from its counts alone: its
+    rung of the shape ladder (`shape_ladder.rung_estimate`)."""
+    return shape_ladder.rung_estimate(n_vertex, n_face)
 
 
 def mesh_bytes(n_vertex: int, n_face: int) -> int:
@@ -275,5 +282,17 @@ def plan(
             f"own arrays ({format_bytes(mesh_bytes(n_vertex, n_face))} for {n_vertex:,} "
             f"vertices and {n_face:,} faces); raise max_memory / --max-memory"
         )
+    padded = padded_vertices_estimate(n_vertex, n_face)
+    bound = network_bytes_bound(config) + WHOLE_HOST_BYTES_PER_PADDED_VERTEX
+    if bound * padded <= budget:
+        return MemoryPlan(True, budget)
     per_vertex = network_bytes_per_vertex(config) + WHOLE_HOST_BYTES_PER_PADDED_VERTEX
-    return MemoryPlan(per_vertex * padded_vertices_estimate(n_vertex, n_face) <= budget, budget)
+    return MemoryPlan(per_vertex * padded <= budget, budget)
+
+
+def network_bytes_bound(config: ModelConfig) -> int:
+    """An upper bound on `network_bytes_per_vertex(config)` from the config alone."""
+    width = max(
+        config.width, config.hidden_transformer_width, config.stn_width if config.stn else 0
+    )
+    return NETWORK_BOUND_PER_WIDTH * width + NETWORK_BOUND_BASE

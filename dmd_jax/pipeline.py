@@ -22,7 +22,7 @@ from dmd_jax import noise as noise_lib
 from dmd_jax.config import NoiseConfig
 from dmd_jax.encoding import LocalInputs, local_inputs, mesh_frame, rotate_local_inputs
 from dmd_jax.graph import (
-    EllLayout,
+    MAX_ELL_WIDTH,
     MeshGraph,
     PaddedSizes,
     batch_mesh_graphs,
@@ -32,6 +32,7 @@ from dmd_jax.graph import (
     padded_sizes_for,
     sizes_for_vertices,
     with_ell_layout,
+    with_fixed_ell,
 )
 from dmd_jax.mesh import canonical_frame
 
@@ -412,43 +413,6 @@ def unpadded_mesh(batch: Batch) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 # Folded into the run's seed for the pool's draws, so that they are a stream of their
 # own, apart from the per-step keys of `training_batch` and of the rotations.
 _POOL_STREAM = 0x706F6F6C
-
-
-def _widen_ell(layout: EllLayout, width: int) -> EllLayout:
-    """An ELL table with `width` slots: the extra ones point at their own row, weight 0,
-    their own reverse slot (as `graph.with_ell_layout`'s rounding slots), so the operator
-    is unchanged and every batch of a run has one table shape."""
-    n, have = layout.neighbours.shape
-    if have > width:
-        raise ValueError(f"an ELL table of {have} slots does not fit in {width}")
-    rows = np.arange(n, dtype=layout.neighbours.dtype)[:, None]
-    slots = np.arange(have, width, dtype=layout.reverse_slot.dtype)[None, :]
-    extra = width - have
-    return EllLayout(
-        np.concatenate([layout.neighbours, np.broadcast_to(rows, (n, extra))], 1),
-        np.concatenate([layout.weights, np.zeros((n, extra), layout.weights.dtype)], 1),
-        np.concatenate([layout.reverse_slot, np.broadcast_to(slots, (n, extra))], 1),
-    )
-
-
-# A run-wide ELL table wider than this is left out (segment sums instead): one vertex
-# of high valence (the stress family's fans: 104 slots) would make every batch's table
-# that wide. Typical widths: 8-12 (vertex), 4 (face).
-MAX_ELL_WIDTH = 16
-
-
-def with_fixed_ell(graph: MeshGraph, widths: tuple[int | None, int | None]) -> MeshGraph:
-    """`graph.with_ell_layout(graph)` with tables `widths = (vertex, face)` slots wide.
-
-    The ELL tables are the segment sums' operators as gathers (several times faster on
-    CPU, the same operator up to float summation order); fixed widths keep one program.
-    A width of None leaves that table out.
-    """
-    g = with_ell_layout(graph)
-    return g._replace(
-        vertex_ell=None if widths[0] is None else _widen_ell(g.vertex_ell, widths[0]),
-        face_ell=None if widths[1] is None else _widen_ell(g.face_ell, widths[1]),
-    )
 
 
 def ell_widths(examples: Sequence[MeshExample]) -> tuple[int | None, int | None]:

@@ -106,15 +106,16 @@ def test_matches_unpadded_model_in_canonical_frame(mesh, bundle, reference):
     assert np.abs(twice - reference).max() > 1e-3
 
 
-def test_fine_padding_of_large_meshes_changes_nothing(mesh, bundle, reference, monkeypatch):
-    # Meshes from FINE_PADDING_MIN_FACES faces pad each count to within 6 %; the padding
-    # is masked out either way, so the result is the coarse buckets' one.
-    from dmd_jax import inference
+def test_a_higher_rung_changes_nothing(mesh, bundle, reference, monkeypatch):
+    # A rung's padding rows are masked out: the mesh run on the next rung up (other
+    # shapes, another program) gives the same result.
+    from dmd_jax import inference, shape_ladder
 
     v, f = mesh
-    monkeypatch.setattr(inference, "FINE_PADDING_MIN_FACES", 0)
-    graph = inference.whole_mesh_graph(f, len(v), "auto")
-    assert graph.n_face <= (len(f) + 1) * (1 + 1 / 16)
+    own = shape_ladder.padded_sizes(inference.build_mesh_graph(f, len(v)))
+    higher = shape_ladder.rung_sizes(shape_ladder.rung_above(own.n_vertex + 1))
+    monkeypatch.setattr(shape_ladder, "padded_sizes", lambda graph: higher)
+    assert inference.whole_mesh_graph(f, len(v), "auto").n_vertex == higher.n_vertex
     np.testing.assert_allclose(denoise(v, f, bundle), reference, atol=1e-5)
 
 

@@ -23,6 +23,7 @@ from dmd_jax.cli import (
     render,
     train,
     train_cnr,
+    warmup,
 )
 from dmd_jax.cli._common import MESH_SUFFIXES, METHODS, WEIGHTED_METHODS, _HelpFormatter
 
@@ -44,6 +45,7 @@ _SUBCOMMANDS = (
     export_weights,
     demo,
     train_cnr,
+    warmup,
 )
 
 
@@ -90,6 +92,10 @@ EXAMPLES = {
     "export-weights": ["dmd-jax export-weights runs/small/checkpoints/best -o mine.msgpack"],
     "demo": ["dmd-jax demo --out out/demo"],
     "train-cnr": ["dmd-jax train-cnr --data data/procedural --out cnr.msgpack"],
+    "warmup": [
+        "dmd-jax warmup   # every mesh size from 1k to 1M faces, once per version",
+        "dmd-jax warmup --max-faces 5000000 --all-layouts",
+    ],
 }
 
 

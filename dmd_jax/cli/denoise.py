@@ -264,6 +264,7 @@ def _denoise_one(args, src, dst, weights, extra, denoise_with, save_mesh) -> int
     vertices, faces = _load_input(src)
     if args.parents:
         _make_parent(dst)
+    compiles = _compiled_so_far(args.method)
     t0 = time.perf_counter()
     # One call for the network and every baseline, as in Python (dmd_jax.denoise_with).
     out = denoise_with(
@@ -291,7 +292,35 @@ def _denoise_one(args, src, dst, weights, extra, denoise_with, save_mesh) -> int
         f"denoised {src} ({len(vertices)} vertices, {len(faces)} faces) with "
         f"{args.method}{how} in {elapsed:.2f} s -> {dst}"
     )
+    _note_compiles(args, compiles)
     return 1
+
+
+def _compiled_so_far(method: str) -> int | None:
+    """How many network programs this process compiled so far (None: not the network)."""
+    if method != "dmd":
+        return None
+    from dmd_jax.forward import COMPILED
+
+    return len(COMPILED)
+
+
+def _note_compiles(args, before: int | None) -> None:
+    """Once per process: says that the call compiled the network for this mesh's size,
+    and that `dmd-jax warmup` compiles it for every size once."""
+    if before is None or getattr(args, "_noted_compile", False):
+        return
+    from dmd_jax.forward import COMPILED
+    from dmd_jax.warmup import DEFAULT_MAX_FACES, DEFAULT_MIN_FACES
+
+    seconds = sum(s for name, s in COMPILED[before:] if name == "predict")
+    if seconds:
+        args._noted_compile = True
+        _note(
+            f"compiled the network for meshes of this size ({seconds:.1f} s of the time "
+            f"above, kept in the cache for the next run); `dmd-jax warmup` compiles it "
+            f"for every size from {DEFAULT_MIN_FACES:,d} to {DEFAULT_MAX_FACES:,d} faces once"
+        )
 
 
 def add_parser(sub) -> None:

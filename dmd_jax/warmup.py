@@ -1,0 +1,100 @@
+"""Compiling the whole-mesh programs of every mesh size before any mesh is seen.
+
+The whole-mesh path pads a mesh to a rung of `dmd_jax.shape_ladder`, so the programs
+that meshes of any size need are known in advance. `warm_up` compiles each rung's
+network program for a model (or loads it, when the on-disk cache of
+`dmd_jax.compile_cache` has it) and the memory plan's measurement of the network
+(`memory_plan.network_bytes_per_vertex`), so that a later process, on a mesh of any
+size in the range, loads its program instead of compiling it. `dmd-jax warmup` runs it.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from typing import NamedTuple
+
+import numpy as np
+
+from dmd_jax import shape_ladder
+
+# The default range of `dmd-jax warmup`: 1k to 1M faces (55 rungs).
+DEFAULT_MIN_FACES = 1_000
+DEFAULT_MAX_FACES = 1_000_000
+
+
+class Warmed(NamedTuple):
+    """One program `warm_up` made ready.
+
+    Attributes:
+      rung: padded vertices.
+      widths: `(vertex, face)` neighbour-table widths (None: no table).
+      seconds: wall time to compile or load it.
+      compiled: True if compiled here, False if loaded from the cache (or already in
+        this process).
+    """
+
+    rung: int
+    widths: tuple
+    seconds: float
+    compiled: bool
+
+
+def warm_up(
+    bundle=None,
+    *,
+    min_faces: int = DEFAULT_MIN_FACES,
+    max_faces: int = DEFAULT_MAX_FACES,
+    layouts=(shape_ladder.STANDARD_WIDTHS,),
+    jobs: int = 1,
+    report: Callable[[Warmed], None] | None = None,
+) -> list[Warmed]:
+    """Compiles (or loads) the whole-mesh program of every rung from `min_faces` to
+    `max_faces` faces, for each table layout of `layouts`.
+
+    Args:
+      bundle: a `ModelBundle` (default: the bundled weights).
+      min_faces, max_faces: the face counts to cover (`shape_ladder.rungs_between`).
+      layouts: `(vertex, face)` table widths to compile each rung for
+        (`shape_ladder.LAYOUTS` adds the high-valence one).
+      jobs: programs compiled at once (threads; XLA compiles outside the GIL).
+      report: called with each `Warmed` as it finishes.
+
+    Returns:
+      A `Warmed` per program, in ladder order.
+
+    Raises:
+      ValueError: a bad range or `jobs`.
+    """
+    import jax
+
+    from dmd_jax.checkpoints import as_bundle
+    from dmd_jax.forward import predictor
+    from dmd_jax.memory_plan import network_bytes_per_vertex
+
+    if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
+        raise ValueError(f"jobs must be a positive integer, got {jobs!r}")
+    rungs = shape_ladder.rungs_between(int(min_faces), int(max_faces))
+    bundle = as_bundle(bundle)
+    program = predictor(bundle.config)
+    # The memory plan's measurement (a small compile of its own), kept on disk too.
+    network_bytes_per_vertex(bundle.config.model)
+
+    def one(task) -> Warmed:
+        rung, widths = task
+        # As `inference` passes them: float32 positions, the padded graph's arrays.
+        noisy = jax.ShapeDtypeStruct((rung, 3), np.float32)
+        graph = shape_ladder.abstract_graph(rung, widths)
+        start = time.perf_counter()
+        how = program.prepare(bundle.params, noisy, graph)
+        out = Warmed(rung, tuple(widths), time.perf_counter() - start, how == "compiled")
+        if report is not None:
+            report(out)
+        return out
+
+    tasks = [(r, tuple(w)) for r in rungs for w in layouts]
+    if jobs == 1:
+        return [one(t) for t in tasks]
+    with ThreadPoolExecutor(max_workers=jobs) as pool:
+        return list(pool.map(one, tasks))
