@@ -1,29 +1,32 @@
-"""Cold start of `dmd-jax denoise`: a new process, its compiles, and the cache (issue 58).
+"""Cold start of `dmd-jax denoise`: new processes, their compiles, the cache and the warm-up.
 
 Every row is a fresh process running the CLI (`python -m dmd_jax.cli denoise`, what the
-`dmd-jax` script runs) on a noisy mesh of about 80k faces, timed from the outside
-(the whole process: Python, imports, reading, the call, writing) and by the time the
-CLI itself reports for the call:
+`dmd-jax` script runs) on a noisy mesh, timed from the outside (the whole process:
+Python, imports, reading, the call, writing) and by the time the CLI itself reports for
+the call. Per repeat, with a new empty compilation cache under `out/`:
 
-* `cold first`: an empty compilation cache (a new machine, or a new version).
-* `cold second`: a new process on a *different* mesh, with the cache the first left.
-  When the two meshes fall in the same shape bucket (`graph.fine_padded_sizes_for`),
-  the network's programs are loaded from the cache; a mesh in another bucket pays the
-  network's compile again (both pairs are measured).
+* `cold first`: `armadillo.obj` (86k faces) with the empty cache (a new machine, or a
+  new version).
+* `second, no warm-up`: `common3d_igea.ply` (80k faces) next: another rung of the shape
+  ladder (`dmd_jax.shape_ladder`), so its program is compiled.
+* `dmd-jax warmup`: the programs of every rung from 1k to 1M faces, compiled once.
+* `after warm-up`: a new process on each of: generated grids of 10k, 300k and 500k
+  faces, `common3d_ogre.ply` and igea (80k faces; armadillo and igea padded to
+  different shapes before the ladder too: the table of shapes below), and a UV sphere
+  of 79k faces whose poles have valence 256 (its own table layout: compiled unless the
+  warm-up ran with `--all-layouts`).
 * `cache off`: `DMD_JAX_COMPILE_CACHE=0`, every process compiles (as before the cache).
-* `bnf`: the library's bilateral normal filter, also cold, in the same conditions.
-* `warm`: the same `denoise` and `bnf` calls in one process, after a first call
-  (median of the repeats; what the README's speed table measures).
+* `bnf`: the library's bilateral normal filter, also a fresh process, on igea.
+* `warm`: `denoise` and `bnf` in one process on igea after a first call (median of the
+  repeats; what the README's speed table measures).
 
-Repeats are interleaved (every row once, then again), each cold first call with a new
-empty cache directory under `out/`; medians, min-max. `--profile` adds the breakdown of
-one cold call and one second call (imports, weights, reading, tracing, lowering, XLA
-compile per program, the rest of the call), written to the same report and quoted in
-`docs/cold-start.md`.
+Repeats are interleaved; medians, min-max. `--profile` adds the breakdown of one cold
+call and one call after the warm-up (imports, weights, reading, tracing, lowering, XLA
+compile per program, the rest of the call), quoted in `docs/cold-start.md`.
 
 Meshes are made here, under `out/cold_start/` (never committed): Gaussian noise along
-the normals, 0.3 mean edge lengths, seed 1, on `../shared/meshes` (`train/` meshes of
-70-100k faces, `armadillo.obj`).
+the normals, 0.3 mean edge lengths, seed 1, on `../shared/meshes` and on generated
+wavy grids (`benchmarks.common.noisy_grid`) and a UV sphere.
 """
 
 from __future__ import annotations
@@ -38,6 +41,8 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 
@@ -49,10 +54,18 @@ from benchmarks.common import (  # noqa: E402
 )
 
 OUT = HERE.parent / "out" / "cold_start"
-# (first mesh, second mesh): the same shape bucket, then another bucket.
-PAIRS = (
-    ("train/common3d_igea.ply", "train/common3d_ogre.ply"),
-    ("armadillo.obj", "train/common3d_igea.ply"),
+# The first process's mesh and the next one's (another rung, no warm-up between them).
+FIRST = "armadillo.obj"
+NEXT = "train/common3d_igea.ply"
+# Meshes run in new processes after `dmd-jax warmup`: generated grids of 10k, 300k and
+# 500k faces, two real ones, and a mesh with two vertices of valence 256.
+AFTER_WARMUP = (
+    "grid:10000",
+    "train/common3d_ogre.ply",
+    NEXT,
+    "grid:300000",
+    "grid:500000",
+    "uvsphere:128",
 )
 
 # One process: the stages of a cold `denoise` call, timed, with JAX's compile events.
@@ -120,48 +133,71 @@ print(json.dumps(times))
 
 
 def noisy_mesh(shared: Path, name: str) -> Path:
-    """`name` under `shared` with the benchmark's noise, as an OBJ under `OUT`."""
-    out = OUT / (Path(name).stem + "_noisy.obj")
-    if not out.is_file():
-        OUT.mkdir(parents=True, exist_ok=True)
-        subprocess.run(
-            [
-                sys.executable,
-                "-m",
-                "dmd_jax.cli",
-                "add-noise",
-                str(shared / name),
-                "-o",
-                str(out),
-                "--level",
-                "0.3",
-                "--units",
-                "edge",
-                "--direction",
-                "normal",
-                "--seed",
-                "1",
-                "--overwrite",
-            ],
-            check=True,
-            capture_output=True,
-        )
+    """The benchmark's noisy mesh `name` (a file under `shared`, `grid:FACES` or
+    `uvsphere:SEGMENTS`) as an OBJ under `OUT`."""
+    OUT.mkdir(parents=True, exist_ok=True)
+    out = OUT / (name.replace("/", "_").replace(":", "_") + "_noisy.obj")
+    if out.is_file():
+        return out
+    source = shared / name
+    if name.startswith(("grid:", "uvsphere:")):
+        import trimesh
+
+        from benchmarks.common import noisy_grid
+
+        kind, n = name.split(":")
+        if kind == "grid":
+            v, f = noisy_grid(int(n), seed=1)
+        else:  # about 80k faces; trimesh gives its poles valence 2n
+            m = trimesh.creation.uv_sphere(count=[80_000 // (4 * int(n)), int(n)])
+            v, f = m.vertices, m.faces
+        source = OUT / (out.stem + "_clean.obj")
+        trimesh.Trimesh(v, f, process=False).export(source)
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "dmd_jax.cli",
+            "add-noise",
+            str(source),
+            "-o",
+            str(out),
+            "--level",
+            "0.3",
+            "--units",
+            "edge",
+            "--direction",
+            "normal",
+            "--seed",
+            "1",
+            "--overwrite",
+        ],
+        check=True,
+        capture_output=True,
+    )
     return out
 
 
 def mesh_facts(path: Path) -> dict:
-    """Faces, vertices and the whole-mesh path's padded shapes of a mesh."""
-    from dmd_jax.graph import with_aggregation_layout
+    """Faces, vertices, largest valence, and the whole-mesh path's rung and table widths
+    (and the padded sizes the scheme before the ladder gave: each count on its own)."""
+    from dmd_jax.graph import build_mesh_graph, fine_padded_sizes_for
     from dmd_jax.inference import whole_mesh_graph
     from dmd_jax.io import load_mesh
+    from dmd_jax.shape_ladder import layout_of
 
     v, f = load_mesh(path)
-    g = with_aggregation_layout(whole_mesh_graph(f, v.shape[0], "segment_sum"), "auto")
-    width = None if g.vertex_ell is None else g.vertex_ell.neighbours.shape[1]
+    g = whole_mesh_graph(f, v.shape[0], "auto")
+    old = fine_padded_sizes_for(build_mesh_graph(f, v.shape[0]))
+    valence = np.bincount(
+        np.unique(np.sort(np.concatenate([f[:, :2], f[:, 1:], f[:, ::2]]), 1), axis=0).ravel()
+    )
     return {
         "faces": int(f.shape[0]),
         "vertices": int(v.shape[0]),
-        "bucket": (g.n_vertex, g.n_face, g.vertex_senders.shape[0], g.face_senders.shape[0], width),
+        "valence": int(valence.max()),
+        "rung": f"{g.n_vertex:,} / {'/'.join('-' if w is None else str(w) for w in layout_of(g))}",
+        "old": f"{old.n_vertex} / {old.n_face} / {old.n_vertex_edge} / {old.n_face_edge}",
     }
 
 
@@ -196,7 +232,26 @@ def run_cli(mesh: Path, cache, method: str = "dmd") -> dict:
     if done.returncode:
         raise RuntimeError(done.stderr[-2000:])
     reported = re.search(r" in ([0-9.]+) s -> ", done.stdout)
-    return {"wall": wall, "reported": float(reported.group(1))}
+    compiled = re.search(r"compiled the network for meshes of this size \(([0-9.]+) s", done.stderr)
+    return {
+        "wall": wall,
+        "reported": float(reported.group(1)),
+        "compile": float(compiled.group(1)) if compiled else 0.0,
+    }
+
+
+def run_warmup(cache) -> float:
+    """`dmd-jax warmup` (1k-1M faces) into `cache`; its wall time."""
+    start = time.perf_counter()
+    done = subprocess.run(
+        [sys.executable, "-m", "dmd_jax.cli", "warmup", "--quiet"],
+        env=env_with(cache),
+        capture_output=True,
+        text=True,
+    )
+    if done.returncode:
+        raise RuntimeError(done.stderr[-2000:])
+    return time.perf_counter() - start
 
 
 def run_script(script: str, *args, cache="0") -> dict:
@@ -270,7 +325,8 @@ def main(argv=None) -> int:
     from dmd_jax.protocol import shared_meshes_dir
 
     shared = args.shared or shared_meshes_dir()
-    meshes = {name: noisy_mesh(shared, name) for pair in PAIRS for name in pair}
+    names = [FIRST, NEXT, *AFTER_WARMUP]
+    meshes = {name: noisy_mesh(shared, name) for name in dict.fromkeys(names)}
     facts = {name: mesh_facts(path) for name, path in meshes.items()}
     loads = [load_average()]
     rows: dict[tuple, dict[str, list[float]]] = {}
@@ -280,80 +336,83 @@ def main(argv=None) -> int:
             rows.setdefault(key, {}).setdefault(k, []).append(v)
 
     warm: dict[str, list[float]] = {}
+    warmups = []
     for rep in range(args.repeat):
-        for k, (first, second) in enumerate(PAIRS):
-            cache = OUT / f"cache-{k}-{rep}"
-            shutil.rmtree(cache, ignore_errors=True)
-            add(("cold first", first, k), run_cli(meshes[first], cache))
-            add(("cold second", second, k), run_cli(meshes[second], cache))
-            shutil.rmtree(cache, ignore_errors=True)
-        second = PAIRS[0][1]
-        add(("cache off", second, 0), run_cli(meshes[second], "0"))
-        add(("bnf", second, 0), run_cli(meshes[second], "0", method="bnf"))
-        for key, times in run_script(WARM, meshes[second], 3).items():
+        cache = OUT / f"cache-{rep}"
+        shutil.rmtree(cache, ignore_errors=True)
+        add(("cold first", FIRST), run_cli(meshes[FIRST], cache))
+        add(("second, no warm-up", NEXT), run_cli(meshes[NEXT], cache))
+        warmups.append(run_warmup(cache))
+        for name in AFTER_WARMUP:
+            add(("after warm-up", name), run_cli(meshes[name], cache))
+        shutil.rmtree(cache, ignore_errors=True)
+        add(("cache off", NEXT), run_cli(meshes[NEXT], "0"))
+        add(("bnf", NEXT), run_cli(meshes[NEXT], "0", method="bnf"))
+        for key, times in run_script(WARM, meshes[NEXT], 3).items():
             warm.setdefault(key, []).extend(times)
         loads.append(load_average())
     profiles = {}
     if args.profile:
-        first, second = PAIRS[0]
         cache = OUT / "cache-profile"
         shutil.rmtree(cache, ignore_errors=True)
-        profiles["cold first call (empty cache)"] = run_script(PROFILE, meshes[first], cache=cache)
-        profiles["second process (warm cache, other mesh)"] = run_script(
-            PROFILE, meshes[second], cache=cache
+        profiles["cold first call (empty cache)"] = run_script(PROFILE, meshes[FIRST], cache=cache)
+        run_warmup(cache)
+        profiles["new process after the warm-up (another mesh)"] = run_script(
+            PROFILE, meshes[NEXT], cache=cache
         )
-        profiles["cache off"] = run_script(PROFILE, meshes[second], cache="0")
         shutil.rmtree(cache, ignore_errors=True)
         loads.append(load_average())
 
-    table = []
-    for (what, name, pair), r in rows.items():
+    def label(name):
         fx = facts[name]
-        table.append(
-            [
-                what,
-                f"{Path(name).name} ({fx['faces']:,} faces)",
-                pair + 1,
-                cell(r["reported"]),
-                cell(r["wall"]),
-            ]
-        )
+        return f"{Path(name).name} ({fx['faces']:,} faces)"
+
+    table = [
+        [what, label(name), cell(r["reported"]), cell(r["wall"]), cell(r["compile"])]
+        for (what, name), r in rows.items()
+    ]
+    table.append(["`dmd-jax warmup` (1k-1M faces)", "", "", cell(warmups), ""])
     for what, key in (("warm, in-process", "denoise"), ("warm bnf, in-process", "bnf")):
-        name = PAIRS[0][1]
-        table.append(
-            [what, f"{Path(name).name} ({facts[name]['faces']:,} faces)", "", cell(warm[key]), ""]
-        )
-    bucket_rows = [
+        table.append([what, label(NEXT), cell(warm[key]), "", ""])
+    shape_rows = [
         [
             Path(n).name,
             f"{fx['faces']:,}",
             f"{fx['vertices']:,}",
-            " / ".join(map(str, fx["bucket"])),
+            fx["valence"],
+            fx["rung"],
+            fx["old"],
         ]
         for n, fx in facts.items()
     ]
     sections = [
         (
-            "Cold and warm calls",
+            "Cold, second-process and warm calls",
             markdown_table(
-                ["call", "mesh", "pair", "time reported by the CLI, s", "whole process wall, s"],
+                [
+                    "call",
+                    "mesh",
+                    "time reported by the CLI, s",
+                    "whole process wall, s",
+                    "of it compiling the network, s",
+                ],
                 table,
             )
-            + "\n\nMedian (min-max) of the repeats. Pair 1 shares a shape bucket, pair 2 does "
-            "not (table below). Load average (1, 5, 15 min) before and after each repeat: "
-            + "; ".join(loads)
-            + ".",
+            + "\n\nMedian (min-max) of the repeats. Load average (1, 5, 15 min) before and "
+            "after each repeat: " + "; ".join(loads) + ".",
         ),
         (
-            "Shape buckets of the meshes",
+            "Shapes of the meshes",
             markdown_table(
                 [
                     "mesh",
                     "faces",
                     "vertices",
-                    "padded vertices / faces / vertex edges / face edges, ELL width",
+                    "largest valence",
+                    "rung: padded vertices / table widths",
+                    "before the ladder: padded vertices / faces / vertex edges / face edges",
                 ],
-                bucket_rows,
+                shape_rows,
             ),
         ),
     ]
@@ -364,7 +423,7 @@ def main(argv=None) -> int:
     env = environment()
     write_report(
         RESULTS_DIR / f"{args.name}.md",
-        title="Cold start of dmd-jax denoise (issue 58)",
+        title="Cold start of dmd-jax denoise",
         env=env,
         sections=sections,
         intro=__doc__.split("\n\n")[0],

@@ -93,7 +93,11 @@ def _coplanar(a: np.ndarray, b: np.ndarray, tolerance: float) -> np.ndarray:
 
 
 def exact_vertices(
-    vertices: np.ndarray, faces: np.ndarray, tolerance: float = EXACT_TOLERANCE_FLOOR
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    tolerance: float = EXACT_TOLERANCE_FLOOR,
+    *,
+    pairs=None,
 ) -> np.ndarray:
     """Which vertices are exact (see the module docstring), as a mask.
 
@@ -101,6 +105,8 @@ def exact_vertices(
       vertices: `[n_vertex, 3]` positions (any frame: the test reads normals only).
       faces: `[n_face, 3]` consistently wound faces (`oriented_faces`).
       tolerance: radians within which normals are one plane (`exact_tolerance`).
+      pairs: `(a, b)`, the edge-adjacent face pairs (`topology.face_adjacency`), if
+        known.
 
     Returns:
       `[n_vertex]` bool; all False on a noisy mesh.
@@ -108,8 +114,9 @@ def exact_vertices(
     f = np.asarray(faces, np.int64)
     n_vertex = vertices.shape[0]
     normals = face_normals_np(np.asarray(vertices, np.float64), f)
-    groups = edge_groups(f, n_vertex)
-    a, b = adjacent_faces(groups, f.shape[0])
+    if pairs is None:
+        pairs = adjacent_faces(edge_groups(f, n_vertex), f.shape[0])
+    a, b = pairs
     flat = _coplanar(normals[a], normals[b], tolerance)
     exact_face = np.zeros(f.shape[0], bool)
     exact_face[a[flat]] = True
@@ -140,7 +147,7 @@ def exact_vertices(
         assigned |= open_ & _coplanar(cn, rep, tolerance)
     left = np.bincount(cv, weights=~assigned, minlength=n_vertex) > 0
     held = touches & ~left
-    return held | closed_tips(f, normals, held, groups)
+    return held | closed_tips(f, normals, held, edge_groups(f, n_vertex))
 
 
 def closed_tips(
@@ -295,7 +302,7 @@ STILL_REASON = (
 )
 
 
-def still_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+def still_faces(vertices: np.ndarray, faces: np.ndarray, *, pairs=None) -> np.ndarray:
     """Which faces belong to a connected part with nothing to denoise, as a mask.
 
     A part has something to denoise when two of its faces of non-zero area meet on an
@@ -309,12 +316,19 @@ def still_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
     Args:
       vertices: `[n_vertex, 3]` finite positions, in any frame.
-      faces: `[n_face, 3]` vertex indices (any winding: they are oriented here).
+      faces: `[n_face, 3]` vertex indices (any winding: they are oriented here, unless
+        `pairs` is given).
+      pairs: `(a, b)`, the edge-adjacent face pairs (`topology.face_adjacency`) of
+        `faces` already consistently wound (`oriented_faces`): `denoise` has both.
 
     Returns:
       `[n_face]` bool; all False on an ordinary noisy mesh.
     """
-    f, _ = oriented_faces(np.asarray(faces, np.int64), vertices.shape[0])
+    if pairs is None:
+        f, _ = oriented_faces(np.asarray(faces, np.int64), vertices.shape[0])
+        pairs = adjacent_faces(edge_groups(f, vertices.shape[0]), f.shape[0])
+    else:
+        f = np.asarray(faces, np.int64)
     v = np.asarray(vertices, np.float64)
     largest = float(np.max(np.abs(v))) if v.size else 0.0
     if largest > 0:  # a power of two: exact, and no overflow of the cross products
@@ -326,14 +340,21 @@ def still_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     solid = area2 > ZERO_AREA_SHARE * longest2
     normals = np.zeros_like(cross)
     normals[solid] = cross[solid] / area2[solid, None]
-    a, b = adjacent_faces(edge_groups(f, v.shape[0]), f.shape[0])
+    a, b = pairs
     smooth = (
         solid[a]
         & solid[b]
         & (np.einsum("ij,ij->i", normals[a], normals[b]) > np.cos(np.radians(CREASE_ANGLE)))
     )
-    # Parts: faces joined through shared vertices (a face and its corners, one graph).
     m, n = f.shape[0], v.shape[0]
+    # A face with a corner on a face of a smooth edge is in a part with something to
+    # denoise: when every face has one (any noisy mesh), no part is still, and the
+    # parts need not be found.
+    busy_vertex = np.zeros(n, bool)
+    busy_vertex[f[a[smooth]].ravel()] = True
+    if busy_vertex[f].any(axis=1).all():
+        return np.zeros(m, bool)
+    # Parts: faces joined through shared vertices (a face and its corners, one graph).
     rows = np.repeat(np.arange(m), 3)
     graph = sp.coo_matrix((np.ones(3 * m), (rows, m + f.ravel())), shape=(m + n, m + n))
     _, label = connected_components(graph, directed=False)
@@ -342,10 +363,10 @@ def still_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return ~busy[label[:m]]
 
 
-def still_vertices(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+def still_vertices(vertices: np.ndarray, faces: np.ndarray, *, pairs=None) -> np.ndarray:
     """`[n_vertex]` the vertices of `still_faces` (every denoiser returns them as given);
-    vertices no face references are not among them."""
+    vertices no face references are not among them. `pairs` as `still_faces`'s."""
     f = np.asarray(faces, np.int64)
     out = np.zeros(np.asarray(vertices).shape[0], bool)
-    out[f[still_faces(vertices, f)].ravel()] = True
+    out[f[still_faces(vertices, f, pairs=pairs)].ravel()] = True
     return out

@@ -105,9 +105,10 @@ def laplacian_coordinates(x, graph):
     if graph.vertex_ell is not None:
         # Inference's padded neighbour table: gathers instead of a scatter (the Taubin
         # candidates call this 20 times a pass).
-        nbr = graph.vertex_ell.neighbours
+        # Slot 0 is the vertex itself (`graph.ell_layout`): left out with the self loops.
+        nbr = graph.vertex_ell.neighbours[:, 1:]
         rows = jnp.arange(n, dtype=nbr.dtype)[:, None]
-        keep = ((nbr != rows) & (graph.vertex_ell.weights > 0)).astype(x.dtype)
+        keep = ((nbr != rows) & (graph.vertex_ell.weights[:, 1:] > 0)).astype(x.dtype)
         total = jnp.einsum("vk,vkc->vc", keep, x[nbr])
         count = jnp.sum(keep, axis=1)
     else:
@@ -194,9 +195,11 @@ def bilateral_face_normals(x, graph, normals, *, sigma_r: float, iterations):
 
         def step(_, n):
             # One gather per slot and the sums written out: XLA's CPU backend runs the
-            # `einsum` form's tiny contractions as batched dots, 3x slower a pass.
-            acc = 0.0
-            for k in range(nbr.shape[1]):
+            # `einsum` form's tiny contractions as batched dots, 3x slower a pass. Slot 0
+            # is the face itself (`graph.ell_layout`): its range weight is exp(0) = 1 for
+            # a unit normal, and its term is 0 for a zero one either way; no gather.
+            acc = spatial[:, 0, None] * n
+            for k in range(1, nbr.shape[1]):
                 nk = n[nbr[:, k]]
                 w = spatial[:, k] * jnp.exp((geometry.dot3(nk, n) - 1.0) * inv_sr2)
                 acc = acc + w[:, None] * nk

@@ -31,7 +31,7 @@ class EllLayout(NamedTuple):
 
     Attributes:
       neighbours: `[n_node, max_degree]` int32; row `i` lists the senders into node `i`;
-        unused slots point at `i` itself.
+        slot 0 is `i` itself (its self loop, or unused), and unused slots point at `i`.
       weights: `[n_node, max_degree]`, the weight of each slot; 0 on unused slots.
       reverse_slot: `[n_node, max_degree]` int32; for the entry `j -> i` in slot `k` of
         row `i`, the slot of the entry `i -> j` in row `j` (unused slots: their own slot).
@@ -50,6 +50,7 @@ def ell_layout(
     *,
     max_fill: float | None = None,
     max_width: int | None = None,
+    min_width: int = 1,
 ) -> EllLayout | None:
     """Builds the ELL layout of the operator `out[r] += w * x[s]` on the host (NumPy).
 
@@ -70,6 +71,7 @@ def ell_layout(
         this many slots (`n_node × max_degree`) per distinct edge (None: no limit).
       max_width: return None, before allocating the table, when a row has more than
         this many slots (None: no limit).
+      min_width: at least this many slots (the rest unused), allocated at once.
 
     Returns:
       An `EllLayout`; pass it as `ops.gcn_aggregate_ell(features, *layout)`. None if
@@ -106,13 +108,21 @@ def ell_layout(
     key = key[first]
     weight = np.bincount(group, weights=w.astype(np.float64), minlength=key.size)
     r, s = np.divmod(key, n_node)
+    loop = s == r
+    has_loop = np.zeros(n_node, bool)
+    has_loop[r[loop]] = True
     degree = np.bincount(r, minlength=n_node)
-    width = max(int(degree.max()), 1)
+    # Slot 0 of every row is the row itself (its self loop, or an unused slot): the
+    # gathers then skip it (`ops._ell_sum`, the bilateral filter).
+    width = max(int((degree + ~has_loop).max()), 1)
     if max_fill is not None and n_node * width > max_fill * max(key.size, 1):
         return None
     if max_width is not None and width > max_width:
         return None
+    width = max(width, int(min_width))
     slot = np.arange(key.size) - (np.cumsum(degree) - degree)[r]
+    # Sorted order within a row, then the self loop moved to the front.
+    slot = np.where(loop, 0, slot + np.where(has_loop[r], s < r, True))
     rows = np.arange(n_node)
     neighbours = np.repeat(rows[:, None], width, axis=1).astype(np.int32)
     weights = np.zeros((n_node, width), w.dtype)
@@ -462,6 +472,7 @@ def with_ell_layout(
     slot_multiple: int = 4,
     max_fill: float | None = None,
     max_width: int | None = None,
+    min_widths: tuple[int, int] = (1, 1),
 ) -> MeshGraph:
     """`graph` with `vertex_ell` and `face_ell` built from its edge lists (host, NumPy).
 
@@ -486,6 +497,7 @@ def with_ell_layout(
         every table).
       max_width: leave out a table whose widest row, self loop included, has more than
         this many slots (None: keep every table).
+      min_widths: the vertex and face tables have at least this many slots.
 
     Returns:
       `graph` with `vertex_ell` (`[n_vertex, width_v]` tables) and `face_ell`
@@ -501,10 +513,18 @@ def with_ell_layout(
     if max_fill is not None and not max_fill >= 1:
         raise ValueError(f"max_fill must be at least 1 (slots per edge), got {max_fill}")
 
-    def layout(senders, receivers, weight, n_node):
+    def layout(senders, receivers, weight, n_node, min_width):
         # The fill is judged before rounding: the rounding slots add at most
         # slot_multiple - 1 per row, the same for every mesh.
-        ell = ell_layout(senders, receivers, weight, n_node, max_fill=max_fill, max_width=max_width)
+        ell = ell_layout(
+            senders,
+            receivers,
+            weight,
+            n_node,
+            max_fill=max_fill,
+            max_width=max_width,
+            min_width=min_width,
+        )
         if ell is None:
             return None
         width = ell.neighbours.shape[1]
@@ -521,10 +541,18 @@ def with_ell_layout(
 
     return graph._replace(
         vertex_ell=layout(
-            graph.vertex_senders, graph.vertex_receivers, graph.vertex_edge_weight, graph.n_vertex
+            graph.vertex_senders,
+            graph.vertex_receivers,
+            graph.vertex_edge_weight,
+            graph.n_vertex,
+            min_widths[0],
         ),
         face_ell=layout(
-            graph.face_senders, graph.face_receivers, graph.face_edge_weight, graph.n_face
+            graph.face_senders,
+            graph.face_receivers,
+            graph.face_edge_weight,
+            graph.n_face,
+            min_widths[1],
         ),
     )
 

@@ -45,6 +45,7 @@ from dmd_jax.policy import (
     presmooth_plan,
     run_passes,
 )
+from dmd_jax.topology import face_adjacency
 
 # The most owned vertices a caller may force per patch (a bound on one patch's graph).
 MAX_PATCH_SIZE = 2**31 - 1
@@ -434,7 +435,9 @@ def _denoise_referenced(
 
     f, flipped = oriented_faces(f, v.shape[0])
     x, centre, scale = _prenormalised(v)  # refuses a mesh of one point first
-    still = still_vertices(v, f)
+    # The faces' edge-adjacent pairs, read by both tests.
+    pairs = face_adjacency(f, v.shape[0])
+    still = still_vertices(v, f, pairs=pairs)
     if still.all():
         # Nothing to denoise (all creases, or no area): the mesh as given, no work.
         fields = dict(
@@ -449,7 +452,7 @@ def _denoise_referenced(
             unchanged=STILL_REASON,
         )
         return v.copy(), fields
-    held = exact_vertices(x, f, exact_tolerance(in_dtype, v, f)) | still
+    held = exact_vertices(x, f, exact_tolerance(in_dtype, v, f), pairs=pairs) | still
     if not held.any():
         held = None  # a noisy mesh: every path exactly as without the test
     decision = None

@@ -62,8 +62,8 @@ SMALL_MESH_FACES = 20_000
 # An upper bound on `network_bytes_per_vertex` that needs no compile: this many bytes per
 # padded vertex per unit of the model's width, plus `NETWORK_BOUND_BASE`. Measured (XLA's
 # memory analysis, `_measured_bytes_per_vertex`): 275 (`test`, width 8), 125 (`small`,
-# 32) and 105 (`paper`, 512) bytes per unit of width; `tests/test_inference.py` checks
-# the bound for every preset and the attention and STN variants. A mesh that fits the
+# 32) and 105 (`paper`, 512) bytes per unit of width; `tests/test_shape_ladder.py`
+# checks the bound for those presets and the attention and STN variants. A mesh that fits the
 # budget under the bound runs whole without the measurement's compile (seconds of a
 # first call); a larger one is measured.
 NETWORK_BOUND_PER_WIDTH = 1000

@@ -135,10 +135,13 @@ def broadcast_to_vertices(graph_features, vertex_graph):
 
 
 def _ell_sum(features, neighbours, weights):
-    """`out[i] = sum_k weights[i, k] * features[neighbours[i, k]]`: `[n_node, d]`."""
+    """`out[i] = sum_k weights[i, k] * features[neighbours[i, k]]`: `[n_node, d]`.
+
+    Slot 0 is the row itself (`graph.ell_layout`): read without a gather.
+    """
     w = weights.astype(features.dtype)
     # One gather per slot, summed in one loop fusion: no `[n_node, max_degree, d]` buffer.
-    out = features[neighbours[:, 0]] * w[:, 0, None]
+    out = features * w[:, 0, None]
     for k in range(1, neighbours.shape[1]):
         out = out + features[neighbours[:, k]] * w[:, k, None]
     return out

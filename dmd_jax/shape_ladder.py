@@ -35,7 +35,6 @@ from dmd_jax.graph import (
     PaddedSizes,
     bucket_size,
     check_aggregation,
-    with_fixed_ell,
 )
 
 # Rung steps per doubling, and where the finer steps start (vertices).
@@ -152,16 +151,10 @@ def with_tables(graph: MeshGraph, aggregation: str) -> MeshGraph:
     check_aggregation(aggregation)
     if aggregation == "segment_sum":
         return graph
-    # The width decides, not the fill: a small mesh's rung is mostly padding rows.
+    # The width decides, not the fill: a small mesh's rung is mostly padding rows. The
+    # tables are allocated at the standard widths at once (no widening copy).
     limit = MAX_ELL_WIDTH if aggregation == "auto" else None
-    natural = graph_lib.with_ell_layout(graph, max_width=limit)
-    widths = tuple(
-        None if table is None else max(table.neighbours.shape[1], standard)
-        for table, standard in zip(
-            (natural.vertex_ell, natural.face_ell), STANDARD_WIDTHS, strict=True
-        )
-    )
-    return with_fixed_ell(graph, widths, natural=natural)
+    return graph_lib.with_ell_layout(graph, max_width=limit, min_widths=STANDARD_WIDTHS)
 
 
 def layout_of(graph: MeshGraph) -> tuple[int | None, int | None]:
