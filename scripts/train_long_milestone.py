@@ -265,7 +265,7 @@ def report(args, families: dict, clean_csvs, seconds: float, dirty: str) -> str:
 
     header = [
         "condition",
-        "meshes",
+        "cases",
         "milestone / bundled (geometric mean)",
         "better",
         "worse",
@@ -323,8 +323,8 @@ def report(args, families: dict, clean_csvs, seconds: float, dirty: str) -> str:
         "(cropped to 15,000 faces for Gaussian and impulse noise, 5,000 for scanner noise "
         "and scans, the other methods' rows reused from `sota_lite.csv` / "
         "`sota_lite_scan.csv`), and the clean meshes of `no_harm.py` (normal change; best "
-        "other of CNR, BNF, Taubin). Ratios per mesh, geometric means, errors below 0.1° "
-        "count as 0.1°; better / worse: by more than 2 %.",
+        "other of CNR, BNF, Taubin). Ratios per case (a mesh at one level), geometric "
+        "means, errors below 0.1° count as 0.1°; better / worse: by more than 2 %.",
         "",
         "```bash",
         args.command,
