@@ -38,7 +38,7 @@ def grid(n: int):
 def test_rungs_grow_by_at_most_an_eighth_above_the_fine_start():
     r = shape_ladder.rungs_between(1_000, 4_000_000)
     assert r == sorted(set(r)) and r[0] == shape_ladder.SMALLEST_RUNG
-    for a, b in zip(r, r[1:]):
+    for a, b in zip(r[:-1], r[1:], strict=True):
         step = (b - a) / a
         if a >= shape_ladder.FINE_FROM:
             assert step <= 1 / shape_ladder.FINE_STEPS + 1e-9
