@@ -36,7 +36,7 @@ bench: $(STAMP)
 	GLIBC_TUNABLES=glibc.malloc.hugetlb=1 $(BIN)/python benchmarks/bench_aggregation.py
 	$(BIN)/python benchmarks/bench_aggregation.py --name aggregation_default_malloc \
 		--sizes 100000 300000 1000000 --widths 64 --methods ell --meshes
-	$(MAKE) bench-inference bench-training bench-cold bench-vertex-update
+	$(MAKE) bench-inference bench-training bench-cold bench-vertex-update bench-passes
 
 # The normal-first head's vertex update, Jacobi steps and the converged solve, against the
 # whole default denoise call at 100k faces in the same process (vertex_update.md; issue 57).
@@ -44,8 +44,14 @@ bench: $(STAMP)
 bench-vertex-update: $(STAMP)
 	$(BIN)/python benchmarks/bench_vertex_update.py
 
-# Cold start (issue 58): fresh dmd-jax denoise processes with an empty, then a filled
-# compilation cache, beside bnf; cold_start.md (14 minutes on 2 cores at load average 9-17).
+# What each network pass of denoise costs (Jacobi and the solve, 1-8 passes) beside bnf
+# at 100k faces, one process: pass_cost.md.
+.PHONY: bench-passes
+bench-passes: $(STAMP)
+	$(BIN)/python benchmarks/bench_pass_cost.py --faces 100000 --repeat 5
+
+# Cold start (issues 58, 64): fresh dmd-jax denoise processes with an empty cache, after
+# another mesh, after dmd-jax warmup, beside bnf; cold_start.md.
 .PHONY: bench-cold
 bench-cold: $(STAMP)
 	$(BIN)/python benchmarks/bench_cold_start.py --repeat 3 --profile

@@ -166,3 +166,13 @@ def test_inference_scale_worker_runs_each_mode(tmp_path, mode):
     assert row["path"] == ("patches" if mode == "patches" else "whole")
     if mode == "patches":
         assert row["patches"] >= 1
+
+
+@pytest.mark.slow
+def test_pass_cost_report(tmp_path, monkeypatch):
+    from benchmarks import bench_pass_cost
+
+    monkeypatch.setattr(bench_pass_cost, "RESULTS_DIR", tmp_path)
+    assert bench_pass_cost.main(["--faces", "600", "--repeat", "1", "--name", "p"]) == 0
+    text = (tmp_path / "p.md").read_text()
+    assert "solve, 8 passes" in text and "jacobi, 1 pass " in text and "ms per pass" in text
