@@ -59,7 +59,7 @@ def main(argv=None) -> int:
     cases = {"bnf": lambda: bnf(v, f), "denoise (default)": lambda: dmd_jax.denoise(v, f, bundle)}
     for update in UPDATES:
         for k in PASSES:
-            cases[f"{update}, {k} passes"] = lambda b=bundles[update], k=k: dmd_jax.denoise(
+            cases[_label(update, k)] = lambda b=bundles[update], k=k: dmd_jax.denoise(
                 v, f, b, iterations=k, presmooth=0
             )
     _, info = dmd_jax.denoise(v, f, bundle, return_info=True)
