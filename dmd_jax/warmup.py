@@ -22,6 +22,9 @@ from dmd_jax import shape_ladder
 # The default range of `dmd-jax warmup`: 1k to 1M faces (55 rungs).
 DEFAULT_MIN_FACES = 1_000
 DEFAULT_MAX_FACES = 1_000_000
+# Bytes one stored whole-mesh program of the bundled network takes in the cache (2.0 MB
+# measured at 41k and 45k padded vertices; the size hardly depends on the rung), with room.
+PROGRAM_BYTES = int(2.5 * 2**20)
 
 
 class Warmed(NamedTuple):
@@ -65,10 +68,12 @@ def warm_up(
       A `Warmed` per program, in ladder order.
 
     Raises:
-      ValueError: a bad range or `jobs`.
+      ValueError: a bad range or `jobs`, a cache that is off or refused, or more
+        programs than its bound holds.
     """
     import jax
 
+    from dmd_jax import compile_cache
     from dmd_jax.checkpoints import as_bundle
     from dmd_jax.forward import predictor
     from dmd_jax.memory_plan import network_bytes_per_vertex
@@ -76,6 +81,20 @@ def warm_up(
     if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
         raise ValueError(f"jobs must be a positive integer, got {jobs!r}")
     rungs = shape_ladder.rungs_between(int(min_faces), int(max_faces))
+    settings = compile_cache.settings()
+    if compile_cache.store() is None:
+        raise ValueError(
+            "the compilation cache is off or refused (see the warning above, "
+            f"{compile_cache.ENV}): a warm-up would compile programs no later process "
+            "can load"
+        )
+    need = len(rungs) * len(layouts) * PROGRAM_BYTES
+    if need > settings.max_bytes:
+        raise ValueError(
+            f"{len(rungs) * len(layouts)} programs take about {need / 2**20:.0f} MiB, more "
+            f"than the cache holds ({settings.max_bytes / 2**20:.0f} MiB): the first would "
+            f"be evicted by the last; raise {compile_cache.ENV_MAX_MB} or narrow the range"
+        )
     bundle = as_bundle(bundle)
     program = predictor(bundle.config)
     # The memory plan's measurement (a small compile of its own), kept on disk too.

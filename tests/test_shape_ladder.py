@@ -170,13 +170,17 @@ def test_memory_bound_is_above_the_measurement(name, edits):
     assert measured <= memory_plan.network_bytes_bound(config)
 
 
-def test_warmup_cli_refuses_bad_ranges_and_a_disabled_cache(monkeypatch, capsys):
+def test_warmup_cli_refuses_bad_ranges_and_a_disabled_cache(monkeypatch, capsys, tmp_path):
     from dmd_jax.cli import main
 
     monkeypatch.setenv(compile_cache.ENV, "0")
     assert main(["warmup", "--min-faces", "10"]) != 0
     assert "cache is off" in capsys.readouterr().err
-    monkeypatch.delenv(compile_cache.ENV)
+    monkeypatch.setenv(compile_cache.ENV, str(tmp_path))
+    monkeypatch.setenv(compile_cache.ENV_MAX_MB, "20")
+    assert main(["warmup", "--max-faces", "100000"]) != 0
+    assert compile_cache.ENV_MAX_MB in capsys.readouterr().err
+    monkeypatch.delenv(compile_cache.ENV_MAX_MB)
     assert main(["warmup", "--min-faces", "5000", "--max-faces", "100"]) != 0
     assert "--min-faces" in capsys.readouterr().err
     assert main(["warmup", "--jobs", "0"]) != 0

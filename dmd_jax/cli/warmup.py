@@ -26,11 +26,6 @@ def _cmd_warmup(args: argparse.Namespace) -> int:
             f"--min-faces ({args.min_faces}) must not exceed --max-faces ({args.max_faces})"
         )
     where = compile_cache.settings().path
-    if where is None:
-        raise ValueError(
-            f"the compilation cache is off ({compile_cache.ENV}=0): a warm-up would "
-            "compile programs no later process can load; unset it first"
-        )
     bundle = None
     if args.weights is not None:
         from dmd_jax.checkpoints import load_model
