@@ -164,6 +164,7 @@ def fit(
     lr: float = 3e-3,
     seed: int = 0,
     kind: str = "log1p",
+    objective: str = "softmax",
 ) -> ControllerParams:
     """Trains a controller on examples (full batch, Adam): reproducible for a seed.
 
@@ -176,7 +177,14 @@ def fit(
       steps, lr: Adam's steps and learning rate.
       seed: the initialisation's seed.
       kind: how the statistics are read (`TRANSFORMS`).
+      objective: "softmax": minimise the expected relative regret of a softmax over the
+        scores (the scores are a policy); "regret": regress each option's relative
+        regret (squared error), the scores its negation, so the choice is the option of
+        least predicted mean regret (safer where the examples disagree: an option that is
+        best on some neighbours and 2× worse on others predicts a high mean).
     """
+    if objective not in ("softmax", "regret"):
+        raise ValueError(f"unknown objective {objective!r}")
     import jax
     import jax.numpy as jnp
     import optax
@@ -197,8 +205,11 @@ def fit(
 
     def loss(p):
         h = jax.nn.relu(x @ p["w1"] + p["b1"])
-        prob = jax.nn.softmax(h @ p["w2"] + p["b2"], axis=-1)
+        s = h @ p["w2"] + p["b2"]
         decay = jnp.sum(p["w1"] ** 2) + jnp.sum(p["w2"] ** 2)
+        if objective == "regret":
+            return jnp.mean((s + jnp.log1p(regret)) ** 2) + l2 * decay
+        prob = jax.nn.softmax(s, axis=-1)
         return jnp.mean(jnp.sum(prob * regret, axis=-1)) + l2 * decay
 
     tx = optax.adam(lr)

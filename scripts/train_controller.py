@@ -26,6 +26,9 @@ from dmd_jax.data import smoothing_set
 
 WIDTHS = (16, 32, 64)
 DECAYS = (1e-4, 1e-3, 1e-2)
+# How the MLP learns (`controller.fit`): a softmax policy over the expected relative
+# regret, or a regression of each option's log relative regret (choice: least predicted).
+OBJECTIVES = ("softmax", "regret")
 
 
 def split_of(spec: dict) -> str:
@@ -74,27 +77,55 @@ def main(argv=None) -> int:
 
     best, best_score = None, np.inf
     grid = []
-    for width in WIDTHS:
-        for decay in DECAYS:
-            params = controller.fit(x[tr], errors[tr], opts, hidden=width, l2=decay, seed=args.seed)
-            r = controller.evaluate(choose_all(params, va), errors[va], data["default_error"][va])
-            grid.append((width, decay, r))
-            print(f"width {width} decay {decay:g}: val to oracle {r['to_oracle']:.3f}")
-            if r["to_oracle"] < best_score:
-                best, best_score = (width, decay), r["to_oracle"]
-    width, decay = best
+    for objective in OBJECTIVES:
+        for width in WIDTHS:
+            for decay in DECAYS:
+                params = controller.fit(
+                    x[tr],
+                    errors[tr],
+                    opts,
+                    hidden=width,
+                    l2=decay,
+                    seed=args.seed,
+                    objective=objective,
+                )
+                r = controller.evaluate(
+                    choose_all(params, va), errors[va], data["default_error"][va]
+                )
+                grid.append((objective, width, decay, r))
+                print(
+                    f"{objective} width {width} decay {decay:g}: val to oracle {r['to_oracle']:.3f}"
+                )
+                if r["to_oracle"] < best_score:
+                    best, best_score = (objective, width, decay), r["to_oracle"]
+    objective, width, decay = best
     # Would the first pass's change, as a further statistic, choose better?
     xf = inputs(data, first_pass=True)
-    pf = controller.fit(xf[tr], errors[tr], opts, hidden=width, l2=decay, seed=args.seed)
+    pf = controller.fit(
+        xf[tr], errors[tr], opts, hidden=width, l2=decay, seed=args.seed, objective=objective
+    )
     chosen = np.argmax(controller.scores(pf, xf[va]), axis=1)
     with_first = controller.evaluate(chosen, errors[va], data["default_error"][va])["to_oracle"]
     # Would the statistics read as computed (no log1p) choose better?
     pr = controller.fit(
-        x[tr], errors[tr], opts, hidden=width, l2=decay, seed=args.seed, kind="identity"
+        x[tr],
+        errors[tr],
+        opts,
+        hidden=width,
+        l2=decay,
+        seed=args.seed,
+        kind="identity",
+        objective=objective,
     )
     raw = controller.evaluate(choose_all(pr, va), errors[va], data["default_error"][va])
     params = controller.fit(
-        x[tr | va], errors[tr | va], opts, hidden=width, l2=decay, seed=args.seed
+        x[tr | va],
+        errors[tr | va],
+        opts,
+        hidden=width,
+        l2=decay,
+        seed=args.seed,
+        objective=objective,
     )
     args.out.parent.mkdir(parents=True, exist_ok=True)
     np.savez(args.out, **{k: np.asarray(v) for k, v in params.to_dict().items()})
@@ -143,9 +174,9 @@ def main(argv=None) -> int:
         f"`python scripts/train_controller.py {args.data} --out {args.out} "
         f"--report {args.report}`.",
         "",
-        f"Chosen on validation: width {width}, weight decay {decay:g} "
-        f"(validation, chosen / oracle: "
-        + ", ".join(f"{w}/{d:g}: {r['to_oracle']:.3f}" for w, d, r in grid)
+        f"Chosen on validation: objective {objective}, width {width}, weight decay {decay:g} "
+        f"(validation, chosen / oracle, objective/width/decay: "
+        + ", ".join(f"{o}/{w}/{d:g}: {r['to_oracle']:.3f}" for o, w, d, r in grid)
         + f"); with the first pass's change as two more statistics {with_first:.3f} at that "
         "setting (not used: `denoise` reads the mesh's statistics alone); with the statistics "
         f"read as computed instead of `log1p` {raw['to_oracle']:.3f}. Errors floored at "

@@ -246,6 +246,9 @@ def test_a_fit_learns_a_choice_that_depends_on_the_statistics():
     assert r["to_oracle"] < 1.01 and r["capture"] > 0.95
     again = controller.fit(feats, errors, opts, hidden=8, steps=500, seed=0)
     np.testing.assert_array_equal(again.w2, params.w2)  # reproducible
+    # Regressing each option's regret learns the same choice.
+    reg = controller.fit(feats, errors, opts, hidden=8, steps=500, seed=0, objective="regret")
+    assert np.mean(np.argmax(controller.scores(reg, feats), axis=1) == kind + 1) > 0.98
     back = controller.ControllerParams.from_dict(params.to_dict())
     assert back.options == params.options
     assert controller.choose(back, feats[0]) == params.options[int(chosen[0])]
