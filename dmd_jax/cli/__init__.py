@@ -94,7 +94,7 @@ EXAMPLES = {
     "train-cnr": ["dmd-jax train-cnr --data data/procedural --out cnr.msgpack"],
     "warmup": [
         "dmd-jax warmup   # every mesh size from 1k to 1M faces, once per version",
-        "dmd-jax warmup --max-faces 5000000 --all-layouts",
+        "dmd-jax warmup --max-faces 2000000 --all-layouts",
     ],
 }
 

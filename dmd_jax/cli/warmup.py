@@ -76,7 +76,9 @@ def add_parser(sub) -> None:
             "(dmd_jax.shape_ladder) from --min-faces to --max-faces into the on-disk "
             "compilation cache, so that a later dmd-jax denoise on a mesh of any size in "
             "the range loads its program instead of compiling it. Run it once per "
-            "version; programs already cached are loaded, not compiled again."
+            "version of dmd_jax and weights file (--weights); programs already cached "
+            "are loaded, not compiled again. Meshes too large for the memory budget run "
+            "in patches, whose programs are compiled on first use."
         ),
     )
     p.add_argument(
