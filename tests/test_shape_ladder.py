@@ -10,19 +10,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_model_ell import bipyramid
 
 from dmd_jax import compile_cache, shape_ladder
 from dmd_jax.graph import build_mesh_graph, pad_mesh_graph
-
-
-def bipyramid(k: int):
-    """Two apexes of valence `k` over a `k`-gon ring."""
-    t = 2 * np.pi * np.arange(k) / k
-    ring = np.stack([np.cos(t), np.sin(t), np.zeros(k)], 1)
-    v = np.concatenate([ring, [[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]]])
-    i, j = np.arange(k), (np.arange(k) + 1) % k
-    f = np.concatenate([np.stack([i, j, np.full(k, k)], 1), np.stack([j, i, np.full(k, k + 1)], 1)])
-    return v, f
 
 
 def grid(n: int):
