@@ -25,6 +25,7 @@ from dmd_jax.graph import (
     pad_vertex_array,
     padded_sizes_for,
     sizes_for_vertices,
+    widen_ell_layout,
     with_aggregation_layout,
 )
 from dmd_jax.memory_plan import (
@@ -118,25 +119,15 @@ def _ell_widths(graph) -> tuple:
 
 
 def _widen_ell(graph, widths):
-    """`graph` with its ELL tables widened to `widths` by unused slots (weight 0, pointing
-    at their own row, their own reverse slot), which change nothing; a table that is None
-    on either side stays as it is."""
-    out = []
-    for ell, width in zip((graph.vertex_ell, graph.face_ell), widths, strict=True):
-        if ell is None or width is None or ell.neighbours.shape[1] >= width:
-            out.append(ell)
-            continue
-        n, w = ell.neighbours.shape
-        extra = width - w
-        rows = np.broadcast_to(np.arange(n, dtype=np.int32)[:, None], (n, extra))
-        slots = np.broadcast_to(np.arange(w, width, dtype=np.int32)[None, :], (n, extra))
-        out.append(
-            type(ell)(
-                np.concatenate([ell.neighbours, rows], 1),
-                np.concatenate([ell.weights, np.zeros((n, extra), ell.weights.dtype)], 1),
-                np.concatenate([ell.reverse_slot, slots], 1),
-            )
-        )
+    """`graph` with its ELL tables widened to `widths` (`graph.widen_ell_layout`: unused
+    slots that change nothing); a table that is None on either side, or already as wide,
+    stays as it is."""
+    out = [
+        ell
+        if ell is None or width is None or ell.neighbours.shape[1] >= width
+        else widen_ell_layout(ell, width)
+        for ell, width in zip((graph.vertex_ell, graph.face_ell), widths, strict=True)
+    ]
     return graph._replace(vertex_ell=out[0], face_ell=out[1])
 
 
