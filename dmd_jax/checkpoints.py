@@ -129,6 +129,56 @@ def _parse_section(path, payload: dict, name: str, parse):
         ) from None
 
 
+def msgpack_restore(data: bytes):
+    """`flax.serialization.msgpack_restore`, without importing Flax: the tree of dicts,
+    lists and NumPy arrays `write_weights_file` wrote (arrays read-only views of `data`).
+
+    Every `dmd-jax denoise` process reads the weights, and importing Flax cost it
+    0.15-0.25 s on 2 cores (docs/cold-start.md). The same encoding as Flax 0.12's: msgpack
+    with extension types 1 (an array: shape, dtype name, C-order bytes), 2 (a complex
+    number) and 3 (a NumPy scalar), and arrays above 2^30 bytes stored as
+    `__msgpack_chunked_array__` dicts of flat chunks; unknown extensions stay
+    `msgpack.ExtType`, as in Flax.
+
+    Raises:
+      Exception: whatever msgpack or NumPy raise on truncated or corrupt data.
+    """
+    import msgpack
+
+    def array(ext: bytes) -> np.ndarray:
+        shape, dtype, buffer = msgpack.unpackb(ext, raw=True)
+        if dtype == b"bfloat16":  # not a NumPy name: JAX's (ml_dtypes') type
+            import ml_dtypes
+
+            dtype = ml_dtypes.bfloat16
+        return np.frombuffer(buffer, dtype=np.dtype(dtype), count=-1, offset=0).reshape(
+            shape, order="C"
+        )
+
+    def ext_hook(code: int, ext: bytes):
+        if code == 1:
+            return array(ext)
+        if code == 2:
+            real, imag = msgpack.unpackb(ext)
+            return complex(real, imag)
+        if code == 3:
+            return array(ext)[()]
+        return msgpack.ExtType(code, ext)
+
+    def in_order(d: dict) -> tuple:
+        return tuple(d[str(i)] for i in range(len(d)))
+
+    def unchunk(d):
+        if isinstance(d, dict):
+            if "__msgpack_chunked_array__" in d:
+                return np.concatenate(in_order(d["chunks"])).reshape(in_order(d["shape"]))
+            for k, v in d.items():
+                d[k] = unchunk(v) if isinstance(v, dict) else v
+        return d
+
+    return unchunk(msgpack.unpackb(data, ext_hook=ext_hook, raw=False, strict_map_key=False))
+
+
 def read_weights_payload(path, *, fmt: str, versions: tuple[int, ...], kind: str) -> dict:
     """The raw payload of a weights file: format tag and version checked, sections
     `config`, `meta` and `params` present (JSON sections still as text).
@@ -137,15 +187,13 @@ def read_weights_payload(path, *, fmt: str, versions: tuple[int, ...], kind: str
       FileNotFoundError: no such file.
       ValueError: a truncated or corrupt file, another format or version, a missing field.
     """
-    from flax import serialization
-
     from dmd_jax.io import check_readable_file
 
     path = Path(path)
     # A FIFO would block the read, a symlink loop is not a missing file: say which.
     check_readable_file(path, "weights file")
     try:
-        payload = serialization.msgpack_restore(path.read_bytes())
+        payload = msgpack_restore(path.read_bytes())
     except Exception as exc:  # msgpack raises several types on truncated data
         raise ValueError(
             f"{path}: not a readable weights file (truncated or corrupt: {exc})"

@@ -120,13 +120,18 @@ def predictor(config: ExperimentConfig | ModelConfig) -> Program:
 
 
 @lru_cache(maxsize=8)
-def _predictor(config: ModelConfig) -> Program:
+def _model(config: ModelConfig):
+    """The Flax module of `config`, built when a program is first traced: a process that
+    loads every executable from the cache never imports Flax (docs/cold-start.md)."""
     from dmd_jax.model import DMDNet
 
-    model = DMDNet(config)
+    return DMDNet(config)
 
+
+@lru_cache(maxsize=8)
+def _predictor(config: ModelConfig) -> Program:
     def predict(params, noisy, graph):
-        out, _, _ = model.apply({"params": params}, noisy, graph, deterministic=True)
+        out, _, _ = _model(config).apply({"params": params}, noisy, graph, deterministic=True)
         return out
 
     return Program("predict", predict, repr(config))
@@ -140,12 +145,10 @@ def patch_predictor(config: ExperimentConfig | ModelConfig) -> Program:
 
 @lru_cache(maxsize=8)
 def _patch_predictor(config: ModelConfig) -> Program:
-    from dmd_jax.model import DMDNet
-
-    model = DMDNet(config)
-
     def predict(params, noisy, graph, pooled):
-        out, _, _ = model.apply({"params": params}, noisy, graph, deterministic=True, pooled=pooled)
+        out, _, _ = _model(config).apply(
+            {"params": params}, noisy, graph, deterministic=True, pooled=pooled
+        )
         return out
 
     return Program("patch", predict, repr(config))
@@ -159,12 +162,9 @@ def pool_predictor(config: ModelConfig, names: tuple[str, ...]) -> Program:
     Only the pools are returned, so XLA drops everything that does not feed them (the
     denoiser, the vertex update).
     """
-    from dmd_jax.model import DMDNet
-
-    model = DMDNet(config)
 
     def pools(params, noisy, graph, pooled):
-        _, state = model.apply(
+        _, state = _model(config).apply(
             {"params": params},
             noisy,
             graph,

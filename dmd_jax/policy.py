@@ -21,8 +21,8 @@ from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
-from flax import struct
 
+import dmd_jax.config.frozen as frozen
 from dmd_jax.config import _check, _check_finite, _check_positive_int, _ConfigMixin, _static
 
 # Bounds on what a weights file or a caller may ask for: a weights file is untrusted
@@ -60,7 +60,7 @@ class RetiredPolicyWarning(UserWarning):
     """A weights file carried policy fields this version no longer runs (`RETIRED_FIELDS`)."""
 
 
-@struct.dataclass
+@frozen.dataclass
 class DenoisePolicy(_ConfigMixin):
     """How `denoise` runs a trained network (all static, JSON like the configs).
 

@@ -142,6 +142,7 @@ def test_config_imports_no_model_code():
     assert config == [
         "dmd_jax.config",
         "dmd_jax.config.codec",
+        "dmd_jax.config.frozen",
         "dmd_jax.config.presets",
         "dmd_jax.config.sections",
     ], config

@@ -1,6 +1,8 @@
 """Experiment configuration: frozen pytree dataclasses, presets and structure variants.
 
-Every config is a `flax.struct.dataclass`, so it is immutable, hashable and a pytree.
+Every config is a frozen pytree dataclass (`dmd_jax.config.frozen`: what
+`flax.struct.dataclass` makes, without importing Flax), so it is immutable, hashable
+and a pytree.
 Every field is static metadata (`pytree_node=False`): configs decide shapes, code paths
 and which loss terms are computed at all (`dmd_jax.losses` needs static weights), so a
 config has no leaves and can be a static argument of `jax.jit`.

@@ -12,8 +12,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from flax import struct
-
+import dmd_jax.config.frozen as frozen
 from dmd_jax.config.codec import _ConfigMixin
 from dmd_jax.constants import (
     ENCODINGS,
@@ -42,7 +41,7 @@ DATA_SOURCES = ("procedural", "folder")
 
 def _static(default: Any):
     """A structural (non-pytree) field: part of the treedef, never traced."""
-    return struct.field(pytree_node=False, default=default)
+    return frozen.field(pytree_node=False, default=default)
 
 
 def _check(condition: bool, message: str) -> None:
@@ -114,7 +113,7 @@ MAX_FILTERS = 16
 MAX_HEAD_INIT_SCALE = 100.0
 
 
-@struct.dataclass
+@frozen.dataclass
 class ModelConfig(_ConfigMixin):
     """DMD-Net structure. All fields are static (they decide shapes and code paths).
 
@@ -349,7 +348,7 @@ class ModelConfig(_ConfigMixin):
 # --------------------------------------------------------------------------------------
 
 
-@struct.dataclass
+@frozen.dataclass
 class LossConfig(_ConfigMixin):
     """Loss weights (the paper's final values) and curvature scales (all static).
 
@@ -401,7 +400,7 @@ class LossConfig(_ConfigMixin):
         return cls(vertex=1.0, normal=1.0, curvature=1.0, chamfer=1.0, feature=1.0, **kwargs)
 
 
-@struct.dataclass
+@frozen.dataclass
 class TrainConfig(_ConfigMixin):
     """Optimiser, schedule and training scheme (all static).
 
@@ -505,7 +504,7 @@ class TrainConfig(_ConfigMixin):
         )
 
 
-@struct.dataclass
+@frozen.dataclass
 class NoiseConfig(_ConfigMixin):
     """What the mixed-noise sampler draws during training (all static).
 
@@ -555,7 +554,7 @@ class NoiseConfig(_ConfigMixin):
             _check(0.0 <= value <= 1.0, f"{name} must lie in [0, 1], got {value}")
 
 
-@struct.dataclass
+@frozen.dataclass
 class DataConfig(_ConfigMixin):
     """Where the training meshes come from, how they are split, what is evaluated.
 
@@ -655,7 +654,7 @@ class DataConfig(_ConfigMixin):
         _check(self.scan_resolution <= 512, "scan_resolution must be at most 512")
 
 
-@struct.dataclass
+@frozen.dataclass
 class ExperimentConfig(_ConfigMixin):
     """Everything one run needs; what checkpoints and bundled weights carry."""
 
