@@ -575,16 +575,37 @@ def executable(name: str, jitted, args, identity: str):
     return lookup(name, jitted, args, identity)[0]
 
 
+def _key(name: str, args, identity: str) -> str:
+    """The store's key of program `name` for `args`' signature."""
+    tree, shapes = signature(args)
+    key = hashlib.sha256(
+        repr((name, identity, str(tree), shapes, fingerprint())).encode()
+    ).hexdigest()
+    return f"{name}-{key[:40]}"
+
+
+def stored(name: str, args, identity: str):
+    """The executable `executable` would load for `args`, or None: not in the store,
+    the store off or refused. Never compiles (`forward.Program.preload` runs it in a
+    background thread, on a guess of the shapes).
+    """
+    entries = store()
+    if entries is None:
+        return None
+    loaded = _load(entries, _key(name, args, identity))
+    if loaded is not None:
+        from jax import monitoring
+
+        monitoring.record_event(HIT_EVENT)
+    return loaded
+
+
 def lookup(name: str, jitted, args, identity: str):
     """`executable`, and whether it was loaded from the store: `(compiled, loaded)`."""
     entries = store()
     if entries is None:
         return jitted.lower(*args).compile(), False
-    tree, shapes = signature(args)
-    key = hashlib.sha256(
-        repr((name, identity, str(tree), shapes, fingerprint())).encode()
-    ).hexdigest()
-    key = f"{name}-{key[:40]}"
+    key = _key(name, args, identity)
     from jax import monitoring
 
     loaded = _load(entries, key)

@@ -33,7 +33,7 @@ from dmd_jax.graph import (
     pad_vertex_array,
     undirected_vertex_edges,
 )
-from dmd_jax.memory_plan import plan
+from dmd_jax.memory_plan import plan, whole_without_measuring
 from dmd_jax.mesh import validate_mesh
 from dmd_jax.patch_runner import denoise_patches
 from dmd_jax.policy import (
@@ -170,6 +170,34 @@ def _whole_mesh_pass(v, f, bundle, aggregation: str):
         )
 
     return frame, one_pass
+
+
+def _preload_whole(bundle, n_vertex: int, f, aggregation: str, max_memory, patch_size) -> None:
+    """Starts loading the whole-mesh program of this mesh from the compile cache in the
+    background (`forward.Program.preload`), when the memory plan will surely run it
+    whole, so that the load overlaps the host work before the first pass (orientation,
+    the exact and still vertices, the pre-smoothing, the graph: docs/cold-start.md).
+
+    The rung is guessed from the counts (`shape_ladder.rung_estimate`, exact for a
+    closed manifold mesh) and the table layout from the faces around each vertex; a
+    wrong guess costs a load in the background, and the pass loads or compiles its own
+    program as it would have.
+    """
+    model = bundle.config.model
+    if not whole_without_measuring(model, n_vertex, f.shape[0], max_memory, patch_size):
+        return
+    if aggregation == "segment_sum":
+        widths = (None, None)
+    elif int(np.bincount(f.ravel()).max()) < shape_ladder.MAX_ELL_WIDTH - 1:
+        widths = shape_ladder.STANDARD_WIDTHS  # every valence fits its table
+    elif aggregation == "auto":
+        widths = (None, shape_ladder.STANDARD_WIDTHS[1])  # the vertex table left out
+    else:
+        return
+    rung = shape_ladder.rung_estimate(n_vertex, f.shape[0])
+    noisy = jax.ShapeDtypeStruct((rung, 3), np.float32)  # as `one_pass` pads it
+    graph = shape_ladder.abstract_graph(rung, widths)
+    predictor(bundle.config).preload(bundle.params, noisy, graph)
 
 
 def _denoise_whole(v, f, bundle, policy: DenoisePolicy, aggregation: str, held=None):
@@ -433,6 +461,8 @@ def _denoise_referenced(
     from dmd_jax.presmooth import laplacian_steps
     from dmd_jax.relax import relax_tangential
 
+    if chooser is None:  # the controller may change the program's config: after it
+        _preload_whole(bundle, v.shape[0], f, aggregation, max_memory, patch_size)
     f, flipped = oriented_faces(f, v.shape[0])
     x, centre, scale = _prenormalised(v)  # refuses a mesh of one point first
     # The faces' edge-adjacent pairs, read by both tests.
@@ -466,6 +496,8 @@ def _denoise_referenced(
             bundle = bundle._replace(config=bundle.config.replace(model=model))
             run = run.replace(max_passes=decision.option.passes, pass_tolerance=0.0)
     network = decision is None or decision.option.passes > 0
+    if decision is not None and network:
+        _preload_whole(bundle, v.shape[0], f, aggregation, max_memory, patch_size)
     pre = presmooth_plan(run, x, f, presmooth, free=None if held is None else ~held)
     if pre.steps:
         start, x = x, laplacian_steps(x, f, pre.steps)

@@ -290,6 +290,29 @@ def plan(
     return MemoryPlan(per_vertex * padded <= budget, budget)
 
 
+def whole_without_measuring(
+    config: ModelConfig, n_vertex: int, n_face: int, max_memory=None, patch_size=None
+) -> bool:
+    """Whether `plan` surely takes the whole-mesh path, known without measuring the
+    network or raising: a small mesh without a budget, or one whose bound fits it. False
+    may still end whole (after measuring); `inference` starts loading the whole-mesh
+    program early only when True.
+    """
+    if patch_size is not None:
+        return False
+    try:
+        budget = None if max_memory is None else parse_memory(max_memory)
+    except ValueError:  # `plan` says so, later
+        return False
+    if budget is None and n_face < SMALL_MESH_FACES:
+        return True
+    if budget is None:
+        budget = default_memory_budget()
+    padded = padded_vertices_estimate(n_vertex, n_face)
+    bound = network_bytes_bound(config) + WHOLE_HOST_BYTES_PER_PADDED_VERTEX
+    return budget > mesh_bytes(n_vertex, n_face) and bound * padded <= budget
+
+
 def network_bytes_bound(config: ModelConfig) -> int:
     """An upper bound on `network_bytes_per_vertex(config)` from the config alone."""
     width = max(

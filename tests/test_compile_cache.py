@@ -264,6 +264,44 @@ def spy_loads(monkeypatch) -> list:
     return loads
 
 
+def test_preload_loads_in_the_background_and_never_compiles(monkeypatch, tmp_path):
+    # `Program.preload` (what `denoise` starts on a guess of the whole-mesh shapes):
+    # on a miss the thread ends without compiling and the call compiles as before; on a
+    # hit the call runs the executable the thread loaded, with no second load.
+    import jax
+    import jax.numpy as jnp
+
+    from dmd_jax import forward
+
+    monkeypatch.setenv(ENV, str(tmp_path / "cache"))
+    x = np.linspace(0.0, 1.0, 7, dtype=np.float32)
+
+    def program():
+        return forward.Program("tiny", lambda v: jnp.sin(v) * 2.0 + 1.0, "preload-test")
+
+    first = program()
+    thread = first.preload(jax.ShapeDtypeStruct(x.shape, x.dtype))
+    assert thread is not None
+    thread.join()
+    assert first._compiled == {} and not entries(tmp_path / "cache" / "programs")
+    compiled = len(forward.COMPILED)
+    want = np.asarray(first(x))  # compiled and stored by the call
+    assert len(forward.COMPILED) == compiled + 1 and first.prepare(x) == "ready"
+    assert first.preload(x) is None  # already in this process
+
+    loads = spy_loads(monkeypatch)
+    second = program()  # a new process's program
+    thread = second.preload(jax.ShapeDtypeStruct(x.shape, x.dtype))
+    thread.join()
+    assert len(loads) == 1 and loads[0] is not None
+    np.testing.assert_array_equal(np.asarray(second(x)), want)
+    assert len(loads) == 1 and len(forward.COMPILED) == compiled + 1
+    assert second.prepare(x) == "ready"
+
+    monkeypatch.setenv(ENV, "0")  # the cache off: nothing to load
+    assert program().preload(x) is None
+
+
 def cache_warnings(record, where: Path) -> list[str]:
     return [
         str(w.message)

@@ -218,21 +218,33 @@ def test_a_warm_cache_serves_a_mesh_of_another_size_without_a_compile(tmp_path):
 import json, sys
 import numpy as np
 from jax import monitoring
+import threading
 from dmd_jax import compile_cache, denoise
-misses = []
+misses, hits = [], []
 monitoring.register_event_listener(
     lambda e, **k: misses.append(e) if e == compile_cache.MISS_EVENT else None)
+# Each program loaded by the preload `denoise` starts on its guess of the rung.
+monitoring.register_event_listener(
+    lambda e, **k: hits.append(threading.current_thread().name)
+    if e == compile_cache.HIT_EVENT else None)
 sys.path.insert(0, sys.argv[1])
 from test_shape_ladder import grid
+import jax
+# The test modules import conftest, which turns float64 on (part of a program's key):
+# off again, as in a user's process and in the warm-up.
+jax.config.update("jax_enable_x64", False)
 for n in (30, 36):   # 1,682 and 2,450 faces: rungs 1,024 and 1,536
     v, f = grid(n)
     v = v + 0.05 * np.random.default_rng(n).standard_normal(v.shape)
     denoise(v, f, iterations=1, presmooth=0)
-print(json.dumps({"misses": len(misses)}))
+print(json.dumps({"misses": len(misses), "hits": hits}))
 """
     run = subprocess.run(
         [sys.executable, "-c", script, str(__import__("pathlib").Path(__file__).parent)],
         env=env, capture_output=True, text=True, timeout=600,
     )  # fmt: skip
     assert run.returncode == 0, run.stderr[-2000:]
-    assert json.loads(run.stdout.strip().splitlines()[-1]) == {"misses": 0}
+    assert json.loads(run.stdout.strip().splitlines()[-1]) == {
+        "misses": 0,
+        "hits": ["dmd_jax-preload-predict"] * 2,
+    }
