@@ -203,7 +203,7 @@ bench-device: $(STAMP)
 # trained on it (minutes; chosen on its validation split, reported on its test split) and
 # stored beside the bundled network in runs/dmd_controller.msgpack.
 SMOOTHING_EXAMPLES ?= 2000
-.PHONY: controller-data controller
+.PHONY: controller-data controller controller-oracle
 controller-data: $(STAMP)
 	$(BIN)/python -m dmd_jax.data.smoothing_set --out data/smoothing --examples $(SMOOTHING_EXAMPLES) --shard 0/2 & \
 	$(BIN)/python -m dmd_jax.data.smoothing_set --out data/smoothing --examples $(SMOOTHING_EXAMPLES) --shard 1/2; wait
@@ -213,3 +213,9 @@ controller: $(STAMP)
 		--report benchmarks/results/controller.md
 	$(BIN)/dmd-jax export-weights dmd_jax/weights/dmd_small.msgpack -o runs/dmd_controller.msgpack \
 		--controller runs/controller.npz --overwrite
+
+# The grid oracle on the real validation split (every option per mesh and condition;
+# resumable, runs/oracle/) beside the default and the controller's rows of
+# benchmarks/results/controller_val.md: benchmarks/results/controller_oracle_val.md.
+controller-oracle: $(STAMP)
+	$(BIN)/python benchmarks/quality/oracle_val.py

@@ -1,0 +1,647 @@
+"""The smoothing controller's grid oracle on the real validation split.
+
+For every mesh of the validation split (`sota_lite.py --sets val`: the same files,
+crops, noise and seeds, so each noisy mesh is exactly the one of
+`benchmarks/results/sota_lite.csv` / `sota_lite_scan.csv`) and every condition, the
+search of the controller's training set (`dmd_jax.data.smoothing_set.pass_errors`:
+pre-smoothing 0/3/8/20 Laplacian steps, then one run of 8 network passes with each
+vertex update, which gives every pass count) scores all 68 options of the
+controller's grid (`controller.options`). One CSV row per mesh and condition holds
+every option's mean face-normal error, the oracle's best option and error, and the
+option the controller of `--controller-weights` picks on that noisy mesh (as
+`denoise` reads it: consistently wound, in its normalised frame). Each row is
+appended when its search ends, and a rerun skips the cases the CSV holds (resumable).
+
+The report (`--report`) sets the oracle beside today's default call and the best
+other library method (both from the sota_lite CSVs) and beside the controller's own
+`denoise` rows (`runs/ctrl/*.csv` of `controller_val.md`; where those lack a case, the
+grid's error at the controller's option): per condition and shape against the best
+other method, the controller's capture of the oracle's gain, and which options each
+picks.
+
+```bash
+python benchmarks/quality/oracle_val.py --conditions 0.2 impulse:0.6 scanner:0.5 scan:0.5
+python benchmarks/quality/oracle_val.py --report-only   # the report from the CSV as it is
+```
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import sys
+import time
+import warnings
+from collections import Counter
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+if __package__ in (None, ""):  # run as a script: make `benchmarks` importable
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+from benchmarks.common import REPO, RESULTS_DIR, markdown_table, provenance, write_text  # noqa: E402
+from dmd_jax import comparison, protocol  # noqa: E402
+
+# Every condition of controller_val.md, Gaussian / impulse first as sota_lite.csv, then
+# those of sota_lite_scan.csv (cropped to SCAN_MAX_FACES there).
+ALL_CONDITIONS = (
+    "0.1",
+    "0.2",
+    "0.3",
+    "0.6",
+    "impulse:0.6",
+    "scanner:0.3",
+    "scanner:0.5",
+    "scanner:0.8",
+    "scan:0.15",
+    "scan:0.5",
+)
+# The brief's first four, run first when the whole grid does not fit the time.
+FIRST_CONDITIONS = ("0.2", "impulse:0.6", "scanner:0.5", "scan:0.5")
+SCAN_KINDS = ("scanner", "scan")
+SCAN_MAX_FACES = 5_000  # sota_lite_scan.csv's --max-faces
+DEFAULT_CSV = REPO / "runs" / "oracle" / "oracle_val.csv"
+DEFAULT_REPORT = RESULTS_DIR / "controller_oracle_val.md"
+DEFAULT_CONTROLLER = REPO / "runs" / "dmd_controller.msgpack"
+SOTA_CSVS = (RESULTS_DIR / "sota_lite.csv", RESULTS_DIR / "sota_lite_scan.csv")
+CTRL_CSVS = (REPO / "runs" / "ctrl" / "val_ctrl.csv", REPO / "runs" / "ctrl" / "val_ctrl_scan.csv")
+
+
+def option_label(o) -> str:
+    """`p8` (pre-smoothing alone; `p0` is none), `p8_solve_4`."""
+    return f"p{o.presmooth}" if not o.passes else f"p{o.presmooth}_{o.update}_{o.passes}"
+
+
+def grid_options():
+    from dmd_jax.controller import options
+    from dmd_jax.data.smoothing_set import PRESMOOTH_GRID, SEARCH_PASSES, UPDATES
+
+    return options(PRESMOOTH_GRID, UPDATES, SEARCH_PASSES)
+
+
+HEAD = (
+    "set",
+    "mesh",
+    "noise",
+    "level",
+    "seed",
+    "n_vertex",
+    "n_face",
+    "noisy_deg",
+    "held_vertices",
+    "controller_option",
+    "oracle_option",
+    "oracle_deg",
+    "seconds",
+)
+
+
+def header() -> list[str]:
+    return [*HEAD, *(option_label(o) for o in grid_options())]
+
+
+def case_key(noise: str, level, mesh: str) -> tuple:
+    return (noise, round(float(level), 6), mesh)
+
+
+def read_rows(path) -> list[dict]:
+    path = Path(path)
+    if not path.is_file():
+        return []
+    with open(path) as fh:
+        return list(csv.DictReader(fh))
+
+
+def as_denoise_reads(noisy, faces):
+    """`(x, f, held)`: a noisy mesh as `denoise` reads it (referenced vertices,
+    consistently wound, in its normalised frame) and the vertices it holds where they
+    are (`consistency.exact_vertices` of a float64 input, and the still vertices): all
+    False on a mesh noisy everywhere; a share of a CAD mesh's flat vertices under
+    impulse noise, which leaves most vertices exactly in their planes."""
+    from dmd_jax.consistency import (
+        exact_tolerance,
+        exact_vertices,
+        oriented_faces,
+        still_vertices,
+    )
+    from dmd_jax.inference import _prenormalised, _referenced
+
+    v, f = np.asarray(noisy, np.float64), np.asarray(faces)
+    if _referenced(v, f) is not None:
+        raise ValueError("a mesh with unreferenced vertices (not in the validation split)")
+    f, _ = oriented_faces(f, v.shape[0])
+    x, _, _ = _prenormalised(v)
+    held = exact_vertices(x, f, exact_tolerance(np.float64, v, f)) | still_vertices(v, f)
+    return x, f, held
+
+
+def held_pass_errors(noisy, clean, faces, bundle, held) -> np.ndarray:
+    """`smoothing_set.pass_errors` as `denoise` runs each option where it holds vertices
+    (`held`): each pre-smoothing level from the noisy mesh with the held vertices put
+    back, then every pass with them put back (`policy.run_passes`), in one frame."""
+    from dmd_jax.data.smoothing_set import PRESMOOTH_GRID, SEARCH_PASSES, UPDATES, _with_update
+    from dmd_jax.inference import _whole_mesh_pass
+    from dmd_jax.metrics import face_normal_errors_deg
+    from dmd_jax.presmooth import laplacian_steps
+
+    def error(x):
+        return float(np.mean(face_normal_errors_deg(x, clean, faces)))
+
+    noisy = np.asarray(noisy, np.float64)
+    out = np.empty((len(PRESMOOTH_GRID), len(UPDATES), SEARCH_PASSES + 1))
+    for p, steps in enumerate(PRESMOOTH_GRID):
+        x = laplacian_steps(noisy, faces, steps)
+        x[held] = noisy[held]
+        for u, update in enumerate(UPDATES):
+            out[p, u, 0] = error(x)
+            frame, one_pass = _whole_mesh_pass(
+                x, np.asarray(faces), _with_update(bundle, update), "auto"
+            )
+            z = frame.apply(x)
+            for k in range(1, SEARCH_PASSES + 1):
+                y = one_pass(z)
+                y[held] = z[held]
+                z = y
+                out[p, u, k] = error(frame.invert(z))
+    return out
+
+
+def run(
+    conditions,
+    *,
+    out_csv=DEFAULT_CSV,
+    controller_weights=DEFAULT_CONTROLLER,
+    val_dir=None,
+    max_meshes: int = 0,
+    only=(),
+    echo=print,
+) -> int:
+    """Searches the grid for every validation mesh and condition the CSV lacks; returns
+    how many cases it added (condition by condition, in the order given)."""
+    from dmd_jax.checkpoints import load_model
+    from dmd_jax.controller import decide, option_errors
+    from dmd_jax.data.smoothing_set import PRESMOOTH_GRID, SEARCH_PASSES, UPDATES, pass_errors
+    from dmd_jax.io import load_mesh
+    from dmd_jax.metrics import face_normal_errors_deg
+
+    files = protocol.validation_files(val_dir)
+    if only:
+        files = [p for p in files if p.name in only]
+    if max_meshes:
+        files = files[:max_meshes]
+    network = load_model(None)  # the bundled network, as the default and the controller
+    params = load_model(controller_weights).controller
+    if params is None:
+        raise ValueError(f"{controller_weights}: holds no smoothing controller")
+    opts = grid_options()
+    if tuple(params.options) != tuple(opts):
+        raise ValueError("the controller's options are not the search grid's")
+    out_csv = Path(out_csv)
+    out_csv.parent.mkdir(parents=True, exist_ok=True)
+    head = header()
+    done = {case_key(r["noise"], r["level"], r["mesh"]) for r in read_rows(out_csv)}
+    if out_csv.is_file() and out_csv.stat().st_size:
+        with open(out_csv) as fh:
+            if next(csv.reader(fh)) != head:
+                raise ValueError(f"{out_csv}: another layout; move it away")
+    else:
+        with open(out_csv, "w", newline="") as fh:
+            csv.writer(fh).writerow(head)
+    meshes = {}
+    added = 0
+    for text in conditions:
+        condition = protocol.parse_condition(text)
+        max_faces = SCAN_MAX_FACES if condition.kind in SCAN_KINDS else protocol.MAX_FACES
+        for path in files:
+            if case_key(condition.kind, condition.level, path.name) in done:
+                continue
+            if (path, max_faces) not in meshes:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    clean, faces = load_mesh(path)
+                meshes = {(path, max_faces): protocol.crop(clean, faces, max_faces)}
+            clean, faces = meshes[(path, max_faces)]
+            seed = protocol.condition_seed(path.name, condition)
+            target, noisy, tri = protocol.condition_mesh(clean, faces, condition, seed)
+            start = time.perf_counter()
+            noisy_deg = float(np.mean(face_normal_errors_deg(noisy, target, tri)))
+            x, oriented, held = as_denoise_reads(noisy, tri)
+            if held.any():
+                errors = held_pass_errors(noisy, target, oriented, network, held)
+            else:
+                errors, _ = pass_errors(noisy, target, tri, network)
+            row_errors = option_errors(errors[None], PRESMOOTH_GRID, UPDATES, SEARCH_PASSES)[0]
+            best = int(np.argmin(row_errors))
+            chosen = decide(params, x, oriented).option
+            seconds = time.perf_counter() - start
+            row = [
+                "val",
+                path.name,
+                condition.kind,
+                float(condition.level),
+                int(seed),
+                len(target),
+                len(tri),
+                f"{noisy_deg:.6f}",
+                int(held.sum()),
+                option_label(chosen),
+                option_label(opts[best]),
+                f"{row_errors[best]:.6f}",
+                f"{seconds:.1f}",
+                *(f"{e:.6f}" for e in row_errors),
+            ]
+            with open(out_csv, "a", newline="") as fh:
+                csv.writer(fh).writerow(row)
+            added += 1
+            echo(
+                f"{condition.label} {path.name} ({len(tri)} faces): oracle "
+                f"{option_label(opts[best])} {row_errors[best]:.2f}°, controller "
+                f"{option_label(chosen)} {row_errors[opts.index(chosen)]:.2f}°, noisy "
+                f"{noisy_deg:.2f}° ({seconds:.0f} s)"
+            )
+    return added
+
+
+# ----------------------------------------------------------------------------- report
+
+
+def method_errors(paths) -> dict[tuple, dict[str, float]]:
+    """`{(noise, level, mesh): {method: normal_deg}}` of the val rows of CSV reports."""
+    out: dict[tuple, dict[str, float]] = {}
+    for p in paths:
+        for r in read_rows(p):
+            if r["set"] != "val":
+                continue
+            key = case_key(r.get("noise", "gaussian"), r["level"], r["mesh"])
+            out.setdefault(key, {})[r["method"]] = float(r["normal_deg"])
+    return out
+
+
+# The issue's targets per shape against the best other method (issue 63, "done when").
+TARGETS = {"gaussian": 0.95, "impulse": 0.95, "scanner": 1.0, "scan": 1.0}
+# The sota_lite CSVs' noisy rows were partly reused from earlier runs: an input whose
+# error differs by more than this is listed in the checks.
+NOISY_TOLERANCE_DEG = 0.01
+
+
+class Case(NamedTuple):
+    """One mesh under one condition, every figure the report reads."""
+
+    cond: str
+    mesh: str
+    default: float  # today's default call (sota_lite CSV `dmd`)
+    other: float  # the best other library method there
+    controller: float  # the controller's `denoise` row (or the grid at its option)
+    grid_controller: float  # the grid's error at the controller's option
+    oracle: float
+    chosen: int  # the controller's option (index into the grid)
+    errors: np.ndarray  # [68] every option's error
+    noisy_diff: float  # our input's error minus the CSV's
+    held: int
+    from_grid: bool  # no `denoise` row of the controller: its grid error
+
+
+def _geo(x) -> float:
+    return comparison.geometric_mean(list(x))
+
+
+def _per_shape(cases, field) -> tuple[float, float, str]:
+    """Geometric mean over cases of `field / best other` (floored as sota_lite's per
+    shape), the worst ratio and its mesh."""
+    floor = comparison.RATIO_FLOOR_DEG
+    ratios = {(c.cond, c.mesh): max(getattr(c, field), floor) / max(c.other, floor) for c in cases}
+    s = comparison.summarise_ratios(ratios)
+    return s.geometric_mean, s.worst, s.worst_case
+
+
+def _capture(cases) -> tuple[float, float]:
+    """The controller's share of the oracle's gain over the default: on the geometric
+    means of the per-mesh errors (degrees), and as `controller.evaluate` reads it."""
+    from dmd_jax.controller import evaluate
+
+    g_def, g_ctl, g_orc = (
+        _geo(getattr(c, f) for c in cases) for f in ("default", "controller", "oracle")
+    )
+    plain = (g_def - g_ctl) / (g_def - g_orc) if g_def > g_orc else float("nan")
+    log = evaluate(
+        np.array([c.chosen for c in cases]),
+        np.array([c.errors for c in cases]),
+        np.array([c.default for c in cases]),
+    )["capture"]
+    return plain, log
+
+
+def _parse(label: str):
+    """`(presmooth, update, passes)` of an option label."""
+    parts = label[1:].split("_")
+    return (int(parts[0]), None, 0) if len(parts) == 1 else (int(parts[0]), parts[1], int(parts[2]))
+
+
+def _order(k):
+    return (0, k, "") if isinstance(k, int) else (1, 0, str(k))
+
+
+def _counts(labels, field) -> str:
+    c = Counter(field(_parse(x)) for x in labels)
+    return ", ".join(f"{k}: {n}" for k, n in sorted(c.items(), key=lambda kv: _order(kv[0])))
+
+
+def _passes_bin(o) -> str:
+    k = o[2]
+    return "0" if k == 0 else "1" if k == 1 else "2" if k == 2 else "3-4" if k <= 4 else "5-8"
+
+
+def _update(o) -> str:
+    return o[1] or "none"
+
+
+def read_cases(out_csv=DEFAULT_CSV) -> dict[str, list[Case]]:
+    """`{condition label: [Case]}` of the oracle's CSV joined with the sota_lite CSVs
+    (default, best other) and the controller's rows, conditions in `ALL_CONDITIONS`
+    order, meshes by name; a case the sota_lite CSVs lack is left out."""
+    rows = read_rows(out_csv)
+    labels = [option_label(o) for o in grid_options()]
+    sota, ctrl = method_errors(SOTA_CSVS), method_errors(CTRL_CSVS)
+    out: dict[str, list[Case]] = {protocol.parse_condition(c).label: [] for c in ALL_CONDITIONS}
+    for r in sorted(rows, key=lambda r: r["mesh"]):
+        key = case_key(r["noise"], r["level"], r["mesh"])
+        errs = sota.get(key, {})
+        rivals = [e for m, e in errs.items() if protocol.is_rival(m)]
+        if "dmd" not in errs or not rivals:
+            continue
+        e = np.array([float(r[k]) for k in labels])
+        i = labels.index(r["controller_option"])
+        mine = ctrl.get(key, {}).get("dmd")
+        label = protocol.NoiseCondition(r["noise"], float(r["level"])).label
+        out.setdefault(label, []).append(
+            Case(
+                cond=label,
+                mesh=r["mesh"],
+                default=errs["dmd"],
+                other=min(rivals),
+                controller=e[i] if mine is None else mine,
+                grid_controller=float(e[i]),
+                oracle=float(r["oracle_deg"]),
+                chosen=i,
+                errors=e,
+                noisy_diff=float(r["noisy_deg"]) - errs.get("noisy", np.nan),
+                held=int(r["held_vertices"]),
+                from_grid=mine is None,
+            )
+        )
+    return {k: v for k, v in out.items() if v}
+
+
+def report(out_csv=DEFAULT_CSV, path=DEFAULT_REPORT, controller_weights=DEFAULT_CONTROLLER):
+    """Writes the markdown report of the oracle's CSV (`path`)."""
+    by_cond = read_cases(out_csv)
+    if not by_cond:
+        raise ValueError(f"{out_csv}: no case to report")
+    labels = [option_label(o) for o in grid_options()]
+    main, verdicts, picks, misses, checks = [], [], [], [], []
+    groups = [*by_cond.items(), ("all run", [c for cs in by_cond.values() for c in cs])]
+    for cond, cases in groups:
+        d = _per_shape(cases, "default")
+        c = _per_shape(cases, "controller")
+        o = _per_shape(cases, "oracle")
+        plain, log = _capture(cases)
+        g = [_geo(getattr(x, f) for x in cases) for f in ("default", "controller", "oracle")]
+        main.append(
+            [
+                cond,
+                len(cases),
+                f"{d[0]:.3f} / {d[1]:.2f} ({d[2][1]})",
+                f"{c[0]:.3f} / {c[1]:.2f} ({c[2][1]})",
+                f"{o[0]:.3f} / {o[1]:.2f} ({o[2][1]})",
+                " / ".join(f"{x:.2f}" for x in g),
+                f"{100 * plain:.0f} %" if np.isfinite(plain) else "n/a",
+                f"{100 * log:.0f} %" if np.isfinite(log) else "n/a",
+                sum(x.default < 0.99 * x.oracle for x in cases),
+            ]
+        )
+        if cond == "all run":
+            continue
+        target = TARGETS[protocol.parse_condition(cond).kind]
+        meets = o[0] <= target
+        either = _per_shape([x._replace(oracle=min(x.oracle, x.default)) for x in cases], "oracle")
+        verdicts.append(
+            [
+                cond,
+                f"≤ {target:.2f}",
+                f"{d[0]:.3f}",
+                f"{c[0]:.3f}" + (" (meets)" if c[0] <= target else ""),
+                f"{o[0]:.3f}" + (" (meets)" if meets else " (misses)"),
+                f"{either[0]:.3f}",
+                "met already"
+                if c[0] <= target
+                else "the controller"
+                if meets
+                else "the network (the grid's best misses it too)",
+            ]
+        )
+        orc = [labels[int(np.argmin(x.errors))] for x in cases]
+        ctl = [labels[x.chosen] for x in cases]
+        same = sum(a == b for a, b in zip(orc, ctl, strict=True))
+        for who, lab in (("oracle", orc), ("controller", ctl)):
+            picks.append(
+                [
+                    cond if who == "oracle" else "",
+                    who,
+                    _counts(lab, lambda opt: opt[0]),
+                    _counts(lab, _passes_bin),
+                    _counts(lab, _update),
+                    same if who == "oracle" else "",
+                ]
+            )
+        for x in sorted(cases, key=lambda x: x.grid_controller / x.oracle, reverse=True)[:3]:
+            if x.grid_controller / x.oracle < 1.05:
+                continue
+            misses.append(
+                [
+                    cond,
+                    x.mesh,
+                    f"{labels[x.chosen]} {x.grid_controller:.2f}°",
+                    f"{labels[int(np.argmin(x.errors))]} {x.oracle:.2f}°",
+                    f"{x.default:.2f}°",
+                    f"{x.other:.2f}°",
+                    f"{x.grid_controller / x.oracle:.2f}",
+                ]
+            )
+        diffs = {x.mesh: abs(x.controller - x.grid_controller) / x.controller for x in cases}
+        off = [m for m, v in diffs.items() if v > 0.01]
+        stale = [
+            f"{x.mesh} ({x.noisy_diff:+.4f}°)"
+            for x in cases
+            if not abs(x.noisy_diff) <= NOISY_TOLERANCE_DEG
+        ]
+        held = [f"{x.mesh} ({x.held})" for x in cases if x.held]
+        checks.append(
+            f"{cond}: noisy input's error as the CSV's `noisy` row within "
+            f"{NOISY_TOLERANCE_DEG:g}° on {len(cases) - len(stale)} of {len(cases)}"
+            + (f" (not: {', '.join(stale)})" if stale else "")
+            + "; the controller's `denoise` row equals the grid's error at its option "
+            f"within 1 % on {len(cases) - len(off)}"
+            + (f" (not: {', '.join(f'{m} {100 * diffs[m]:.0f} %' for m in off)})" if off else "")
+            + (f"; held vertices: {', '.join(held)}" if held else "")
+            + (
+                f"; {sum(x.from_grid for x in cases)} controller errors from the grid"
+                if any(x.from_grid for x in cases)
+                else ""
+            )
+        )
+    run_labels = list(by_cond)
+    missing = [protocol.parse_condition(c).label for c in ALL_CONDITIONS]
+    missing = [m for m in missing if m not in run_labels]
+    n_meet = sum(v[4].endswith("(meets)") for v in verdicts)
+    parts = [
+        "# The grid oracle of the smoothing controller on the validation split",
+        "",
+        provenance(controller_weights)
+        + " The network is the bundled one (`dmd_small.msgpack`, unchanged); the "
+        "controller is the one of `controller_val.md` (not bundled).",
+        "",
+        "The 20 meshes of the real validation split (`sota_lite.py --sets val`), cropped "
+        f"to {protocol.MAX_FACES:,} faces (Gaussian, impulse) and {SCAN_MAX_FACES:,} "
+        "(scanner, scans), with the noise and seeds of `sota_lite.csv` / "
+        "`sota_lite_scan.csv`. The oracle picks, per mesh, the best of the controller's "
+        "68 options (none; pre-smoothing 0/3/8/20 Laplacian steps alone or followed by "
+        "1-8 network passes with the Jacobi or the solve update): "
+        "`smoothing_set.pass_errors`, one 8-pass run per pre-smoothing level and update "
+        "(where `denoise` holds vertices, `consistency.exact_vertices`: a CAD mesh's "
+        "flat vertices under impulse noise, the same search holding them as `denoise` "
+        "does). Default and best other method: the `dmd` rows and the best "
+        "`protocol.is_rival` method of the sota_lite CSVs. Controller: the `dmd` rows of "
+        "`runs/ctrl/val_ctrl*.csv` (`controller_val.md`'s commands; its option read "
+        "from the same noisy mesh as `denoise` reads it). Conditions run: "
+        + ", ".join(run_labels)
+        + (f"; not run: {', '.join(missing)}" if missing else "")
+        + ". The per-mesh rows: `runs/oracle/oracle_val.csv` (not committed).",
+        "",
+        "```bash",
+        "python benchmarks/quality/oracle_val.py --conditions "
+        + " ".join(c for c in ALL_CONDITIONS if protocol.parse_condition(c).label in run_labels),
+        "```",
+        "",
+        "## Can the targets be met over this grid?",
+        "",
+        f"Issue 63's targets per shape against the best other method (geometric mean). "
+        f"The grid's per-mesh best meets them under {n_meet} of {len(verdicts)} "
+        "conditions run. Where it misses, no choice of pre-smoothing, passes and update "
+        "from this grid meets the target with today's network: the network (or a wider "
+        "grid) is the limit there, not the controller. `oracle or default`: per mesh the "
+        "better of the grid's best and today's default call (which can run more passes "
+        "or other pre-smoothing counts than the grid holds).",
+        "",
+        markdown_table(
+            [
+                "condition",
+                "target",
+                "default",
+                "controller",
+                "oracle",
+                "oracle or default",
+                "the limit",
+            ],
+            verdicts,
+        ),
+        "",
+        "## Per shape against the best other method, and the controller's capture",
+        "",
+        "Default, controller and oracle per mesh over the best other library method: "
+        "geometric mean / worst with its mesh (errors below "
+        f"{comparison.RATIO_FLOOR_DEG:g}° count as {comparison.RATIO_FLOOR_DEG:g}°). "
+        "G: the geometric mean over the meshes of the mean face-normal error (°). "
+        "Capture = (G_default − G_controller) / (G_default − G_oracle): the share of the "
+        "oracle's gain over the default call that the controller realises (negative: the "
+        "controller is worse than the default). `capture (log, +0.5°)` is `controller.md`'s "
+        "definition (`controller.evaluate`: differences of log geometric means of the "
+        "errors plus 0.5°, the controller's error read from the grid), comparable with its "
+        "67 % on the generated test split. `default < oracle`: meshes where the default "
+        "call (passes while they move the mesh, pre-smoothing by its rule) beats every "
+        "grid option by more than 1 %.",
+        "",
+        markdown_table(
+            [
+                "condition",
+                "meshes",
+                "default / best other",
+                "controller / best other",
+                "oracle / best other",
+                "G: default / controller / oracle (°)",
+                "capture",
+                "capture (log, +0.5°)",
+                "default < oracle",
+            ],
+            main,
+        ),
+        "",
+        "## What the oracle picks, against the controller",
+        "",
+        "Counts over the meshes: pre-smoothing steps, network passes, update (`none`: no "
+        "network pass); `same`: meshes where the controller picks the oracle's option.",
+        "",
+        markdown_table(["condition", "who", "pre-smoothing", "passes", "update", "same"], picks),
+        "",
+        "## Where the controller errs most",
+        "",
+        "Per condition, up to three meshes where the controller's option is furthest from "
+        "the oracle's (grid errors; shown when at least 5 % worse). Options: `pP` "
+        "pre-smoothing alone (`p0`: the mesh as given), `pP_update_K`.",
+        "",
+        markdown_table(
+            [
+                "condition",
+                "mesh",
+                "controller",
+                "oracle",
+                "default",
+                "best other",
+                "controller / oracle",
+            ],
+            misses,
+        ),
+        "",
+        "## Checks",
+        "",
+        "\n".join(f"- {c}" for c in checks),
+        "",
+    ]
+    return write_text(Path(path), "\n".join(parts))
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument(
+        "--conditions",
+        nargs="+",
+        default=list(ALL_CONDITIONS),
+        metavar="CONDITION",
+        help="conditions to search, in this order (as sota_lite's --conditions)",
+    )
+    parser.add_argument("--csv", default=str(DEFAULT_CSV), help="the oracle's CSV (appended)")
+    parser.add_argument("--report", default=str(DEFAULT_REPORT), help="markdown report")
+    parser.add_argument("--controller-weights", default=str(DEFAULT_CONTROLLER))
+    parser.add_argument("--max-meshes", type=int, default=0, help="first N meshes only")
+    parser.add_argument("--only", nargs="+", default=[], help="these mesh files only")
+    parser.add_argument("--report-only", action="store_true", help="no search: the report")
+    args = parser.parse_args(argv)
+    try:
+        if not args.report_only:
+            run(
+                args.conditions,
+                out_csv=args.csv,
+                controller_weights=args.controller_weights,
+                max_meshes=args.max_meshes,
+                only=tuple(args.only),
+            )
+        print(f"wrote {report(args.csv, args.report, args.controller_weights)}")
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"oracle_val: error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
