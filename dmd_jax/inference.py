@@ -208,10 +208,10 @@ def _denoise_whole(v, f, bundle, policy: DenoisePolicy, aggregation: str, held=N
     return frame.invert(x), done
 
 
-def network_passes(vertices, faces, bundle, passes: int, aggregation: str = "auto"):
+def network_passes(vertices, faces, bundle, passes: int, aggregation: str = "auto", *, held=None):
     """Yields the mesh after each of `passes` network passes, as `denoise` chains them
-    in one frame (no pre-smoothing, no held vertices, no relaxation): the search over
-    pass counts of `dmd_jax.data.smoothing_set` reads every count from one run.
+    in one frame (no pre-smoothing, no relaxation): the search over pass counts of
+    `dmd_jax.data.smoothing_set` reads every count from one run.
 
     Args:
       vertices: `[n_vertex, 3]` float64, every vertex referenced.
@@ -219,6 +219,9 @@ def network_passes(vertices, faces, bundle, passes: int, aggregation: str = "aut
       bundle: a `ModelBundle`.
       passes: how many.
       aggregation: as `denoise`'s.
+      held: optional `[n_vertex]` bool, the vertices `denoise` holds where they are
+        (`consistency.exact_vertices`, `still_vertices`): put back after every pass,
+        as `policy.run_passes` does.
 
     Yields:
       `[n_vertex, 3]` float64 positions in the input frame, after pass 1, 2, ...
@@ -226,8 +229,12 @@ def network_passes(vertices, faces, bundle, passes: int, aggregation: str = "aut
     v = np.asarray(vertices, np.float64)
     frame, one_pass = _whole_mesh_pass(v, np.asarray(faces), bundle, aggregation)
     x = frame.apply(v)
+    start = x.copy()
+    hold = held is not None and bool(np.any(held))
     for _ in range(passes):
         x = one_pass(x)
+        if hold:
+            x[held] = start[held]
         if not np.all(np.isfinite(x)):
             raise ValueError("the network produced non-finite vertices (broken weights?)")
         yield frame.invert(x)

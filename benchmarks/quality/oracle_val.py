@@ -117,15 +117,9 @@ def read_rows(path) -> list[dict]:
 def as_denoise_reads(noisy, faces):
     """`(x, f, held)`: a noisy mesh as `denoise` reads it (referenced vertices,
     consistently wound, in its normalised frame) and the vertices it holds where they
-    are (`consistency.exact_vertices` of a float64 input, and the still vertices): all
-    False on a mesh noisy everywhere; a share of a CAD mesh's flat vertices under
-    impulse noise, which leaves most vertices exactly in their planes."""
-    from dmd_jax.consistency import (
-        exact_tolerance,
-        exact_vertices,
-        oriented_faces,
-        still_vertices,
-    )
+    are (`smoothing_set.held_vertices`)."""
+    from dmd_jax.consistency import oriented_faces
+    from dmd_jax.data.smoothing_set import held_vertices
     from dmd_jax.inference import _prenormalised, _referenced
 
     v, f = np.asarray(noisy, np.float64), np.asarray(faces)
@@ -133,39 +127,7 @@ def as_denoise_reads(noisy, faces):
         raise ValueError("a mesh with unreferenced vertices (not in the validation split)")
     f, _ = oriented_faces(f, v.shape[0])
     x, _, _ = _prenormalised(v)
-    held = exact_vertices(x, f, exact_tolerance(np.float64, v, f)) | still_vertices(v, f)
-    return x, f, held
-
-
-def held_pass_errors(noisy, clean, faces, bundle, held) -> np.ndarray:
-    """`smoothing_set.pass_errors` as `denoise` runs each option where it holds vertices
-    (`held`): each pre-smoothing level from the noisy mesh with the held vertices put
-    back, then every pass with them put back (`policy.run_passes`), in one frame."""
-    from dmd_jax.data.smoothing_set import PRESMOOTH_GRID, SEARCH_PASSES, UPDATES, _with_update
-    from dmd_jax.inference import _whole_mesh_pass
-    from dmd_jax.metrics import face_normal_errors_deg
-    from dmd_jax.presmooth import laplacian_steps
-
-    def error(x):
-        return float(np.mean(face_normal_errors_deg(x, clean, faces)))
-
-    noisy = np.asarray(noisy, np.float64)
-    out = np.empty((len(PRESMOOTH_GRID), len(UPDATES), SEARCH_PASSES + 1))
-    for p, steps in enumerate(PRESMOOTH_GRID):
-        x = laplacian_steps(noisy, faces, steps)
-        x[held] = noisy[held]
-        for u, update in enumerate(UPDATES):
-            out[p, u, 0] = error(x)
-            frame, one_pass = _whole_mesh_pass(
-                x, np.asarray(faces), _with_update(bundle, update), "auto"
-            )
-            z = frame.apply(x)
-            for k in range(1, SEARCH_PASSES + 1):
-                y = one_pass(z)
-                y[held] = z[held]
-                z = y
-                out[p, u, k] = error(frame.invert(z))
-    return out
+    return x, f, held_vertices(v, f)
 
 
 def run(
@@ -182,7 +144,12 @@ def run(
     how many cases it added (condition by condition, in the order given)."""
     from dmd_jax.checkpoints import load_model
     from dmd_jax.controller import decide, option_errors
-    from dmd_jax.data.smoothing_set import PRESMOOTH_GRID, SEARCH_PASSES, UPDATES, pass_errors
+    from dmd_jax.data.smoothing_set import (
+        PRESMOOTH_GRID,
+        SEARCH_PASSES,
+        UPDATES,
+        pass_errors,
+    )
     from dmd_jax.io import load_mesh
     from dmd_jax.metrics import face_normal_errors_deg
 
@@ -228,10 +195,9 @@ def run(
             start = time.perf_counter()
             noisy_deg = float(np.mean(face_normal_errors_deg(noisy, target, tri)))
             x, oriented, held = as_denoise_reads(noisy, tri)
-            if held.any():
-                errors = held_pass_errors(noisy, target, oriented, network, held)
-            else:
-                errors, _ = pass_errors(noisy, target, tri, network)
+            # The search as `denoise` runs each option (held vertices put back).
+            mesh_faces = oriented if held.any() else tri
+            errors, _ = pass_errors(noisy, target, mesh_faces, network, held)
             row_errors = option_errors(errors[None], PRESMOOTH_GRID, UPDATES, SEARCH_PASSES)[0]
             best = int(np.argmin(row_errors))
             chosen = decide(params, x, oriented).option

@@ -27,8 +27,14 @@ recomputes them for every example from its regenerated noisy mesh (about 0.1 s e
 instead of redoing the search (10-15 s each); `load` refuses a set whose examples carry
 statistics of another version.
 
+The search runs every option as `denoise` runs it, holding the vertices `denoise` holds
+(`held_vertices`: a CAD part's flat vertices under impulse noise, a clean part's).
+Examples searched before that (`SEARCH_VERSION` 1) are refused by `load`; `--research`
+redoes the search of those with held vertices (about a fifth) and stamps the others.
+
     python -m dmd_jax.data.smoothing_set --out data/smoothing --examples 2000
     python -m dmd_jax.data.smoothing_set --out data/smoothing --refeature
+    python -m dmd_jax.data.smoothing_set --out data/smoothing --research
 """
 
 from __future__ import annotations
@@ -44,6 +50,11 @@ from pathlib import Path
 import numpy as np
 
 PRESMOOTH_GRID = (0, 3, 8, 20)
+# The search's version: 2 holds the vertices `denoise` holds (`held_vertices`), as every
+# option runs in `denoise`; version 1 (examples without the field) moved them, so its
+# errors differ from `denoise`'s on CAD parts under impulse noise and on clean flat parts
+# (`cgal_boeing` under impulse: 2 passes best at 11.38° without, 4 at 8.93° with).
+SEARCH_VERSION = 2
 SEARCH_PASSES = 8
 UPDATES = ("jacobi", "solve")
 # Noise kinds and their share of the examples.
@@ -310,14 +321,36 @@ class Sources:
         return patch_mesh(v, f, seed_face, spec["patch_faces"])
 
 
-def pass_errors(noisy, clean, faces, bundle) -> np.ndarray:
-    """The mean face-normal error (degrees) of every setting of the search.
+def held_vertices(noisy, faces) -> np.ndarray:
+    """`[n_vertex]` bool: the vertices `denoise` holds where they are in `noisy`
+    (`consistency.exact_vertices` in its pre-normalised frame, and the still vertices):
+    all False on a mesh noisy everywhere; a share of a CAD part's flat vertices under
+    impulse noise, which leaves most vertices exactly in their planes.
+
+    Args:
+      noisy: `[n_vertex, 3]` float64, every vertex referenced.
+      faces: `[n_face, 3]`.
+    """
+    from dmd_jax.consistency import exact_tolerance, exact_vertices, oriented_faces, still_vertices
+    from dmd_jax.inference import _prenormalised
+
+    v, f = np.asarray(noisy, np.float64), np.asarray(faces)
+    f, _ = oriented_faces(f, v.shape[0])
+    x, _, _ = _prenormalised(v)
+    return exact_vertices(x, f, exact_tolerance(np.float64, v, f)) | still_vertices(v, f)
+
+
+def pass_errors(noisy, clean, faces, bundle, held=None) -> np.ndarray:
+    """The mean face-normal error (degrees) of every setting of the search, each run as
+    `denoise` runs it.
 
     Args:
       noisy: `[n_vertex, 3]` the noisy mesh.
       clean: `[n_vertex, 3]` its ground truth.
       faces: `[n_face, 3]`.
       bundle: the network (`ModelBundle`).
+      held: `[n_vertex]` bool, the vertices `denoise` holds (`held_vertices`; None:
+        computed here): put back after the pre-smoothing and after every pass.
 
     Returns:
       `(errors, first)`: `[len(PRESMOOTH_GRID), len(UPDATES), SEARCH_PASSES + 1]`
@@ -332,19 +365,26 @@ def pass_errors(noisy, clean, faces, bundle) -> np.ndarray:
     def error(x):
         return float(np.mean(face_normal_errors_deg(x, clean, faces)))
 
+    noisy = np.asarray(noisy, np.float64)
+    held = held_vertices(noisy, faces) if held is None else np.asarray(held, bool)
     out = np.empty((len(PRESMOOTH_GRID), len(UPDATES), SEARCH_PASSES + 1))
     bundles = [_with_update(bundle, u) for u in UPDATES]
-    x, done = np.asarray(noisy, np.float64), 0
+    x, done = noisy, 0
     first = None
     for p, steps in enumerate(PRESMOOTH_GRID):
+        # Each level continues the previous one's steps; the held vertices are put back
+        # only in the copy the passes start from (`denoise` smooths, then puts back).
         x = laplacian_steps(x, faces, steps - done)
         done = steps
+        start = x.copy()
+        start[held] = noisy[held]
         for u, b in enumerate(bundles):
-            out[p, u, 0] = error(x)
-            for k, y in enumerate(network_passes(x, faces, b, SEARCH_PASSES), 1):
+            out[p, u, 0] = error(start)
+            passes = network_passes(start, faces, b, SEARCH_PASSES, held=held)
+            for k, y in enumerate(passes, 1):
                 out[p, u, k] = error(y)
                 if first is None:
-                    first = pass_change(x, y, faces)
+                    first = pass_change(start, y, faces)
     return out, first
 
 
@@ -419,13 +459,15 @@ def build(
             say(f"skipped: {err}")
             continue
         feats = features(noisy, faces)
-        errors, first = pass_errors(noisy, clean, faces, bundle)
+        held = held_vertices(noisy, faces)
+        errors, first = pass_errors(noisy, clean, faces, bundle, held)
         # Today's default call, for the controller's report (its gain over the default).
         default = float(
             np.mean(face_normal_errors_deg(denoise(noisy, faces, bundle), clean, faces))
         )
 
         digest = mesh_digest(noisy, faces)
+        n_held = int(held.sum())
 
         def write(
             tmp,
@@ -436,6 +478,7 @@ def build(
             first=first,
             default=default,
             digest=digest,
+            n_held=n_held,
         ):
             with open(tmp, "wb") as fh:
                 np.savez(
@@ -443,6 +486,8 @@ def build(
                     features=feats,
                     features_version=FEATURES_VERSION,
                     errors=errors,
+                    search_version=SEARCH_VERSION,
+                    held_vertices=n_held,
                     first_pass=first,
                     default_error=default,
                     spec=json.dumps(spec),
@@ -496,23 +541,31 @@ def _features_version(z) -> int:
     return int(z["features_version"]) if "features_version" in z.files else 1
 
 
+def _search_version(z) -> int:
+    # Examples written before the field existed were searched without held vertices.
+    return int(z["search_version"]) if "search_version" in z.files else 1
+
+
 def load(out) -> dict:
     """A built set as arrays: `features [n, N_FEATURES]`, `errors [n, P, U, K + 1]`,
     `first_pass [n, 2]`, `default_error [n]` and `specs` (a list of dicts).
 
     Raises:
       ValueError: an example's statistics are of another `FEATURES_VERSION` than this
-        dmd_jax computes (run `--refeature`), so stale statistics are never mixed in.
+        dmd_jax computes (run `--refeature`), or its search of another `SEARCH_VERSION`
+        (run `--research`), so stale statistics or targets are never mixed in.
     """
     from dmd_jax.controller_features import FEATURES_VERSION
 
     files = _example_files(out)
     out = {"features": [], "errors": [], "first_pass": [], "default_error": [], "specs": []}
-    stale = []
+    stale, unsearched = [], []
     for path in files:
         with np.load(path) as z:
             if _features_version(z) != FEATURES_VERSION:
                 stale.append(path.name)
+            if _search_version(z) != SEARCH_VERSION:
+                unsearched.append(path.name)
             for key in ("features", "errors", "first_pass", "default_error"):
                 out[key].append(z[key])
             out["specs"].append(json.loads(str(z["spec"])))
@@ -521,6 +574,12 @@ def load(out) -> dict:
             f"{len(stale)} examples (e.g. {stale[0]}) carry statistics of another version than "
             f"{FEATURES_VERSION}: python -m dmd_jax.data.smoothing_set --out "
             f"{files[0].parents[1]} --refeature"
+        )
+    if unsearched:
+        raise ValueError(
+            f"{len(unsearched)} examples (e.g. {unsearched[0]}) were searched by another "
+            f"version than {SEARCH_VERSION}: python -m dmd_jax.data.smoothing_set --out "
+            f"{files[0].parents[1]} --research"
         )
     return {k: v if k == "specs" else np.array(v) for k, v in out.items()}
 
@@ -595,6 +654,70 @@ def refeature(out, *, sources: Sources, verify=None, say=print) -> dict:
     return report
 
 
+def research(out, *, sources: Sources, bundle=None, say=print) -> dict:
+    """Brings every example searched by an older `SEARCH_VERSION` to today's: regenerates
+    its noisy mesh (checked against its digest), and where `denoise` holds vertices of it
+    (`held_vertices`) redoes the search holding them; an example with none held keeps its
+    errors (the search is the same) and gets the version. Each file is rewritten whole,
+    so a stopped run resumes.
+
+    Returns:
+      `{"checked", "researched", "rejected": [names]}`.
+    """
+    from dmd_jax import load_pretrained
+    from dmd_jax.io._files import atomic_write
+
+    counts = sources.counts()
+    manifest = json.loads(Path(out, "manifest.json").read_text())
+    if manifest["sources"] != counts:
+        raise ValueError(f"the sources changed since {out} was built: {counts}")
+    bundle = load_pretrained() if bundle is None else bundle
+    report = {"checked": 0, "researched": 0, "rejected": []}
+    t0 = time.time()
+    for path in _example_files(out):
+        with np.load(path) as z:
+            if _search_version(z) == SEARCH_VERSION:
+                continue
+            fields = {k: z[k] for k in z.files}
+        spec = json.loads(str(fields["spec"]))
+        clean, faces = sources.mesh(spec)
+        try:
+            clean, noisy, faces = noisy_example(spec, clean, faces)
+        except ValueError as err:
+            reason = str(err)
+        else:
+            reason = (
+                None
+                if str(fields.get("noisy_digest")) == mesh_digest(noisy, faces)
+                else ("digest differs")
+            )
+        if reason is not None:
+            (Path(out) / "rejected").mkdir(exist_ok=True)
+            path.rename(Path(out) / "rejected" / path.name)
+            report["rejected"].append(path.name)
+            say(f"{path.name} moved to rejected/: {reason}")
+            continue
+        held = held_vertices(noisy, faces)
+        if held.any():
+            fields["errors"], fields["first_pass"] = pass_errors(noisy, clean, faces, bundle, held)
+            report["researched"] += 1
+        fields["search_version"] = SEARCH_VERSION
+        fields["held_vertices"] = int(held.sum())
+
+        def write(tmp, fields=fields):
+            with open(tmp, "wb") as fh:
+                np.savez(fh, **fields)
+
+        atomic_write(path, write, overwrite=True)
+        report["checked"] += 1
+        if report["checked"] % 100 == 0:
+            say(
+                f"{report['checked']} examples checked, {report['researched']} searched again "
+                f"({time.time() - t0:.0f} s)"
+            )
+    return report
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, required=True)
@@ -609,6 +732,11 @@ def main(argv=None) -> int:
         action="store_true",
         help="recompute stale statistics of the built examples instead of building",
     )
+    parser.add_argument(
+        "--research",
+        action="store_true",
+        help="redo the search of examples of an older search version where vertices are held",
+    )
     args = parser.parse_args(argv)
     sources = Sources(
         args.data if Path(args.data).is_dir() else None,
@@ -620,6 +748,13 @@ def main(argv=None) -> int:
             f"recomputed {report['rewritten']} examples' statistics ({report['digest_checked']} "
             f"checked by digest, the others by face count); {len(report['rejected'])} moved to "
             "rejected/"
+        )
+        return 0
+    if args.research:
+        report = research(args.out, sources=sources)
+        print(
+            f"checked {report['checked']} examples, searched {report['researched']} again "
+            f"(vertices held); {len(report['rejected'])} moved to rejected/"
         )
         return 0
     k, _, n = args.shard.partition("/")
