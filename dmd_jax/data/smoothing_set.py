@@ -654,12 +654,13 @@ def refeature(out, *, sources: Sources, verify=None, say=print) -> dict:
     return report
 
 
-def research(out, *, sources: Sources, bundle=None, say=print) -> dict:
+def research(out, *, sources: Sources, bundle=None, reverse: bool = False, say=print) -> dict:
     """Brings every example searched by an older `SEARCH_VERSION` to today's: regenerates
     its noisy mesh (checked against its digest), and where `denoise` holds vertices of it
     (`held_vertices`) redoes the search holding them; an example with none held keeps its
     errors (the search is the same) and gets the version. Each file is rewritten whole,
-    so a stopped run resumes.
+    so a stopped run resumes, and a second process with `reverse` (from the last
+    example back) shares the work with a first one.
 
     Returns:
       `{"checked", "researched", "rejected": [names]}`.
@@ -674,7 +675,10 @@ def research(out, *, sources: Sources, bundle=None, say=print) -> dict:
     bundle = load_pretrained() if bundle is None else bundle
     report = {"checked": 0, "researched": 0, "rejected": []}
     t0 = time.time()
-    for path in _example_files(out):
+    files = _example_files(out)
+    for path in reversed(files) if reverse else files:
+        if not path.exists():  # moved to rejected/ by the other process
+            continue
         with np.load(path) as z:
             if _search_version(z) == SEARCH_VERSION:
                 continue
@@ -737,6 +741,9 @@ def main(argv=None) -> int:
         action="store_true",
         help="redo the search of examples of an older search version where vertices are held",
     )
+    parser.add_argument(
+        "--reverse", action="store_true", help="with --research: from the last example back"
+    )
     args = parser.parse_args(argv)
     sources = Sources(
         args.data if Path(args.data).is_dir() else None,
@@ -751,7 +758,7 @@ def main(argv=None) -> int:
         )
         return 0
     if args.research:
-        report = research(args.out, sources=sources)
+        report = research(args.out, sources=sources, reverse=args.reverse)
         print(
             f"checked {report['checked']} examples, searched {report['researched']} again "
             f"(vertices held); {len(report['rejected'])} moved to rejected/"
