@@ -141,7 +141,7 @@ def impulse_part():
     vertices stay exactly in their planes, and `denoise` holds them."""
     from dmd_jax.data.stress import stress_shape, subdivide
 
-    v, f = subdivide(*stress_shape("chamfered_box"), levels=2)
+    v, f = subdivide(*stress_shape("chamfered_box"), levels=1)
     v, f = np.asarray(v, np.float64), np.asarray(f, np.int32)
     noisy = add_noise(5, v, f, "impulse", 0.5, units="edge")
     return v, f, noisy
