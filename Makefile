@@ -199,7 +199,8 @@ bench-device: $(STAMP)
 
 # The learned smoothing controller (dmd_jax/controller.py, docs/controller.md): the
 # generated set (every noise kind; one search over pre-smoothing x update x passes per
-# example; resumable, one process per core) into data/smoothing, then the controller
+# example; resumable, one process per core; an older search brought to today's by
+# --research) into data/smoothing, then the controller
 # trained on it (minutes; chosen on its validation split, reported on its test split) and
 # stored beside the bundled network in runs/dmd_controller.msgpack.
 SMOOTHING_EXAMPLES ?= 2000
@@ -207,6 +208,7 @@ SMOOTHING_EXAMPLES ?= 2000
 controller-data: $(STAMP)
 	$(BIN)/python -m dmd_jax.data.smoothing_set --out data/smoothing --examples $(SMOOTHING_EXAMPLES) --shard 0/2 & \
 	$(BIN)/python -m dmd_jax.data.smoothing_set --out data/smoothing --examples $(SMOOTHING_EXAMPLES) --shard 1/2; wait
+	$(BIN)/python -m dmd_jax.data.smoothing_set --out data/smoothing --research
 
 controller: $(STAMP)
 	$(BIN)/python scripts/train_controller.py data/smoothing --out runs/controller.npz \
