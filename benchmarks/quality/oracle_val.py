@@ -347,6 +347,11 @@ def repick(src_csv, out_csv, controller_weights, *, val_dir=None, echo=print) ->
     return len(out)
 
 
+def _rel(path) -> str:
+    path = Path(path).resolve()
+    return str(path.relative_to(REPO)) if path.is_relative_to(REPO) else str(path)
+
+
 def _parse(label: str):
     """`(presmooth, update, passes)` of an option label."""
     parts = label[1:].split("_")
@@ -551,7 +556,7 @@ def report(
         "",
         provenance(controller_weights)
         + " The network is the bundled one (`dmd_small.msgpack`, unchanged); the "
-        "controller is the one of `controller_val.md` (not bundled).",
+        "controller is the one in that file (not bundled).",
         "",
         "The 20 meshes of the real validation split (`sota_lite.py --sets val`), cropped "
         f"to {protocol.MAX_FACES:,} faces (Gaussian, impulse) and {SCAN_MAX_FACES:,} "
@@ -563,16 +568,29 @@ def report(
         "(where `denoise` holds vertices, `consistency.exact_vertices`: a CAD mesh's "
         "flat vertices under impulse noise, the same search holding them as `denoise` "
         "does). Default and best other method: the `dmd` rows and the best "
-        "`protocol.is_rival` method of the sota_lite CSVs. Controller: the `dmd` rows of "
-        "`runs/ctrl/val_ctrl*.csv` (`controller_val.md`'s commands; its option read "
-        "from the same noisy mesh as `denoise` reads it). Conditions run: "
+        "`protocol.is_rival` method of the sota_lite CSVs. Controller: its option read "
+        "from the same noisy mesh as `denoise` reads it, and "
+        + (
+            "its error the grid's at that option (`--repick`: the grid of the search run "
+            "for the first controller, its error at an option `denoise`'s within 1 %)"
+            if not ctrl_csvs
+            else "its error the `dmd` rows of `runs/ctrl/val_ctrl*.csv` "
+            "(`controller_val.md`'s commands), or the grid's where those lack a case"
+        )
+        + ". Conditions run: "
         + ", ".join(run_labels)
         + (f"; not run: {', '.join(missing)}" if missing else "")
-        + ". The per-mesh rows: `runs/oracle/oracle_val.csv` (not committed).",
+        + f". The per-mesh rows: `{_rel(out_csv)}` (not committed).",
         "",
         "```bash",
         "python benchmarks/quality/oracle_val.py --conditions "
-        + " ".join(c for c in ALL_CONDITIONS if protocol.parse_condition(c).label in run_labels),
+        + " ".join(c for c in ALL_CONDITIONS if protocol.parse_condition(c).label in run_labels)
+        + (
+            ""
+            if ctrl_csvs
+            else f"\npython benchmarks/quality/oracle_val.py --repick {_rel(DEFAULT_CSV)} "
+            f"--csv {_rel(out_csv)} --controller-weights {_rel(controller_weights)}"
+        ),
         "```",
         "",
         "## Can the targets be met over this grid?",
