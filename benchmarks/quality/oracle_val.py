@@ -138,10 +138,12 @@ def run(
     val_dir=None,
     max_meshes: int = 0,
     only=(),
+    network_weights=None,
     echo=print,
 ) -> int:
     """Searches the grid for every validation mesh and condition the CSV lacks; returns
-    how many cases it added (condition by condition, in the order given)."""
+    how many cases it added (condition by condition, in the order given). The network
+    searched is `network_weights` (default: the bundled one)."""
     from dmd_jax.checkpoints import load_model
     from dmd_jax.controller import decide, option_errors
     from dmd_jax.data.smoothing_set import (
@@ -158,7 +160,7 @@ def run(
         files = [p for p in files if p.name in only]
     if max_meshes:
         files = files[:max_meshes]
-    network = load_model(None)  # the bundled network, as the default and the controller
+    network = load_model(network_weights)  # default: the bundled, as the default call's
     params = load_model(controller_weights).controller
     if params is None:
         raise ValueError(f"{controller_weights}: holds no smoothing controller")
@@ -702,6 +704,11 @@ def main(argv=None) -> int:
         help="no search: copy this oracle CSV to --csv with the picks of --controller-weights "
         "(the controller's errors then come from the grid)",
     )
+    parser.add_argument(
+        "--network",
+        help="search this weights file's network instead of the bundled one (a long run's "
+        "milestone: how far a better network lifts the oracle); writes the CSV, no report",
+    )
     args = parser.parse_args(argv)
     ctrl_csvs = CTRL_CSVS
     try:
@@ -715,7 +722,12 @@ def main(argv=None) -> int:
                 controller_weights=args.controller_weights,
                 max_meshes=args.max_meshes,
                 only=tuple(args.only),
+                network_weights=args.network,
             )
+        if args.network:
+            # The report's default and controller columns are the bundled network's.
+            print(f"searched {args.network}'s grid into {args.csv}; no report")
+            return 0
         print(f"wrote {report(args.csv, args.report, args.controller_weights, ctrl_csvs)}")
     except (ValueError, FileNotFoundError) as exc:
         print(f"oracle_val: error: {exc}", file=sys.stderr)
