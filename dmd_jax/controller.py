@@ -142,6 +142,16 @@ def scores(params: ControllerParams, feats: np.ndarray) -> np.ndarray:
     return h @ params.w2 + params.b2
 
 
+def crop_scores(params: ControllerParams, feats: np.ndarray, crop_mask=None) -> np.ndarray:
+    """`[n, O]` scores of meshes read in crops: `[n, C, F]` statistics (`crop_mask`
+    `[n, C]`: which are real; None: all), each mesh's mean over its crops (`decide`)."""
+    s = scores(params, feats)
+    if crop_mask is None:
+        return s.mean(axis=1)
+    m = np.asarray(crop_mask, np.float64)[..., None]
+    return (s * m).sum(axis=1) / m.sum(axis=1)
+
+
 def choose(params: ControllerParams, feats: np.ndarray) -> Option:
     """The option the controller picks for one mesh's statistics `[F]`."""
     return params.options[int(np.argmax(scores(params, feats)))]
@@ -165,11 +175,15 @@ def fit(
     seed: int = 0,
     kind: str = "log1p",
     objective: str = "softmax",
+    crop_mask: np.ndarray | None = None,
 ) -> ControllerParams:
     """Trains a controller on examples (full batch, Adam): reproducible for a seed.
 
     Args:
-      feats: `[n, F]` statistics.
+      feats: `[n, F]` statistics, or `[n, C, F]`: each example read in up to `C` crops
+        (`controller_features.crops`), its scores the mean over its crops, as `decide`
+        reads a large mesh (a whole mesh's best option is then learned from the crops
+        the controller will see of it).
       errors: `[n, O]` every option's error (`option_errors`).
       opts: the `O` options.
       hidden: the MLP's width.
@@ -182,6 +196,12 @@ def fit(
         regret (squared error), the scores its negation, so the choice is the option of
         least predicted mean regret (safer where the examples disagree: an option that is
         best on some neighbours and 2× worse on others predicts a high mean).
+      crop_mask: `[n, C]` bool, which crops of `[n, C, F]` statistics are real (each
+        example has at least one); None: all.
+
+    Raises:
+      ValueError: an unknown objective, or statistics, errors and mask of inconsistent
+        shapes.
     """
     if objective not in ("softmax", "regret"):
         raise ValueError(f"unknown objective {objective!r}")
@@ -189,12 +209,22 @@ def fit(
     import jax.numpy as jnp
     import optax
 
+    feats = np.asarray(feats, np.float64)
+    if feats.ndim == 2:
+        feats = feats[:, None, :]
+    if feats.ndim != 3 or len(feats) != len(errors):
+        raise ValueError(f"statistics {feats.shape} for errors {np.shape(errors)}")
+    mask = np.ones(feats.shape[:2], bool) if crop_mask is None else np.asarray(crop_mask, bool)
+    if mask.shape != feats.shape[:2] or not mask.any(axis=1).all():
+        raise ValueError(f"crop mask {mask.shape} for statistics {feats.shape}, or an empty row")
     feats = transform(feats, kind)
-    mean = feats.mean(axis=0)
-    scale = np.where(feats.std(axis=0) > 1e-9, feats.std(axis=0), 1.0)
-    x = jnp.asarray((feats - mean) / scale, jnp.float32)
+    rows = feats[mask]  # every real crop counts once in the standardisation
+    mean = rows.mean(axis=0)
+    scale = np.where(rows.std(axis=0) > 1e-9, rows.std(axis=0), 1.0)
+    x = jnp.asarray(np.where(mask[..., None], (feats - mean) / scale, 0.0), jnp.float32)
+    w = jnp.asarray(mask / mask.sum(axis=1, keepdims=True), jnp.float32)  # [n, C]
     regret = jnp.asarray(relative_regret(np.asarray(errors, np.float64)), jnp.float32)
-    n_feat, n_opt = x.shape[1], regret.shape[1]
+    n_feat, n_opt = x.shape[2], regret.shape[1]
     k1, k2 = jax.random.split(jax.random.PRNGKey(seed))
     params = {
         "w1": jax.random.normal(k1, (n_feat, hidden)) * np.sqrt(2.0 / n_feat),
@@ -205,7 +235,7 @@ def fit(
 
     def loss(p):
         h = jax.nn.relu(x @ p["w1"] + p["b1"])
-        s = h @ p["w2"] + p["b2"]
+        s = jnp.einsum("nc,nco->no", w, h @ p["w2"] + p["b2"])  # mean over real crops
         decay = jnp.sum(p["w1"] ** 2) + jnp.sum(p["w2"] ** 2)
         if objective == "regret":
             return jnp.mean((s + jnp.log1p(regret)) ** 2) + l2 * decay
@@ -312,6 +342,6 @@ def decide(params: ControllerParams, vertices, faces) -> Decision:
             f"{feats.shape[1]}: retrain it (scripts/train_controller.py)"
         )
     # A large mesh is read crop by crop: the option best on average over its crops.
-    best = int(np.argmax(scores(params, feats).mean(axis=0)))
+    best = int(np.argmax(crop_scores(params, feats[None])[0]))
     mean = feats.mean(axis=0)
     return Decision(params.options[best], dict(zip(FEATURE_NAMES, mean.tolist(), strict=True)))

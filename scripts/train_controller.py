@@ -53,6 +53,12 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path, required=True, help="controller params (.npz)")
     parser.add_argument("--report", type=Path, help="markdown report to write")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--no-whole",
+        action="store_true",
+        help="train and choose without the whole-mesh examples (an ablation; the test "
+        "split's whole meshes are still reported)",
+    )
     args = parser.parse_args(argv)
 
     data = smoothing_set.load(args.data)
@@ -66,29 +72,32 @@ def main(argv=None) -> int:
         smoothing_set.SEARCH_PASSES,
     )
     x = inputs(data)
+    # What the controller reads of each mesh: its crops (one, the mesh, when it is small).
+    xc, mc = data["crop_features"], data["crop_mask"]
     split = np.array([split_of(s) for s in data["specs"]])
     kinds = np.array([s["kind"] for s in data["specs"]])
     tri = np.array([s.get("triangulation", {"kind": "given"})["kind"] for s in data["specs"]])
+    whole = np.array([bool(s.get("whole")) for s in data["specs"]])
     tr, va, te = (split == "train"), (split == "val"), (split == "test")
-    print(f"{len(x)} examples: train {tr.sum()}, val {va.sum()}, test {te.sum()}")
+    if args.no_whole:
+        tr, va = tr & ~whole, va & ~whole
+    print(
+        f"{len(x)} examples ({whole.sum()} whole meshes): train {tr.sum()}, val {va.sum()}, "
+        f"test {te.sum()}"
+    )
+
+    def fit(rows, **kw):
+        return controller.fit(xc[rows], errors[rows], opts, crop_mask=mc[rows], **kw)
 
     def choose_all(params, rows):
-        return np.argmax(controller.scores(params, x[rows]), axis=1)
+        return np.argmax(controller.crop_scores(params, xc[rows], mc[rows]), axis=1)
 
     best, best_score = None, np.inf
     grid = []
     for objective in OBJECTIVES:
         for width in WIDTHS:
             for decay in DECAYS:
-                params = controller.fit(
-                    x[tr],
-                    errors[tr],
-                    opts,
-                    hidden=width,
-                    l2=decay,
-                    seed=args.seed,
-                    objective=objective,
-                )
+                params = fit(tr, hidden=width, l2=decay, seed=args.seed, objective=objective)
                 r = controller.evaluate(
                     choose_all(params, va), errors[va], data["default_error"][va]
                 )
@@ -99,7 +108,8 @@ def main(argv=None) -> int:
                 if r["to_oracle"] < best_score:
                     best, best_score = (objective, width, decay), r["to_oracle"]
     objective, width, decay = best
-    # Would the first pass's change, as a further statistic, choose better?
+    # Would the first pass's change, as a further statistic, choose better? (The mesh's
+    # statistics read whole here: the first pass is one per mesh.)
     xf = inputs(data, first_pass=True)
     pf = controller.fit(
         xf[tr], errors[tr], opts, hidden=width, l2=decay, seed=args.seed, objective=objective
@@ -107,26 +117,9 @@ def main(argv=None) -> int:
     chosen = np.argmax(controller.scores(pf, xf[va]), axis=1)
     with_first = controller.evaluate(chosen, errors[va], data["default_error"][va])["to_oracle"]
     # Would the statistics read as computed (no log1p) choose better?
-    pr = controller.fit(
-        x[tr],
-        errors[tr],
-        opts,
-        hidden=width,
-        l2=decay,
-        seed=args.seed,
-        kind="identity",
-        objective=objective,
-    )
+    pr = fit(tr, hidden=width, l2=decay, seed=args.seed, kind="identity", objective=objective)
     raw = controller.evaluate(choose_all(pr, va), errors[va], data["default_error"][va])
-    params = controller.fit(
-        x[tr | va],
-        errors[tr | va],
-        opts,
-        hidden=width,
-        l2=decay,
-        seed=args.seed,
-        objective=objective,
-    )
+    params = fit(tr | va, hidden=width, l2=decay, seed=args.seed, objective=objective)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     np.savez(args.out, **{k: np.asarray(v) for k, v in params.to_dict().items()})
 
@@ -144,6 +137,8 @@ def main(argv=None) -> int:
     for name, mask in (
         ("test", te),
         *((f"test {k}", te & (kinds == k)) for k in sorted(set(kinds))),
+        ("test, whole meshes", te & whole),
+        ("test, small crops", te & ~whole),
         ("test, own triangulation", te & (tri == "given")),
         ("test, re-triangulated", te & (tri != "given")),
         *((f"test {t} triangulation", te & (tri == t)) for t in sorted(set(tri) - {"given"})),
@@ -172,7 +167,12 @@ def main(argv=None) -> int:
         f"1-{smoothing_set.SEARCH_PASSES} passes, or none: {len(opts)} options); network: the "
         "bundled weights (`dmd_small.msgpack`). Reproduce: "
         f"`python scripts/train_controller.py {args.data} --out {args.out} "
-        f"--report {args.report}`.",
+        f"--report {args.report}`{' --no-whole' if args.no_whole else ''}."
+        + (
+            " Trained and chosen without the whole-mesh examples (an ablation)."
+            if args.no_whole
+            else ""
+        ),
         "",
         f"Chosen on validation: objective {objective}, width {width}, weight decay {decay:g} "
         f"(validation, chosen / oracle, objective/width/decay: "

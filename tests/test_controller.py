@@ -258,6 +258,66 @@ def test_example_specs_are_pure_and_cover_every_kind():
     assert same == {k: v for k, v in later[0].items() if k != "triangulation"}
 
 
+def test_whole_mesh_examples_draw_validation_sizes_from_a_stream_of_their_own():
+    counts = {"procedural": 50, "real": 40, "stress": 8}
+    first = smoothing_set.WHOLE_FROM
+    specs = [smoothing_set.example_spec(0, i, counts) for i in range(first, first + 200)]
+    lo, hi = smoothing_set.WHOLE_FACES
+    sizes = np.array([s["patch_faces"] for s in specs])
+    assert all(s["whole"] for s in specs) and sizes.min() >= lo and sizes.max() <= hi
+    assert sizes.min() < 3_000 and sizes.max() > 10_000  # the range is covered
+    assert {s["kind"] for s in specs} == set(smoothing_set.KINDS)
+    below = smoothing_set.example_spec(0, first - 1, counts)
+    assert "whole" not in below and below["patch_faces"] <= smoothing_set.PATCH_FACES[1]
+    # Only the size is drawn anew: the rest of the spec is what the index draws anyway.
+    a = smoothing_set.example_spec(0, first, counts)
+    rng_draws = {k: v for k, v in a.items() if k not in ("patch_faces", "whole")}
+    assert rng_draws["index"] == first and rng_draws["kind"] in smoothing_set.KINDS
+
+
+def test_a_mesh_read_in_crops_trains_as_it_is_read():
+    """`fit` on `[n, C, F]` statistics learns the scores' mean over a mesh's real crops,
+    as `decide` reads a large mesh: repeated crops change nothing, masked ones are
+    ignored, and a choice that only the crops' mean reveals is learned."""
+    rng = np.random.default_rng(1)
+    n = 300
+    feats = rng.standard_normal((n, 2))
+    errors = rng.uniform(1.0, 3.0, (n, 3))
+    opts = [
+        controller.Option(0, None, 0),
+        controller.Option(0, "jacobi", 1),
+        controller.Option(0, "jacobi", 2),
+    ]
+    one = controller.fit(feats, errors, opts, hidden=6, steps=200, objective="regret")
+    three = controller.fit(
+        np.repeat(feats[:, None], 3, axis=1), errors, opts, hidden=6, steps=200, objective="regret"
+    )
+    np.testing.assert_allclose(three.w2, one.w2, rtol=1e-4, atol=1e-6)
+    padded = np.concatenate([feats[:, None], rng.normal(50.0, 9.0, (n, 2, 2))], axis=1)
+    mask = np.zeros((n, 3), bool)
+    mask[:, 0] = True
+    masked = controller.fit(
+        padded, errors, opts, hidden=6, steps=200, objective="regret", crop_mask=mask
+    )
+    np.testing.assert_allclose(masked.w2, one.w2, rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(
+        controller.crop_scores(masked, padded, mask), controller.scores(one, feats), atol=1e-4
+    )
+    # Two crops each: option 1 is best where the crops' first statistics sum above 0,
+    # which neither crop shows alone.
+    crops = rng.standard_normal((n, 2, 2))
+    best = np.where(crops[:, :, 0].sum(axis=1) > 0, 1, 2)
+    errors = np.full((n, 3), 6.0)
+    errors[np.arange(n), best] = 2.0
+    fitted = controller.fit(
+        crops, errors, opts, hidden=8, steps=800, objective="regret", kind="identity"
+    )
+    chosen = np.argmax(controller.crop_scores(fitted, crops), axis=1)
+    assert np.mean(chosen == best) > 0.9
+    with pytest.raises(ValueError, match="crop mask"):
+        controller.fit(padded, errors, opts, crop_mask=np.zeros((n, 3), bool))
+
+
 def test_stale_statistics_are_refused_and_recomputed(tmp_path, monkeypatch):
     """An example whose statistics are of another version is refused by `load` and
     recomputed by `refeature` from its regenerated mesh (the search kept); one whose
@@ -306,6 +366,15 @@ def test_stale_statistics_are_refused_and_recomputed(tmp_path, monkeypatch):
     _, noisy, _ = smoothing_set.noisy_example(spec, v, f)
     np.testing.assert_array_equal(data["features"][0], features(noisy, f))
     np.testing.assert_array_equal(data["errors"][0], errors)
+    # Stored without crops (a small crop): read whole, one crop.
+    assert data["crop_mask"].tolist() == [[True]]
+    np.testing.assert_array_equal(data["crop_features"][0, 0], data["features"][0])
+    # A whole mesh's crops are what `decide` reads of it.
+    big_v, big_f = icosphere(4)
+    stats = smoothing_set.crop_statistics(big_v, big_f)
+    assert stats.shape == (controller_features.CROPS, controller_features.N_FEATURES)
+    pieces = controller_features.crops(np.asarray(big_v, np.float64), np.asarray(big_f))
+    np.testing.assert_allclose(stats[0], features(*pieces[0]))
     assert (tmp_path / "rejected" / "00001.npz").is_file()
     # Now current, with a digest: nothing to do; a new version makes it stale again.
     assert smoothing_set.refeature(tmp_path, sources=sources)["rewritten"] == 0

@@ -161,11 +161,12 @@ def run(
     if max_meshes:
         files = files[:max_meshes]
     network = load_model(network_weights)  # default: the bundled, as the default call's
-    params = load_model(controller_weights).controller
-    if params is None:
+    # No controller: the grid alone (`--repick` adds a controller's picks later).
+    params = None if controller_weights is None else load_model(controller_weights).controller
+    if controller_weights is not None and params is None:
         raise ValueError(f"{controller_weights}: holds no smoothing controller")
     opts = grid_options()
-    if tuple(params.options) != tuple(opts):
+    if params is not None and tuple(params.options) != tuple(opts):
         raise ValueError("the controller's options are not the search grid's")
     out_csv = Path(out_csv)
     out_csv.parent.mkdir(parents=True, exist_ok=True)
@@ -202,7 +203,7 @@ def run(
             errors, _ = pass_errors(noisy, target, mesh_faces, network, held)
             row_errors = option_errors(errors[None], PRESMOOTH_GRID, UPDATES, SEARCH_PASSES)[0]
             best = int(np.argmin(row_errors))
-            chosen = decide(params, x, oriented).option
+            chosen = decide(params, x, oriented).option if params is not None else opts[best]
             seconds = time.perf_counter() - start
             row = [
                 "val",
@@ -214,7 +215,7 @@ def run(
                 len(tri),
                 f"{noisy_deg:.6f}",
                 int(held.sum()),
-                option_label(chosen),
+                option_label(chosen) if params is not None else "",
                 option_label(opts[best]),
                 f"{row_errors[best]:.6f}",
                 f"{seconds:.1f}",
@@ -694,7 +695,12 @@ def main(argv=None) -> int:
     )
     parser.add_argument("--csv", default=str(DEFAULT_CSV), help="the oracle's CSV (appended)")
     parser.add_argument("--report", default=str(DEFAULT_REPORT), help="markdown report")
-    parser.add_argument("--controller-weights", default=str(DEFAULT_CONTROLLER))
+    parser.add_argument(
+        "--controller-weights",
+        default=str(DEFAULT_CONTROLLER),
+        help="the controller whose picks the CSV records; 'none': the grid alone (then "
+        "--repick a controller onto it), no report",
+    )
     parser.add_argument("--max-meshes", type=int, default=0, help="first N meshes only")
     parser.add_argument("--only", nargs="+", default=[], help="these mesh files only")
     parser.add_argument("--report-only", action="store_true", help="no search: the report")
@@ -716,10 +722,11 @@ def main(argv=None) -> int:
             repick(args.repick, args.csv, args.controller_weights)
             ctrl_csvs = ()
         elif not args.report_only:
+            no_controller = args.controller_weights == "none"
             run(
                 args.conditions,
                 out_csv=args.csv,
-                controller_weights=args.controller_weights,
+                controller_weights=None if no_controller else args.controller_weights,
                 max_meshes=args.max_meshes,
                 only=tuple(args.only),
                 network_weights=args.network,
@@ -727,6 +734,9 @@ def main(argv=None) -> int:
         if args.network:
             # The report's default and controller columns are the bundled network's.
             print(f"searched {args.network}'s grid into {args.csv}; no report")
+            return 0
+        if args.controller_weights == "none":
+            print(f"searched the grid into {args.csv}; no controller, no report")
             return 0
         print(f"wrote {report(args.csv, args.report, args.controller_weights, ctrl_csvs)}")
     except (ValueError, FileNotFoundError) as exc:

@@ -86,6 +86,15 @@ TRIANGULATION_FROM = 1576
 PATCH_FACES = (400, 1200)
 
 
+# Whole meshes: from index WHOLE_FROM on, an example is a crop of WHOLE_FACES faces (log-
+# uniform), the size of a validation mesh, read by the controller as `decide` reads a
+# large mesh (`crop_statistics`). The best amount of smoothing of a whole mesh is not that
+# of its small pieces: on 10 real training meshes under Gaussian noise of 0.2 edges, the
+# 15,000-face crop wanted one pass on 8, its 400-1200-face pieces 2-4 passes on half.
+WHOLE_FROM = 10_000
+WHOLE_FACES = (2_000, 15_000)
+
+
 def example_spec(seed: int, index: int, sources: dict[str, int]) -> dict:
     """What example `index` is: a pure function of `(seed, index)` and the source counts.
 
@@ -132,6 +141,10 @@ def example_spec(seed: int, index: int, sources: dict[str, int]) -> dict:
         spec["triangulation"] = triangulation_spec(np.random.default_rng([seed, index, 1]))
         if kind == "scan":
             spec["triangulation"] = {"kind": "given"}
+    if index >= WHOLE_FROM:
+        lo, hi = np.log(WHOLE_FACES[0]), np.log(WHOLE_FACES[1])
+        spec["patch_faces"] = int(np.exp(np.random.default_rng([seed, index, 2]).uniform(lo, hi)))
+        spec["whole"] = True
     return spec
 
 
@@ -340,6 +353,18 @@ def held_vertices(noisy, faces) -> np.ndarray:
     return exact_vertices(x, f, exact_tolerance(np.float64, v, f)) | still_vertices(v, f)
 
 
+def crop_statistics(noisy, faces) -> np.ndarray:
+    """`[C, N_FEATURES]`: the statistics of the crops `controller.decide` reads of this
+    mesh as `denoise` gives it to it (consistently wound; one crop, the whole mesh, when
+    it is small), so a whole mesh's example trains the controller as it is used."""
+    from dmd_jax.consistency import oriented_faces
+    from dmd_jax.controller_features import crops, features
+
+    v = np.asarray(noisy, np.float64)
+    f, _ = oriented_faces(np.asarray(faces), v.shape[0])
+    return np.array([features(a, b) for a, b in crops(v, f)])
+
+
 def pass_errors(noisy, clean, faces, bundle, held=None) -> np.ndarray:
     """The mean face-normal error (degrees) of every setting of the search, each run as
     `denoise` runs it.
@@ -442,6 +467,8 @@ def build(
         "kinds": KINDS,
         "triangulations": TRIANGULATIONS,
         "triangulation_from": TRIANGULATION_FROM,
+        "whole_from": WHOLE_FROM,
+        "whole_faces": WHOLE_FACES,
     }
     check_manifest(out, manifest)
     write_text_atomic(out / "manifest.json", json.dumps(manifest, indent=2))
@@ -459,6 +486,7 @@ def build(
             say(f"skipped: {err}")
             continue
         feats = features(noisy, faces)
+        crop_feats = crop_statistics(noisy, faces)
         held = held_vertices(noisy, faces)
         errors, first = pass_errors(noisy, clean, faces, bundle, held)
         # Today's default call, for the controller's report (its gain over the default).
@@ -479,11 +507,13 @@ def build(
             default=default,
             digest=digest,
             n_held=n_held,
+            crop_feats=crop_feats,
         ):
             with open(tmp, "wb") as fh:
                 np.savez(
                     fh,
                     features=feats,
+                    crop_features=crop_feats,
                     features_version=FEATURES_VERSION,
                     errors=errors,
                     search_version=SEARCH_VERSION,
@@ -507,7 +537,7 @@ def build(
 
 # Manifest fields added after the first build: a set built before them is the same set
 # (its examples all lie below TRIANGULATION_FROM, where the re-triangulation is off).
-_ADDED_FIELDS = ("triangulations", "triangulation_from")
+_ADDED_FIELDS = ("triangulations", "triangulation_from", "whole_from", "whole_faces")
 
 
 def check_manifest(out, manifest: dict) -> None:
@@ -548,7 +578,10 @@ def _search_version(z) -> int:
 
 def load(out) -> dict:
     """A built set as arrays: `features [n, N_FEATURES]`, `errors [n, P, U, K + 1]`,
-    `first_pass [n, 2]`, `default_error [n]` and `specs` (a list of dicts).
+    `first_pass [n, 2]`, `default_error [n]`, `specs` (a list of dicts), and the
+    statistics of the crops the controller reads of each mesh, `crop_features [n, C,
+    N_FEATURES]` with `crop_mask [n, C]` (an example stored without them, a small crop,
+    is read whole: its `features`).
 
     Raises:
       ValueError: an example's statistics are of another `FEATURES_VERSION` than this
@@ -559,7 +592,7 @@ def load(out) -> dict:
 
     files = _example_files(out)
     out = {"features": [], "errors": [], "first_pass": [], "default_error": [], "specs": []}
-    stale, unsearched = [], []
+    stale, unsearched, crops = [], [], []
     for path in files:
         with np.load(path) as z:
             if _features_version(z) != FEATURES_VERSION:
@@ -569,6 +602,7 @@ def load(out) -> dict:
             for key in ("features", "errors", "first_pass", "default_error"):
                 out[key].append(z[key])
             out["specs"].append(json.loads(str(z["spec"])))
+            crops.append(z["crop_features"] if "crop_features" in z.files else z["features"][None])
     if stale:
         raise ValueError(
             f"{len(stale)} examples (e.g. {stale[0]}) carry statistics of another version than "
@@ -581,7 +615,14 @@ def load(out) -> dict:
             f"version than {SEARCH_VERSION}: python -m dmd_jax.data.smoothing_set --out "
             f"{files[0].parents[1]} --research"
         )
-    return {k: v if k == "specs" else np.array(v) for k, v in out.items()}
+    out = {k: v if k == "specs" else np.array(v) for k, v in out.items()}
+    width = max((len(c) for c in crops), default=1)
+    out["crop_features"] = np.zeros((len(crops), width, out["features"].shape[-1]))
+    out["crop_mask"] = np.zeros((len(crops), width), bool)
+    for i, c in enumerate(crops):
+        out["crop_features"][i, : len(c)] = c
+        out["crop_mask"][i, : len(c)] = True
+    return out
 
 
 def refeature(out, *, sources: Sources, verify=None, say=print) -> dict:
@@ -641,6 +682,8 @@ def refeature(out, *, sources: Sources, verify=None, say=print) -> dict:
             continue
         fields["noisy_digest"] = digest
         fields["features"] = features(noisy, faces)
+        if "crop_features" in fields:
+            fields["crop_features"] = crop_statistics(noisy, faces)
         fields["features_version"] = FEATURES_VERSION
 
         def write(tmp, fields=fields):
