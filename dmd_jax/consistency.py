@@ -56,7 +56,7 @@ EXACT_MAX_PLANES = 4
 SCALE_RATIO = 1024.0
 
 
-def exact_tolerance(dtype, vertices: np.ndarray, faces: np.ndarray) -> float:
+def exact_tolerance(dtype, vertices: np.ndarray, faces: np.ndarray, *, edges=None) -> float:
     """The angle (radians) within which two face normals of a mesh given in `dtype` are
     one plane: what rounding its coordinates to `dtype` can do to a normal; 0 (no plane
     is certain) where that exceeds `EXACT_TOLERANCE_CAP`.
@@ -65,6 +65,8 @@ def exact_tolerance(dtype, vertices: np.ndarray, faces: np.ndarray) -> float:
       dtype: the number format the caller's coordinates came in (integers are exact).
       vertices: `[n_vertex, 3]` the caller's positions (their frame: the offset counts).
       faces: `[n_face, 3]` vertex indices.
+      edges: the unique undirected edges `(a, b)`, sorted (`topology.vertex_edges`), if
+        already known: skips their sort (`mesh.mean_edge_length`).
     """
     from dmd_jax.mesh import mean_edge_length
 
@@ -77,7 +79,7 @@ def exact_tolerance(dtype, vertices: np.ndarray, faces: np.ndarray) -> float:
     # Lengths in units of a power of two near the largest coordinate: exact, and no
     # overflow (an extent near float64's limit) or underflow (one near its smallest).
     exponent = int(np.frexp(largest)[1])
-    edge = mean_edge_length(np.ldexp(v, -exponent), faces)
+    edge = mean_edge_length(np.ldexp(v, -exponent), faces, edges=edges)
     if not edge > 0:
         return EXACT_TOLERANCE_FLOOR
     tol = EXACT_ROUNDING * eps * (float(np.ldexp(largest, -exponent)) / edge)
@@ -98,6 +100,7 @@ def exact_vertices(
     tolerance: float = EXACT_TOLERANCE_FLOOR,
     *,
     pairs=None,
+    normals=None,
 ) -> np.ndarray:
     """Which vertices are exact (see the module docstring), as a mask.
 
@@ -107,13 +110,16 @@ def exact_vertices(
       tolerance: radians within which normals are one plane (`exact_tolerance`).
       pairs: `(a, b)`, the edge-adjacent face pairs (`topology.face_adjacency`), if
         known.
+      normals: `[n_face, 3]` `mesh.face_normals_np` of `vertices` (float64) and `faces`,
+        if known (`denoise` reuses them for the roughness).
 
     Returns:
       `[n_vertex]` bool; all False on a noisy mesh.
     """
     f = np.asarray(faces, np.int64)
     n_vertex = vertices.shape[0]
-    normals = face_normals_np(np.asarray(vertices, np.float64), f)
+    if normals is None:
+        normals = face_normals_np(np.asarray(vertices, np.float64), f)
     if pairs is None:
         pairs = adjacent_faces(edge_groups(f, n_vertex), f.shape[0])
     a, b = pairs

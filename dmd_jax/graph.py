@@ -15,6 +15,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from dmd_jax.topology import (  # noqa: F401  (face_adjacency, vertex_edges: re-exported)
+    EdgeGroups,
     adjacent_faces,
     edge_groups,
     face_adjacency,
@@ -249,7 +250,9 @@ def undirected_vertex_edges(graph: MeshGraph) -> tuple[np.ndarray, np.ndarray]:
     return s[keep], r[keep]
 
 
-def build_mesh_graph(faces, n_vertex: int) -> MeshGraph:
+def build_mesh_graph(
+    faces, n_vertex: int, *, groups: EdgeGroups | None = None, face_pairs=None
+) -> MeshGraph:
     """Builds the `MeshGraph` of one triangle mesh on the host.
 
     Works on open boundaries, non-manifold edges, isolated vertices (self loop only, no
@@ -258,6 +261,9 @@ def build_mesh_graph(faces, n_vertex: int) -> MeshGraph:
     Args:
       faces: `[n_face, 3]` integer vertex indices (validated with `validate_mesh` first).
       n_vertex: number of vertices, isolated ones included.
+      groups: `topology.edge_groups(faces, n_vertex)`, if already known (`denoise` sorts
+        the edges once for its checks and the graph).
+      face_pairs: `topology.adjacent_faces(groups, n_face)`, if already known.
     """
     from dmd_jax.mesh import validate_faces
 
@@ -265,10 +271,12 @@ def build_mesh_graph(faces, n_vertex: int) -> MeshGraph:
     n_vertex = int(n_vertex)
     n_face = f.shape[0]
     # One sort of the face edges gives both the unique edges and the adjacent faces.
-    groups = edge_groups(f, n_vertex)
+    if groups is None:
+        groups = edge_groups(f, n_vertex)
+        face_pairs = None  # pairs of other groups would not match
     a, b = np.divmod(groups.key[groups.start], n_vertex)
     vs, vr, vw = _symmetric_with_self_loops(a, b, n_vertex)
-    fa, fb = adjacent_faces(groups, n_face)
+    fa, fb = adjacent_faces(groups, n_face) if face_pairs is None else face_pairs
     fs, fr, fw = _symmetric_with_self_loops(fa, fb, n_face)
     degree = np.bincount(f.ravel(), minlength=n_vertex).astype(np.float32)
     return MeshGraph(

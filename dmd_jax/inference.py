@@ -34,7 +34,7 @@ from dmd_jax.graph import (
     undirected_vertex_edges,
 )
 from dmd_jax.memory_plan import plan, whole_without_measuring
-from dmd_jax.mesh import validate_mesh
+from dmd_jax.mesh import face_normals_np, validate_mesh
 from dmd_jax.patch_runner import denoise_patches
 from dmd_jax.policy import (
     MAX_PASSES_LIMIT,
@@ -45,7 +45,7 @@ from dmd_jax.policy import (
     presmooth_plan,
     run_passes,
 )
-from dmd_jax.topology import face_adjacency
+from dmd_jax.topology import adjacent_faces, edge_groups
 
 # The most owned vertices a caller may force per patch (a bound on one patch's graph).
 MAX_PATCH_SIZE = 2**31 - 1
@@ -137,22 +137,27 @@ class DenoiseInfo:
         return text if len(text) <= INFO_REPR_MAX else text[: INFO_REPR_MAX - 5] + " ...)"
 
 
-def whole_mesh_graph(faces: np.ndarray, n_vertex: int, aggregation: str):
+def whole_mesh_graph(
+    faces: np.ndarray, n_vertex: int, aggregation: str, *, groups=None, face_pairs=None
+):
     """The padded graph the whole-mesh path runs on, as NumPy: padded to its rung of the
     shape ladder, with the tables `aggregation` asks for at fixed widths
     (`shape_ladder.with_tables`), so that a compiled program serves every mesh of its
-    rung (`dmd-jax warmup` compiles them in advance)."""
-    graph = build_mesh_graph(faces, n_vertex)
+    rung (`dmd-jax warmup` compiles them in advance). `groups` and `face_pairs`: the
+    faces' edge sort, if known (`graph.build_mesh_graph`)."""
+    graph = build_mesh_graph(faces, n_vertex, groups=groups, face_pairs=face_pairs)
     graph = pad_mesh_graph(graph, shape_ladder.padded_sizes(graph))
     return shape_ladder.with_tables(graph, aggregation)
 
 
-def _whole_mesh_pass(v, f, bundle, aggregation: str):
+def _whole_mesh_pass(v, f, bundle, aggregation: str, topology=None):
     """`(frame, one_pass)`: the network's frame of the whole mesh `v` and one network
-    pass over it (frame positions -> frame positions, float64 on the host)."""
+    pass over it (frame positions -> frame positions, float64 on the host).
+    `topology`: `(groups, face_pairs)` of `f`, if known (`whole_mesh_graph`)."""
     # The padded graph does not change between passes: build it (edge lists, ELL
     # tables) and move it to the device once, not once per pass.
-    graph = whole_mesh_graph(f, v.shape[0], aggregation)
+    groups, pairs = (None, None) if topology is None else topology
+    graph = whole_mesh_graph(f, v.shape[0], aggregation, groups=groups, face_pairs=pairs)
     edges = undirected_vertex_edges(graph)
     frame = mesh_frame(bundle.config.model.encoding, v, f, edges=edges)
     # `device_put`, not `jnp.asarray`: the same transfer without a copy program per
@@ -200,10 +205,11 @@ def _preload_whole(bundle, n_vertex: int, f, aggregation: str, max_memory, patch
     predictor(bundle.config).preload(bundle.params, noisy, graph)
 
 
-def _denoise_whole(v, f, bundle, policy: DenoisePolicy, aggregation: str, held=None):
+def _denoise_whole(v, f, bundle, policy: DenoisePolicy, aggregation: str, held=None, topology=None):
     """The whole mesh at once; float64 positions in the input frame and the passes run
-    (`held`: vertices kept where they are, `policy.run_passes`)."""
-    frame, one_pass = _whole_mesh_pass(v, f, bundle, aggregation)
+    (`held`: vertices kept where they are, `policy.run_passes`; `topology`: as
+    `_whole_mesh_pass`'s)."""
+    frame, one_pass = _whole_mesh_pass(v, f, bundle, aggregation, topology)
     x, done = run_passes(one_pass, frame.apply(v), policy, held)
     return frame.invert(x), done
 
@@ -472,8 +478,10 @@ def _denoise_referenced(
         _preload_whole(bundle, v.shape[0], f, aggregation, max_memory, patch_size)
     f, flipped = oriented_faces(f, v.shape[0])
     x, centre, scale = _prenormalised(v)  # refuses a mesh of one point first
-    # The faces' edge-adjacent pairs, read by both tests.
-    pairs = face_adjacency(f, v.shape[0])
+    # One sort of the faces' edges serves every test and the graph: the edge-adjacent
+    # pairs (both tests), the unique edges (the tolerance's mean edge length).
+    groups = edge_groups(f, v.shape[0])
+    pairs = adjacent_faces(groups, f.shape[0])
     still = still_vertices(v, f, pairs=pairs)
     if still.all():
         # Nothing to denoise (all creases, or no area): the mesh as given, no work.
@@ -489,7 +497,11 @@ def _denoise_referenced(
             unchanged=STILL_REASON,
         )
         return v.copy(), fields
-    held = exact_vertices(x, f, exact_tolerance(in_dtype, v, f), pairs=pairs) | still
+    edges = np.divmod(groups.key[groups.start], v.shape[0])  # as `topology.vertex_edges`
+    # The face normals of `x`, read by the exact-vertex test and the roughness.
+    normals = face_normals_np(x, f)
+    tolerance = exact_tolerance(in_dtype, v, f, edges=edges)
+    held = exact_vertices(x, f, tolerance, pairs=pairs, normals=normals) | still
     if not held.any():
         held = None  # a noisy mesh: every path exactly as without the test
     decision = None
@@ -505,7 +517,9 @@ def _denoise_referenced(
     network = decision is None or decision.option.passes > 0
     if decision is not None and network:
         _preload_whole(bundle, v.shape[0], f, aggregation, max_memory, patch_size)
-    pre = presmooth_plan(run, x, f, presmooth, free=None if held is None else ~held)
+    pre = presmooth_plan(
+        run, x, f, presmooth, free=None if held is None else ~held, normals=normals
+    )
     if pre.steps:
         start, x = x, laplacian_steps(x, f, pre.steps)
         if held is not None:
@@ -515,7 +529,7 @@ def _denoise_referenced(
     if not network:
         passes = 0
     elif memory.whole:
-        x, passes = _denoise_whole(x, f, bundle, run, aggregation, held)
+        x, passes = _denoise_whole(x, f, bundle, run, aggregation, held, (groups, pairs))
     else:
         x, stats = denoise_patches(
             x, f, bundle, run, aggregation, memory.budget, patch_size, devices, progress, held

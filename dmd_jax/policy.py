@@ -270,6 +270,8 @@ def presmooth_plan(
     faces: np.ndarray,
     steps: int | str | None,
     free: np.ndarray | None = None,
+    *,
+    normals: np.ndarray | None = None,
 ) -> PresmoothPlan:
     """How many pre-smoothing steps to run: `steps` if given, else the policy's rule
     (`steps=PRESMOOTH_RULE` or None).
@@ -281,6 +283,8 @@ def presmooth_plan(
       steps: a caller's fixed step count, `PRESMOOTH_RULE`, or None.
       free: `[n_vertex]` bool, the vertices that may move (`presmooth.roughness`), or
         None for all.
+      normals: `[n_face, 3]` the faces' unit normals (`mesh.face_normals_np` of
+        `vertices`), if already known.
     """
     from dmd_jax import presmooth
 
@@ -290,9 +294,13 @@ def presmooth_plan(
         return PresmoothPlan(check_count("presmooth", steps, most=presmooth.MAX_STEPS), None)
     if not policy.presmooths:
         return PresmoothPlan(0, None)
-    rough = presmooth.roughness(vertices, faces, free=free)
+    rough = presmooth.roughness(vertices, faces, free=free, normals=normals)
     steps = presmooth.steps_for(rough, policy.presmooth_start, policy.presmooth_per_step)
-    if steps and presmooth.bend_share(vertices, faces, free=free) < presmooth.MIN_BEND_SHARE:
+    if (
+        steps
+        and presmooth.bend_share(vertices, faces, free=free, normals=normals)
+        < presmooth.MIN_BEND_SHARE
+    ):
         steps = 0  # a coarse convex solid's dihedrals, not noise: nothing to pre-smooth
     return PresmoothPlan(steps, rough)
 

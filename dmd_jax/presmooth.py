@@ -88,7 +88,7 @@ def _edge_pairs(faces: np.ndarray, n_vertex: int) -> tuple[np.ndarray, np.ndarra
     return owner[same], owner[same + 1]
 
 
-def roughness(vertices, faces, free=None) -> float:
+def roughness(vertices, faces, free=None, *, normals=None) -> float:
     """The median angle, in degrees, between the normals of faces sharing an edge.
 
     Args:
@@ -99,20 +99,22 @@ def roughness(vertices, faces, free=None) -> float:
         creases and corners (`consistency.exact_vertices`): the dihedral angles of faces
         anchored on them (90° all over a coarse box, 60° at a cone's rim) are the
         part's shape, not noise.
+      normals: `[n_face, 3]` `mesh.face_normals_np` of `vertices` (as float64) and
+        `faces`, if already known (`denoise` computes them once for its checks).
 
     Returns:
       The median over edge-adjacent face pairs whose faces both have an area (over a
       fixed sample of the edges above `EXACT_MAX_FACES` faces); 0 for a mesh without
       such a pair (a single triangle, or only degenerate faces).
     """
-    v, f, a, b, na, nb = _counted_pairs(vertices, faces, free)
+    v, f, a, b, na, nb = _counted_pairs(vertices, faces, free, normals)
     if not a.size:
         return 0.0
     cos = np.clip(np.einsum("ij,ij->i", na, nb), -1.0, 1.0)
     return float(np.degrees(np.median(np.arccos(cos))))
 
 
-def bend_share(vertices, faces, free=None) -> float:
+def bend_share(vertices, faces, free=None, *, normals=None) -> float:
     """The share of the edges `roughness` reads that bend the less common way.
 
     An edge is convex when the far vertex of one face lies below the other face's
@@ -126,11 +128,12 @@ def bend_share(vertices, faces, free=None) -> float:
       vertices: `[n_vertex, 3]` positions in any frame.
       faces: `[n_face, 3]` consistently wound faces.
       free: `[n_vertex]` bool, or None for all: as `roughness`.
+      normals: as `roughness`.
 
     Returns:
       In `[0, 0.5]`; 0.5 for a mesh without such a pair.
     """
-    v, f, a, b, na, nb = _counted_pairs(vertices, faces, free)
+    v, f, a, b, na, nb = _counted_pairs(vertices, faces, free, normals)
     bent = np.einsum("ij,ij->i", na, nb) < _FLAT_COS  # a flat pair bends neither way
     a, b, na = a[bent], b[bent], na[bent]
     if not a.size:
@@ -142,9 +145,10 @@ def bend_share(vertices, faces, free=None) -> float:
     return min(convex, 1.0 - convex)
 
 
-def _counted_pairs(vertices, faces, free):
+def _counted_pairs(vertices, faces, free, normals=None):
     """`(v, f, a, b, na, nb)`: the positions and faces as arrays, and the pairs of
-    faces `roughness` reads (`a`, `b` `[n_pair]`) with their unit normals `[n_pair, 3]`."""
+    faces `roughness` reads (`a`, `b` `[n_pair]`) with their unit normals `[n_pair, 3]`
+    (rows of `normals`, the faces' `face_normals_np`, when given: the same numbers)."""
     v = np.asarray(vertices, np.float64)
     f = np.asarray(faces)
     a, b = _edge_pairs(f, v.shape[0])
@@ -152,7 +156,10 @@ def _counted_pairs(vertices, faces, free):
         loose = np.asarray(free, bool)[f].all(axis=1)
         keep = loose[a] & loose[b]
         a, b = a[keep], b[keep]
-    na, nb = face_normals_np(v, f[a]), face_normals_np(v, f[b])
+    if normals is None:
+        na, nb = face_normals_np(v, f[a]), face_normals_np(v, f[b])
+    else:
+        na, nb = normals[a], normals[b]
     ok = (np.abs(na).sum(axis=1) > 0) & (np.abs(nb).sum(axis=1) > 0)
     return v, f, a[ok], b[ok], na[ok], nb[ok]
 
