@@ -150,14 +150,21 @@ def whole_mesh_graph(
     return shape_ladder.with_tables(graph, aggregation)
 
 
-def _whole_mesh_pass(v, f, bundle, aggregation: str, topology=None):
+def _whole_mesh_pass(v, f, bundle, aggregation: str, topology: list | None = None):
     """`(frame, one_pass)`: the network's frame of the whole mesh `v` and one network
     pass over it (frame positions -> frame positions, float64 on the host).
-    `topology`: `(groups, face_pairs)` of `f`, if known (`whole_mesh_graph`)."""
+
+    `topology`: a list `[groups, face_pairs]`, the edge sort of `f` if known
+    (`whole_mesh_graph`), handed over: it is emptied here, so that no frame holds the
+    arrays through the passes (about 100 MB at 1M faces).
+    """
+    groups, pairs = topology if topology else (None, None)
+    if topology:
+        topology.clear()
     # The padded graph does not change between passes: build it (edge lists, ELL
     # tables) and move it to the device once, not once per pass.
-    groups, pairs = (None, None) if topology is None else topology
     graph = whole_mesh_graph(f, v.shape[0], aggregation, groups=groups, face_pairs=pairs)
+    del groups, pairs
     edges = undirected_vertex_edges(graph)
     frame = mesh_frame(bundle.config.model.encoding, v, f, edges=edges)
     # `device_put`, not `jnp.asarray`: the same transfer without a copy program per
@@ -520,17 +527,23 @@ def _denoise_referenced(
     pre = presmooth_plan(
         run, x, f, presmooth, free=None if held is None else ~held, normals=normals
     )
+    # What the checks computed is not needed through the passes: the edge sort goes to
+    # the whole-mesh graph (`_whole_mesh_pass` empties the list), the rest is dropped.
+    topology = [groups, pairs]
+    del groups, pairs, edges, normals
     if pre.steps:
         start, x = x, laplacian_steps(x, f, pre.steps)
         if held is not None:
             x[held] = start[held]
+        del start
     memory = plan(bundle.config.model, x.shape[0], f.shape[0], max_memory, patch_size)
     extra = {}
     if not network:
         passes = 0
     elif memory.whole:
-        x, passes = _denoise_whole(x, f, bundle, run, aggregation, held, (groups, pairs))
+        x, passes = _denoise_whole(x, f, bundle, run, aggregation, held, topology)
     else:
+        topology.clear()
         x, stats = denoise_patches(
             x, f, bundle, run, aggregation, memory.budget, patch_size, devices, progress, held
         )
