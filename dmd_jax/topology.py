@@ -145,6 +145,13 @@ def adjacent_faces(groups: EdgeGroups, n_face: int) -> tuple[np.ndarray, np.ndar
       `(a [n_pair], b [n_pair])` int64, `a < b`, sorted by `(a, b)`.
     """
     key, face_of, start, size = groups
+    if not size.size or size.max() <= 2:
+        # A manifold mesh (an edge has one or two faces): the pair of each two-face edge.
+        two = start[size == 2]
+        a, b = face_of[two], face_of[two + 1]
+        a, b = np.minimum(a, b), np.maximum(a, b)
+        keep = a < b
+        return np.divmod(sorted_unique(a[keep] * n_face + b[keep]), n_face)
     # Each face-edge entry pairs with every entry of its edge group (vectorised).
     group = np.repeat(np.arange(start.size), size)
     reps = size[group]
