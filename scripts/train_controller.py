@@ -167,7 +167,7 @@ def main(argv=None) -> int:
         f"1-{smoothing_set.SEARCH_PASSES} passes, or none: {len(opts)} options); network: the "
         "bundled weights (`dmd_small.msgpack`). Reproduce: "
         f"`python scripts/train_controller.py {args.data} --out {args.out} "
-        f"--report {args.report}`{' --no-whole' if args.no_whole else ''}."
+        f"--report {args.report}{' --no-whole' if args.no_whole else ''}`."
         + (
             " Trained and chosen without the whole-mesh examples (an ablation)."
             if args.no_whole
