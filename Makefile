@@ -200,16 +200,18 @@ bench-device: $(STAMP)
 # The learned smoothing controller (dmd_jax/controller.py, docs/controller.md): the
 # generated set (every noise kind; one search over pre-smoothing x update x passes per
 # example; resumable, one process per core; an older search brought to today's by
-# --research) into data/smoothing, with WHOLE_EXAMPLES whole meshes of 2,000-15,000 faces
-# (indices from 10,000: smoothing_set.WHOLE_FROM), then the controller
+# --research) into data/smoothing: the even indices below SMOOTHING_EXAMPLES (crops of
+# 400-1200 faces; the odd ones too with SMOOTHING_ALL=1) and WHOLE_EXAMPLES whole meshes
+# of 2,000-15,000 faces (indices from 10,000: smoothing_set.WHOLE_FROM), then the controller
 # trained on it (minutes; chosen on its validation split, reported on its test split) and
 # stored beside the bundled network in runs/dmd_controller.msgpack.
 SMOOTHING_EXAMPLES ?= 2000
-WHOLE_EXAMPLES ?= 400
+WHOLE_EXAMPLES ?= 1000
+SMALL_SHARDS = $(if $(SMOOTHING_ALL),0/2 1/2,0/4 2/4)
 .PHONY: controller-data controller controller-oracle
 controller-data: $(STAMP)
-	$(BIN)/python -m dmd_jax.data.smoothing_set --out data/smoothing --examples $(SMOOTHING_EXAMPLES) --shard 0/2 & \
-	$(BIN)/python -m dmd_jax.data.smoothing_set --out data/smoothing --examples $(SMOOTHING_EXAMPLES) --shard 1/2; wait
+	$(BIN)/python -m dmd_jax.data.smoothing_set --out data/smoothing --examples $(SMOOTHING_EXAMPLES) --shard $(word 1,$(SMALL_SHARDS)) & \
+	$(BIN)/python -m dmd_jax.data.smoothing_set --out data/smoothing --examples $(SMOOTHING_EXAMPLES) --shard $(word 2,$(SMALL_SHARDS)); wait
 	$(BIN)/python -m dmd_jax.data.smoothing_set --out data/smoothing --first 10000 --examples $$((10000 + $(WHOLE_EXAMPLES))) --shard 0/2 & \
 	$(BIN)/python -m dmd_jax.data.smoothing_set --out data/smoothing --first 10000 --examples $$((10000 + $(WHOLE_EXAMPLES))) --shard 1/2; wait
 	$(BIN)/python -m dmd_jax.data.smoothing_set --out data/smoothing --research
