@@ -33,6 +33,13 @@ class Option(NamedTuple):
     update: str | None
     passes: int
 
+    @property
+    def label(self) -> str:
+        """`p8` (pre-smoothing alone; `p0` is none), `p8_solve_4`: the reports' name."""
+        if not self.passes:
+            return f"p{self.presmooth}"
+        return f"p{self.presmooth}_{self.update}_{self.passes}"
+
 
 def options(presmooth_grid, updates, max_passes: int) -> list[Option]:
     """Every option of a search grid, "none" (`Option(0, None, 0)`) first."""

@@ -70,8 +70,8 @@ CTRL_CSVS = (REPO / "runs" / "ctrl" / "val_ctrl.csv", REPO / "runs" / "ctrl" / "
 
 
 def option_label(o) -> str:
-    """`p8` (pre-smoothing alone; `p0` is none), `p8_solve_4`."""
-    return f"p{o.presmooth}" if not o.passes else f"p{o.presmooth}_{o.update}_{o.passes}"
+    """`p8` (pre-smoothing alone; `p0` is none), `p8_solve_4` (`Option.label`)."""
+    return o.label
 
 
 def grid_options():

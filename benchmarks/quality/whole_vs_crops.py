@@ -30,7 +30,6 @@ if __package__ in (None, ""):  # run as a script: make `benchmarks` importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from benchmarks.common import REPO, RESULTS_DIR, markdown_table, provenance, write_text  # noqa: E402
-from benchmarks.quality.oracle_val import as_denoise_reads, grid_options, option_label  # noqa: E402
 
 DEFAULT_CSV = REPO / "runs" / "exp" / "whole_vs_crops.csv"
 DEFAULT_REPORT = RESULTS_DIR / "controller_whole_vs_crops.md"
@@ -40,13 +39,15 @@ WHOLE_FACES = 15_000  # protocol.MAX_FACES: the validation split's crop
 def run(n_meshes: int, levels, out_csv, real_root, echo=print) -> None:
     from dmd_jax import protocol
     from dmd_jax.checkpoints import load_model
-    from dmd_jax.controller import option_errors
+    from dmd_jax.consistency import oriented_faces
+    from dmd_jax.controller import option_errors, options
     from dmd_jax.data.real import mesh_files, patch_mesh
     from dmd_jax.data.smoothing_set import (
         PATCH_FACES,
         PRESMOOTH_GRID,
         SEARCH_PASSES,
         UPDATES,
+        held_vertices,
         pass_errors,
     )
     from dmd_jax.io import load_mesh
@@ -55,7 +56,7 @@ def run(n_meshes: int, levels, out_csv, real_root, echo=print) -> None:
     rng = np.random.default_rng(5)
     pick = [files[i] for i in sorted(rng.choice(len(files), n_meshes, replace=False))]
     net = load_model(None)
-    opts = grid_options()
+    opts = options(PRESMOOTH_GRID, UPDATES, SEARCH_PASSES)
     Path(out_csv).parent.mkdir(parents=True, exist_ok=True)
     with open(out_csv, "w", newline="") as fh:
         w = csv.writer(fh)
@@ -80,18 +81,18 @@ def run(n_meshes: int, levels, out_csv, real_root, echo=print) -> None:
                 for tag, (cv, cf) in crops:
                     t = time.perf_counter()
                     target, noisy, tri = protocol.condition_mesh(cv, cf, condition, seed)
-                    _, oriented, held = as_denoise_reads(noisy, tri)
+                    # As `denoise` reads it: consistently wound, its held vertices held.
+                    oriented, _ = oriented_faces(np.asarray(tri), len(noisy))
+                    held = held_vertices(noisy, oriented)
                     errors, _ = pass_errors(
                         noisy, target, oriented if held.any() else tri, net, held
                     )
                     row = option_errors(errors[None], PRESMOOTH_GRID, UPDATES, SEARCH_PASSES)[0]
                     b = int(np.argmin(row))
-                    w.writerow(
-                        [path.name, tag, level, len(tri), option_label(opts[b]), f"{row[b]:.4f}"]
-                    )
+                    w.writerow([path.name, tag, level, len(tri), opts[b].label, f"{row[b]:.4f}"])
                     fh.flush()
                     echo(
-                        f"{path.name} {tag} {level} ({len(tri)} faces): {option_label(opts[b])} "
+                        f"{path.name} {tag} {level} ({len(tri)} faces): {opts[b].label} "
                         f"{row[b]:.2f}° ({time.perf_counter() - t:.0f} s)"
                     )
 
