@@ -274,7 +274,7 @@ def build_mesh_graph(
     if groups is None:
         groups = edge_groups(f, n_vertex)
         face_pairs = None  # pairs of other groups would not match
-    a, b = np.divmod(groups.key[groups.start], n_vertex)
+    a, b = groups.edges(n_vertex)
     vs, vr, vw = _symmetric_with_self_loops(a, b, n_vertex)
     fa, fb = adjacent_faces(groups, n_face) if face_pairs is None else face_pairs
     fs, fr, fw = _symmetric_with_self_loops(fa, fb, n_face)

@@ -504,7 +504,7 @@ def _denoise_referenced(
             unchanged=STILL_REASON,
         )
         return v.copy(), fields
-    edges = np.divmod(groups.key[groups.start], v.shape[0])  # as `topology.vertex_edges`
+    edges = groups.edges(v.shape[0])
     # The face normals of `x`, read by the exact-vertex test and the roughness.
     normals = face_normals_np(x, f)
     tolerance = exact_tolerance(in_dtype, v, f, edges=edges)

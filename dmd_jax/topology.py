@@ -92,6 +92,10 @@ class EdgeGroups(NamedTuple):
     start: np.ndarray  # [n_edge] int64, where each edge's group starts
     size: np.ndarray  # [n_edge] int64, how many faces the edge has
 
+    def edges(self, n_vertex: int) -> tuple[np.ndarray, np.ndarray]:
+        """`(a [n_edge], b [n_edge])`, the unique undirected edges (`vertex_edges`)."""
+        return np.divmod(self.key[self.start], n_vertex)
+
 
 def edge_groups(faces: np.ndarray, n_vertex: int) -> EdgeGroups:
     """Every face's three edges grouped by edge, from one stable sort of `edge_keys`.

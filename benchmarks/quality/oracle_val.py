@@ -69,11 +69,6 @@ SOTA_CSVS = (RESULTS_DIR / "sota_lite.csv", RESULTS_DIR / "sota_lite_scan.csv")
 CTRL_CSVS = (REPO / "runs" / "ctrl" / "val_ctrl.csv", REPO / "runs" / "ctrl" / "val_ctrl_scan.csv")
 
 
-def option_label(o) -> str:
-    """`p8` (pre-smoothing alone; `p0` is none), `p8_solve_4` (`Option.label`)."""
-    return o.label
-
-
 def grid_options():
     from dmd_jax.controller import options
     from dmd_jax.data.smoothing_set import PRESMOOTH_GRID, SEARCH_PASSES, UPDATES
@@ -99,7 +94,7 @@ HEAD = (
 
 
 def header() -> list[str]:
-    return [*HEAD, *(option_label(o) for o in grid_options())]
+    return [*HEAD, *(o.label for o in grid_options())]
 
 
 def case_key(noise: str, level, mesh: str) -> tuple:
@@ -215,8 +210,8 @@ def run(
                 len(tri),
                 f"{noisy_deg:.6f}",
                 int(held.sum()),
-                option_label(chosen) if params is not None else "",
-                option_label(opts[best]),
+                chosen.label if params is not None else "",
+                opts[best].label,
                 f"{row_errors[best]:.6f}",
                 f"{seconds:.1f}",
                 *(f"{e:.6f}" for e in row_errors),
@@ -226,8 +221,8 @@ def run(
             added += 1
             echo(
                 f"{condition.label} {path.name} ({len(tri)} faces): oracle "
-                f"{option_label(opts[best])} {row_errors[best]:.2f}°, controller "
-                f"{option_label(chosen)} {row_errors[opts.index(chosen)]:.2f}°, noisy "
+                f"{opts[best].label} {row_errors[best]:.2f}°, controller "
+                f"{chosen.label} {row_errors[opts.index(chosen)]:.2f}°, noisy "
                 f"{noisy_deg:.2f}° ({seconds:.0f} s)"
             )
     return added
@@ -339,7 +334,7 @@ def repick(src_csv, out_csv, controller_weights, *, val_dir=None, echo=print) ->
         if abs(noisy_deg - float(r["noisy_deg"])) > NOISY_TOLERANCE_DEG:
             raise ValueError(f"{r['mesh']} {condition.label}: not the noisy mesh searched")
         x, oriented, _ = as_denoise_reads(noisy, tri)
-        out.append({**r, "controller_option": option_label(decide(params, x, oriented).option)})
+        out.append({**r, "controller_option": decide(params, x, oriented).option.label})
     out_csv = Path(out_csv)
     out_csv.parent.mkdir(parents=True, exist_ok=True)
     with open(out_csv, "w", newline="") as fh:
@@ -384,7 +379,7 @@ def read_cases(out_csv=DEFAULT_CSV, ctrl_csvs=CTRL_CSVS) -> dict[str, list[Case]
     (default, best other) and the controller's rows, conditions in `ALL_CONDITIONS`
     order, meshes by name; a case the sota_lite CSVs lack is left out."""
     rows = read_rows(out_csv)
-    labels = [option_label(o) for o in grid_options()]
+    labels = [o.label for o in grid_options()]
     sota, ctrl = method_errors(SOTA_CSVS), method_errors(ctrl_csvs)
     out: dict[str, list[Case]] = {protocol.parse_condition(c).label: [] for c in ALL_CONDITIONS}
     for r in sorted(rows, key=lambda r: r["mesh"]):
@@ -427,7 +422,7 @@ def report(
     by_cond = read_cases(out_csv, ctrl_csvs)
     if not by_cond:
         raise ValueError(f"{out_csv}: no case to report")
-    labels = [option_label(o) for o in grid_options()]
+    labels = [o.label for o in grid_options()]
     main, verdicts, picks, misses, checks = [], [], [], [], []
     groups = [*by_cond.items(), ("all run", [c for cs in by_cond.values() for c in cs])]
     for cond, cases in groups:
