@@ -8,6 +8,10 @@ call, interleaved rounds after one warm-up call each (so every program is compil
 before timing); medians. The cost of a pass is the slope of a least-squares line through
 the passes' medians.
 
+`--filter-iterations 90 60` adds the default call with the bundled network's bilateral
+pre-filters run that many passes instead of its 120 (another function of the mesh than the
+one trained: what a network with cheaper pre-filters would cost, issue 64).
+
     python benchmarks/bench_pass_cost.py --faces 100000 --repeat 5
 """
 
@@ -44,6 +48,13 @@ def main(argv=None) -> int:
     p.add_argument("--faces", type=int, default=100_000, help="faces of the noisy grid")
     p.add_argument("--repeat", type=int, default=5, help="interleaved rounds")
     p.add_argument("--name", default="pass_cost", help="report name under results/")
+    p.add_argument(
+        "--filter-iterations",
+        type=int,
+        nargs="*",
+        default=[],
+        help="also the default call with this many pre-filter passes (each)",
+    )
     args = p.parse_args(argv)
 
     import dmd_jax
@@ -62,6 +73,13 @@ def main(argv=None) -> int:
             cases[_label(update, k)] = lambda b=bundles[update], k=k: dmd_jax.denoise(
                 v, f, b, iterations=k, presmooth=0
             )
+    for n in args.filter_iterations:
+        cheaper = bundle._replace(
+            config=bundle.config.replace(model=bundle.config.model.replace(filter_iterations=n))
+        )
+        cases[f"denoise (default), {n} pre-filter passes"] = lambda b=cheaper: dmd_jax.denoise(
+            v, f, b
+        )
     _, info = dmd_jax.denoise(v, f, bundle, return_info=True)
     times: dict[str, list[float]] = {name: [] for name in cases}
     for fn in cases.values():
@@ -90,6 +108,7 @@ def main(argv=None) -> int:
     env = environment()
     env["mesh"] = f"common.noisy_grid({args.faces}): {len(v):,} vertices, {len(f):,} faces"
     env["default call"] = f"{info.passes} pass(es), {info.presmooth_steps} Laplacian steps"
+    env["pre-filter passes"] = str(bundle.config.model.filter_iterations)
     sections = [
         (
             "Times, ms",
