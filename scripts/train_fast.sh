@@ -5,9 +5,10 @@
 # policy). Why: the pre-filters are about half of the network program and the default
 # call at 100k faces is 1.06-1.23x BNF; the bundled network run at 60 passes without
 # retraining is 0.89x BNF but 0.35 % worse per shape on validation, worst 1.18x
-# (docs/cold-start.md). Result: benchmarks/results/fast_prefilters.md (not adopted). This asks whether 1,500 steps at 60 passes win that back, as
-# 1,500 steps at 120 passes once won over 60 (docs/design-decisions.md). The training
-# command resumes its workdir.
+# (docs/cold-start.md). This asks whether 1,500 steps at 60 passes win that back, as
+# 1,500 steps at 120 passes once won over 60 (docs/design-decisions.md). They do not:
+# benchmarks/results/fast_prefilters.md (not adopted). The training command resumes its
+# workdir.
 #
 #   scripts/train_fast.sh [OUT]    # OUT (default runs/fast) gets runs, weights, reports
 #
