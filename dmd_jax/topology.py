@@ -129,8 +129,7 @@ def edge_face_counts(faces: np.ndarray, n_vertex: int) -> tuple[np.ndarray, ...]
       `(a [n_edge], b [n_edge], count [n_edge])` int64, `a < b`, sorted by `(a, b)`.
     """
     g = edge_groups(faces, n_vertex)
-    a, b = np.divmod(g.key[g.start], n_vertex)
-    return a, b, g.size
+    return (*g.edges(n_vertex), g.size)
 
 
 # --------------------------------------------------------------------------------------
