@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -60,23 +59,12 @@ def val_statistics(grid_csv: Path, cache: Path):
     """`(keys, [n, C, F] statistics, [n, C] mask)` of every case of the grid, as `decide`
     reads its noisy mesh (cached in `cache`)."""
     from dmd_jax.controller_features import CROPS, crops, features
-    from dmd_jax.io import load_mesh
 
     if cache.exists():
         z = np.load(cache, allow_pickle=False)
         return z["keys"].tolist(), z["feats"], z["mask"]
-    files = {p.name: p for p in protocol.validation_files(None)}
-    meshes, keys, feats, masks = {}, [], [], []
-    for r in ov.read_rows(grid_csv):
-        cond = protocol.NoiseCondition(r["noise"], float(r["level"]))
-        max_faces = ov.SCAN_MAX_FACES if cond.kind in ov.SCAN_KINDS else protocol.MAX_FACES
-        if (r["mesh"], max_faces) not in meshes:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                clean, faces = load_mesh(files[r["mesh"]])
-            meshes[r["mesh"], max_faces] = protocol.crop(clean, faces, max_faces)
-        clean, faces = meshes[r["mesh"], max_faces]
-        _, noisy, tri = protocol.condition_mesh(clean, faces, cond, int(r["seed"]))
+    keys, feats, masks = [], [], []
+    for r, cond, noisy, tri in ov.stored_cases(ov.read_rows(grid_csv)):
         x, oriented, _ = ov.as_denoise_reads(noisy, tri)
         f = np.array([features(v, t) for v, t in crops(x, oriented)])
         pad, mask = np.zeros((CROPS, f.shape[1])), np.zeros(CROPS, bool)

@@ -297,29 +297,20 @@ def _capture(cases) -> tuple[float, float]:
     return plain, log
 
 
-def repick(src_csv, out_csv, controller_weights, *, val_dir=None, echo=print) -> int:
-    """Copies the oracle's CSV `src_csv` to `out_csv` with `controller_option` chosen by
-    the controller of `controller_weights` on each case's noisy mesh (regenerated, and
-    checked against the row's noisy error): another controller scored on the same grid
-    without searching again (the grid's error at an option is `denoise`'s within 1 %,
-    the report's checks). Returns how many cases it wrote."""
-    from dmd_jax.checkpoints import load_model
-    from dmd_jax.controller import decide
+def stored_cases(rows, val_dir=None):
+    """`(row, condition, noisy, faces)` for each row of the oracle's CSV, its noisy mesh
+    made again (each cropped clean mesh loaded once) and checked against the row's noisy
+    error, so a pick scored on the row's grid is a pick on the mesh that was searched.
+
+    Raises:
+      ValueError: a row whose regenerated noisy mesh is not the one searched.
+    """
     from dmd_jax.io import load_mesh
     from dmd_jax.metrics import face_normal_errors_deg
 
-    params = load_model(controller_weights).controller
-    if params is None:
-        raise ValueError(f"{controller_weights}: holds no smoothing controller")
-    if tuple(params.options) != tuple(grid_options()):
-        raise ValueError("the controller's options are not the search grid's")
-    rows = read_rows(src_csv)
-    if not rows:
-        raise ValueError(f"{src_csv}: no case to repick")
     files = {p.name: p for p in protocol.validation_files(val_dir)}
     meshes = {}
-    out = []
-    for r in sorted(rows, key=lambda r: r["mesh"]):
+    for r in rows:
         condition = protocol.NoiseCondition(r["noise"], float(r["level"]))
         max_faces = SCAN_MAX_FACES if condition.kind in SCAN_KINDS else protocol.MAX_FACES
         key = (r["mesh"], max_faces)
@@ -333,6 +324,28 @@ def repick(src_csv, out_csv, controller_weights, *, val_dir=None, echo=print) ->
         noisy_deg = float(np.mean(face_normal_errors_deg(noisy, target, tri)))
         if abs(noisy_deg - float(r["noisy_deg"])) > NOISY_TOLERANCE_DEG:
             raise ValueError(f"{r['mesh']} {condition.label}: not the noisy mesh searched")
+        yield r, condition, noisy, tri
+
+
+def repick(src_csv, out_csv, controller_weights, *, val_dir=None, echo=print) -> int:
+    """Copies the oracle's CSV `src_csv` to `out_csv` with `controller_option` chosen by
+    the controller of `controller_weights` on each case's noisy mesh (`stored_cases`):
+    another controller scored on the same grid without searching again (the grid's error
+    at an option is `denoise`'s within 1 %, the report's checks). Returns how many cases
+    it wrote."""
+    from dmd_jax.checkpoints import load_model
+    from dmd_jax.controller import decide
+
+    params = load_model(controller_weights).controller
+    if params is None:
+        raise ValueError(f"{controller_weights}: holds no smoothing controller")
+    if tuple(params.options) != tuple(grid_options()):
+        raise ValueError("the controller's options are not the search grid's")
+    rows = read_rows(src_csv)
+    if not rows:
+        raise ValueError(f"{src_csv}: no case to repick")
+    out = []
+    for r, _, noisy, tri in stored_cases(sorted(rows, key=lambda r: r["mesh"]), val_dir):
         x, oriented, _ = as_denoise_reads(noisy, tri)
         out.append({**r, "controller_option": decide(params, x, oriented).option.label})
     out_csv = Path(out_csv)
