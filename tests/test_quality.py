@@ -223,3 +223,54 @@ def test_sota_lite_per_shape_and_region_tables_from_rows():
     # Only a.obj is CAD: crease 5.5 against CNR's 5.0, flat 0.5 against BNF's 1.0.
     assert "| shared | 0.2 | 1 | 5.50 | 5.00 (CNR) | +0.50 | 0.50 | 1.00 (BNF) | -0.50 |" in regions
     assert "CAD meshes: `shared`: a.obj." in regions
+
+
+def test_design_bounds_reads_each_designs_best_off_the_grid(tmp_path, monkeypatch):
+    """Two meshes under one condition: each design's bound is the best of the options it
+    may choose, over the best other method, as the report's geometric mean / worst."""
+    import csv
+
+    from benchmarks.quality import oracle_val
+
+    labels = [o.label for o in oracle_val.grid_options()]
+    grid = tmp_path / "grid.csv"
+    sota = tmp_path / "sota.csv"
+    best = {
+        "a.ply": ("p8_jacobi_2", 2.0, "p0_solve_3", 4.0),
+        "b.ply": ("p0_jacobi_1", 3.0, "p0_solve_1", 5.0),
+    }
+    with open(grid, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=oracle_val.header())
+        w.writeheader()
+        for mesh, (anywhere, e_any, solve, e_solve) in best.items():
+            errs = {k: 10.0 for k in labels}
+            errs[anywhere], errs[solve] = e_any, e_solve
+            errs["p0_jacobi_4"] = min(errs["p0_jacobi_4"], 6.0)
+            w.writerow({"set": "val", "mesh": mesh, "noise": "gaussian", "level": "0.2", **errs})
+    with open(sota, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=["set", "mesh", "noise", "level", "method", "normal_deg"])
+        w.writeheader()
+        for mesh in best:
+            for method, err in (("dmd", 8.0), ("bilateral", 4.0), ("noisy", 20.0)):
+                w.writerow(
+                    {
+                        "set": "val",
+                        "mesh": mesh,
+                        "noise": "gaussian",
+                        "level": "0.2",
+                        "method": method,
+                        "normal_deg": err,
+                    }
+                )
+    monkeypatch.setattr(oracle_val, "SOTA_CSVS", (sota,))
+    text = oracle_val.design_bounds(grid, tmp_path / "bounds.md").read_text()
+    row = next(line for line in text.splitlines() if line.startswith("| 0.2 "))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    # default 8/4 both; oracle 2/4 and 3/4; stop (no pre-smoothing) 4/4 (a: solve 3) and
+    # 3/4 (b: Jacobi 1); Jacobi only 6/4 and 3/4; solve only 4/4 and 5/4.
+    assert cells[3] == "2.000 / 2.00"
+    assert cells[4] == f"{(0.5 * 0.75) ** 0.5:.3f} / 0.75 ✓"
+    assert cells[5] == f"{0.75**0.5:.3f} / 1.00 ✓"
+    assert cells[6] == f"{(1.5 * 0.75) ** 0.5:.3f} / 1.50"
+    assert cells[7] == f"{1.25**0.5:.3f} / 1.25"
+    assert "the grid oracle (all 68 options): 1 of 1" in text
