@@ -263,7 +263,7 @@ def test_design_bounds_reads_each_designs_best_off_the_grid(tmp_path, monkeypatc
                     }
                 )
     monkeypatch.setattr(oracle_val, "SOTA_CSVS", (sota,))
-    text = oracle_val.design_bounds(grid, tmp_path / "bounds.md").read_text()
+    text = oracle_val.design_bounds([(None, grid, ())], tmp_path / "bounds.md").read_text()
     row = next(line for line in text.splitlines() if line.startswith("| 0.2 "))
     cells = [c.strip() for c in row.strip("|").split("|")]
     # default 8/4 both; oracle 2/4 and 3/4; stop (no pre-smoothing) 4/4 (a: solve 3) and
@@ -274,3 +274,22 @@ def test_design_bounds_reads_each_designs_best_off_the_grid(tmp_path, monkeypatc
     assert cells[6] == f"{(1.5 * 0.75) ** 0.5:.3f} / 1.50"
     assert cells[7] == f"{1.25**0.5:.3f} / 1.25"
     assert "the grid oracle (all 68 options): 1 of 1" in text
+
+
+def test_oracle_val_writes_the_committed_report_only_for_its_own_grid(tmp_path, capsys):
+    """Another --csv writes no report unless --report names one (scoring another grid
+    or controller must not rewrite `controller_oracle_val.md`)."""
+    from benchmarks.quality import oracle_val
+
+    before = oracle_val.DEFAULT_REPORT.read_bytes()
+    grid = tmp_path / "grid.csv"
+    grid.write_text(",".join(oracle_val.header()) + "\n")
+    assert oracle_val.main(["--report-only", "--csv", str(grid)]) == 0
+    assert "no report" in capsys.readouterr().out
+    assert oracle_val.DEFAULT_REPORT.read_bytes() == before
+    # Named, it is written (here: an error, the grid holds no case).
+    assert (
+        oracle_val.main(["--report-only", "--csv", str(grid), "--report", str(tmp_path / "r.md")])
+        == 2
+    )
+    assert "no case to report" in capsys.readouterr().err

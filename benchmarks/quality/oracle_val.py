@@ -42,7 +42,14 @@ import numpy as np
 if __package__ in (None, ""):  # run as a script: make `benchmarks` importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from benchmarks.common import REPO, RESULTS_DIR, markdown_table, provenance, write_text  # noqa: E402
+from benchmarks.common import (  # noqa: E402
+    REPO,
+    RESULTS_DIR,
+    file_sha256,
+    markdown_table,
+    provenance,
+    write_text,
+)
 from dmd_jax import comparison, protocol  # noqa: E402
 
 # Every condition of controller_val.md, Gaussian / impulse first as sota_lite.csv, then
@@ -602,6 +609,11 @@ def report(
             if ctrl_csvs
             else f"\npython benchmarks/quality/oracle_val.py --repick {_rel(DEFAULT_CSV)} "
             f"--csv {_rel(out_csv)} --controller-weights {_rel(controller_weights)}"
+            + (
+                ""
+                if Path(out_csv).resolve() == DEFAULT_CSV.resolve()
+                else f" --report {_rel(path)}"
+            )
         ),
         "```",
         "",
@@ -705,17 +717,17 @@ DESIGNS = (
 DEFAULT_BOUNDS_REPORT = RESULTS_DIR / "controller_design_bounds.md"
 
 
-def design_bounds(out_csv=DEFAULT_CSV, path=DEFAULT_BOUNDS_REPORT):
-    """Writes what a perfect chooser of each design in `DESIGNS` reaches on the oracle's
-    CSV, per condition and shape against the best other method: the bound on any
-    controller of that design over today's network (no controller needed)."""
+def _design_table(out_csv, sota_csvs=SOTA_CSVS) -> tuple[list, Counter, int]:
+    """The rows of one grid's design table, how many conditions' targets each design
+    meets, and how many conditions the grid holds; the default call and the best other
+    method are the `dmd` and best rival rows of `sota_csvs`."""
     rows = read_rows(out_csv)
     if not rows:
         raise ValueError(f"{out_csv}: no case to read")
     opts = grid_options()
     labels = [o.label for o in opts]
     subsets = [np.array([pick(o) for o in opts]) for _, pick in DESIGNS]
-    sota = method_errors(SOTA_CSVS)
+    sota = method_errors(sota_csvs)
     floor = comparison.RATIO_FLOOR_DEG
     by_cond: dict[str, list] = {}
     for r in sorted(rows, key=lambda r: r["mesh"]):
@@ -725,21 +737,17 @@ def design_bounds(out_csv=DEFAULT_CSV, path=DEFAULT_BOUNDS_REPORT):
             continue
         e = np.array([float(r[k]) for k in labels])
         label = protocol.NoiseCondition(r["noise"], float(r["level"])).label
-        by_cond.setdefault(label, []).append((r["mesh"], errs["dmd"], min(rivals), e))
+        by_cond.setdefault(label, []).append((label, r["mesh"], errs["dmd"], min(rivals), e))
     if not by_cond:
         raise ValueError(f"{out_csv}: no case the sota_lite CSVs hold")
     table, meets = [], Counter()
-    every = [(c, x) for c, xs in by_cond.items() for x in xs]
-    for cond, cases in [*((c, [(c, x) for x in xs]) for c, xs in by_cond.items()), ("all", every)]:
-
-        def ratio(err, other):
-            return max(err, floor) / max(other, floor)
-
+    every = [x for xs in by_cond.values() for x in xs]
+    for cond, cases in [*by_cond.items(), ("all", every)]:
         cells = []
         for design in [None, *subsets]:
             ratios = {
-                (c, mesh): ratio(d if design is None else e[design].min(), other)
-                for c, (mesh, d, other, e) in cases
+                (c, mesh): max(d if design is None else e[design].min(), floor) / max(other, floor)
+                for c, mesh, d, other, e in cases
             }
             s = comparison.summarise_ratios(ratios)
             cells.append((s.geometric_mean, s.worst))
@@ -758,35 +766,84 @@ def design_bounds(out_csv=DEFAULT_CSV, path=DEFAULT_BOUNDS_REPORT):
                 ),
             ]
         )
-    n = len(by_cond)
-    summary = "; ".join(f"{name}: {meets[k]} of {n}" for k, (name, _) in enumerate(DESIGNS))
+    return table, meets, len(by_cond)
+
+
+def design_bounds(grids, path=DEFAULT_BOUNDS_REPORT):
+    """Writes what a perfect chooser of each design in `DESIGNS` reaches on each grid,
+    per condition and shape against the best other method: the bound on any controller
+    of that design over that network (no controller needed).
+
+    Args:
+      grids: `[(weights, csv, rows)]`: the oracle CSV searched for each network
+        (`weights` None: the bundled one), in the report's order, and the sota_lite
+        CSVs whose `dmd` rows are that network's default call (empty: `SOTA_CSVS`, the
+        bundled network's).
+      path: the markdown report.
+    """
+    if not grids:
+        raise ValueError("no grid to read")
+    sections, commands = [], []
+    for weights, out_csv, rows in grids:
+        table, meets, n = _design_table(out_csv, tuple(rows) or SOTA_CSVS)
+        name = "the bundled network" if weights is None else f"`{_rel(weights)}`"
+        summary = "; ".join(f"{d}: {meets[k]} of {n}" for k, (d, _) in enumerate(DESIGNS))
+        search = "--controller-weights none" + (
+            "" if weights is None else f" --network {_rel(weights)}"
+        )
+        commands.append(f"python benchmarks/quality/oracle_val.py {search} --csv {_rel(out_csv)}")
+        sections += [
+            f"## The grid of {name}",
+            "",
+            (
+                ""
+                if weights is None
+                else f"Weights SHA-256 `{file_sha256(weights)[:12]}`. The `default` column: "
+                + (
+                    "the bundled network's default call (the sota_lite CSVs). "
+                    if not rows
+                    else "this network's default call, the `dmd` rows of "
+                    + ", ".join(f"`{_rel(r)}`" for r in rows)
+                    + ". "
+                )
+            )
+            + f"Grid `{_rel(out_csv)}` (not committed). Conditions whose target the "
+            "column meets: " + summary + ".",
+            "",
+            markdown_table(
+                ["condition", "meshes", "target", "default", *(d for d, _ in DESIGNS)],
+                table,
+            ),
+            "",
+        ]
+    arg = " ".join(
+        f"--csv {_rel(c)}"
+        if w is None
+        else f"--network-grid {_rel(w)}={_rel(c)}" + ("=" + ",".join(map(_rel, r)) if r else "")
+        for w, c, r in grids
+    )
     parts = [
-        "# What each controller design could reach with today's network",
+        "# What each controller design could reach with the network it chooses for",
         "",
-        provenance() + " The grid of the bundled network: "
-        f"`{_rel(out_csv)}` (not committed; `oracle_val.py --controller-weights none` "
-        "searches it), 68 options per mesh and condition on the real validation split, "
-        "the noise and seeds of the sota_lite CSVs, whose `dmd` rows (the default call) "
-        "and best other method it is set against.",
+        provenance()
+        + " 68 options per mesh and condition on the real validation split (the noise and "
+        "seeds of the sota_lite CSVs, whose `dmd` rows, the default call, and best other "
+        "method each grid is set against), searched by:",
         "",
         "```bash",
-        f"python benchmarks/quality/oracle_val.py --bounds --csv {_rel(out_csv)}",
+        *commands,
+        f"python benchmarks/quality/oracle_val.py --bounds {arg}",
         "```",
         "",
         "Per condition, geometric mean / worst over the meshes of the error over the best "
-        "other library method, for today's default call and for a perfect chooser of "
-        "each design: the best option per mesh among those the design may choose (✓: "
-        "meets issue 63's target). A learned stop runs the network on the mesh as given "
-        "and stops after the pass that leaves it best, or runs none; the grid oracle "
-        "may also pre-smooth 3, 8 or 20 Laplacian steps first. No controller of a "
-        "design does better than its column. Conditions whose target the column "
-        "meets: " + summary + ".",
+        "other library method, for the default call and for a perfect chooser of each "
+        "design: the best option per mesh among those the design may choose (✓: meets "
+        "issue 63's target). A learned stop runs the network on the mesh as given and "
+        "stops after the pass that leaves it best, or runs none; the grid oracle may also "
+        "pre-smooth 3, 8 or 20 Laplacian steps first. No controller of a design over that "
+        "network does better than its column.",
         "",
-        markdown_table(
-            ["condition", "meshes", "target", "default", *(name for name, _ in DESIGNS)],
-            table,
-        ),
-        "",
+        *sections,
     ]
     return write_text(Path(path), "\n".join(parts))
 
@@ -801,7 +858,12 @@ def main(argv=None) -> int:
         help="conditions to search, in this order (as sota_lite's --conditions)",
     )
     parser.add_argument("--csv", default=str(DEFAULT_CSV), help="the oracle's CSV (appended)")
-    parser.add_argument("--report", default=str(DEFAULT_REPORT), help="markdown report")
+    parser.add_argument(
+        "--report",
+        help=f"markdown report (default: {_rel(DEFAULT_REPORT)} for the default --csv; "
+        "another --csv writes no report unless this names one, so that scoring another "
+        "grid or controller never rewrites the committed report)",
+    )
     parser.add_argument(
         "--controller-weights",
         default=str(DEFAULT_CONTROLLER),
@@ -817,7 +879,15 @@ def main(argv=None) -> int:
         const=str(DEFAULT_BOUNDS_REPORT),
         metavar="REPORT",
         help="no search: what a perfect chooser of each controller design reaches on --csv "
-        "(markdown report, default %(const)s)",
+        f"(markdown report, default {_rel(DEFAULT_BOUNDS_REPORT)})",
+    )
+    parser.add_argument(
+        "--network-grid",
+        action="append",
+        default=[],
+        metavar="WEIGHTS=CSV[=ROWS,...]",
+        help="with --bounds: also the grid searched for another network (--network), and "
+        "the sota_lite CSVs whose `dmd` rows are its default call (a milestone's score/)",
     )
     parser.add_argument(
         "--repick",
@@ -834,7 +904,14 @@ def main(argv=None) -> int:
     ctrl_csvs = CTRL_CSVS
     try:
         if args.bounds:
-            print(f"wrote {design_bounds(args.csv, args.bounds)}")
+            grids = [(None, args.csv, ())]
+            for spec in args.network_grid:
+                parts = spec.split("=")
+                if len(parts) not in (2, 3) or not all(parts):
+                    raise ValueError(f"--network-grid {spec!r}: write WEIGHTS=CSV[=ROWS,...]")
+                rows = parts[2].split(",") if len(parts) == 3 else []
+                grids.append((parts[0], parts[1], rows))
+            print(f"wrote {design_bounds(grids, args.bounds)}")
             return 0
         if args.repick:
             repick(args.repick, args.csv, args.controller_weights)
@@ -856,7 +933,13 @@ def main(argv=None) -> int:
         if args.controller_weights == "none":
             print(f"searched the grid into {args.csv}; no controller, no report")
             return 0
-        print(f"wrote {report(args.csv, args.report, args.controller_weights, ctrl_csvs)}")
+        path = args.report
+        if path is None and Path(args.csv).resolve() == DEFAULT_CSV.resolve():
+            path = DEFAULT_REPORT
+        if path is None:
+            print(f"wrote {args.csv}; no report (--report names one)")
+            return 0
+        print(f"wrote {report(args.csv, path, args.controller_weights, ctrl_csvs)}")
     except (ValueError, FileNotFoundError) as exc:
         print(f"oracle_val: error: {exc}", file=sys.stderr)
         return 2
