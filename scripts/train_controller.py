@@ -164,8 +164,14 @@ def main(argv=None) -> int:
         "",
         f"Commit `{commit}`; set `{args.data}` ({len(x)} examples, "
         f"grid: pre-smoothing {smoothing_set.PRESMOOTH_GRID}, updates {smoothing_set.UPDATES}, "
-        f"1-{smoothing_set.SEARCH_PASSES} passes, or none: {len(opts)} options); network: the "
-        "bundled weights (`dmd_small.msgpack`). Reproduce: "
+        f"1-{smoothing_set.SEARCH_PASSES} passes, or none: {len(opts)} options); network: "
+        + (
+            "the bundled weights (`dmd_small.msgpack`)"
+            if data["network"] == smoothing_set.BUNDLED_NETWORK
+            else f"the weights of SHA-256 `{data['network']}` (the set searched again for "
+            "them, `smoothing_set --network`)"
+        )
+        + ". Reproduce: "
         f"`python scripts/train_controller.py {args.data} --out {args.out} "
         f"--report {args.report}{' --no-whole' if args.no_whole else ''}`."
         + (

@@ -229,6 +229,81 @@ def test_an_older_search_is_refused_and_redone_where_vertices_are_held(tmp_path,
     assert smoothing_set.research(tmp_path, sources=sources, bundle=object())["checked"] == 0
 
 
+def test_a_set_searched_again_for_another_network(tmp_path, monkeypatch):
+    """`search_with` copies a set with the search and the default call's error redone
+    for another network, records its digest, resumes, and `load` refuses a set mixing
+    networks."""
+    import shutil
+
+    import dmd_jax
+    from dmd_jax import checkpoints
+    from dmd_jax.metrics import face_normal_errors_deg
+
+    ball = icosphere(2)
+    ball = np.asarray(ball[0], np.float64), np.asarray(ball[1], np.int32)
+
+    class OneMesh:
+        def counts(self):
+            return {"stress": 1}
+
+        def mesh(self, spec):
+            return ball
+
+    sources, src, out = OneMesh(), tmp_path / "src", tmp_path / "out"
+    (src / "examples").mkdir(parents=True)
+    (src / "manifest.json").write_text(json.dumps({"sources": sources.counts()}))
+    noisy_meshes = []
+    for i, level in enumerate((0.2, 0.5)):
+        spec = {"index": i, "source": "stress", "mesh": 0, "kind": "gaussian_normal"}
+        spec.update(level=level, noise_seed=3 + i)
+        clean, faces = sources.mesh(spec)
+        clean, noisy, faces = smoothing_set.noisy_example(spec, clean, faces)
+        noisy_meshes.append((noisy, clean, faces))
+        np.savez(
+            src / "examples" / f"{i:05d}.npz",
+            features=features(noisy, faces),
+            features_version=controller_features_version(),
+            errors=np.zeros((2, 2, 3)),
+            search_version=smoothing_set.SEARCH_VERSION,
+            first_pass=np.zeros(2),
+            default_error=1.0,
+            spec=json.dumps(spec),
+            n_faces=len(faces),
+            noisy_digest=smoothing_set.mesh_digest(noisy, faces),
+        )
+    weights = tmp_path / "milestone.msgpack"
+    weights.write_bytes(b"a network")
+    searched = []
+
+    def fake_search(noisy, clean, faces, bundle, held):
+        searched.append(bundle)
+        return np.full((2, 2, 3), 2.0 + len(searched)), np.ones(2)
+
+    monkeypatch.setattr(smoothing_set, "pass_errors", fake_search)
+    monkeypatch.setattr(checkpoints, "load_model", lambda path: f"network of {path}")
+    monkeypatch.setattr(dmd_jax, "denoise", lambda v, f, bundle: v)  # moves nothing
+    assert smoothing_set.search_with(src, out, weights, sources=sources, say=print) == 2
+    assert searched == [f"network of {weights}"] * 2
+    data = smoothing_set.load(out)
+    assert data["network"] == smoothing_set.network_digest(weights)
+    assert smoothing_set.load(src)["network"] == smoothing_set.BUNDLED_NETWORK
+    np.testing.assert_array_equal(data["errors"][:, 0, 0, 0], [3.0, 4.0])
+    np.testing.assert_array_equal(data["features"], smoothing_set.load(src)["features"])
+    for k, (noisy, clean, faces) in enumerate(noisy_meshes):
+        noisy_error = np.mean(face_normal_errors_deg(noisy, clean, faces))
+        assert data["default_error"][k] == pytest.approx(noisy_error)
+    # Resumes: nothing left to do.
+    assert smoothing_set.search_with(src, out, weights, sources=sources) == 0
+    # Another network into the same folder is refused; so is a mixed set.
+    other = tmp_path / "other.msgpack"
+    other.write_bytes(b"another network")
+    with pytest.raises(ValueError, match="another source or network"):
+        smoothing_set.search_with(src, out, other, sources=sources)
+    shutil.copy(src / "examples" / "00000.npz", out / "examples" / "00002.npz")
+    with pytest.raises(ValueError, match="mixes searches of several networks"):
+        smoothing_set.load(out)
+
+
 def controller_features_version():
     from dmd_jax.controller_features import FEATURES_VERSION
 

@@ -35,6 +35,12 @@ redoes the search of those with held vertices (about a fifth) and stamps the oth
     python -m dmd_jax.data.smoothing_set --out data/smoothing --examples 2000
     python -m dmd_jax.data.smoothing_set --out data/smoothing --refeature
     python -m dmd_jax.data.smoothing_set --out data/smoothing --research
+    python -m dmd_jax.data.smoothing_set --out data/smoothing_m --from data/smoothing \\
+        --network runs/long/ft/milestones/step_030000/weights.msgpack   # another network
+
+A set searched for another network (`search_with`: a long run's milestone) keeps every
+example's statistics and spec and records the network's digest (`network`); `load`
+refuses a set that mixes networks.
 """
 
 from __future__ import annotations
@@ -592,9 +598,10 @@ def load(out) -> dict:
 
     files = _example_files(out)
     out = {"features": [], "errors": [], "first_pass": [], "default_error": [], "specs": []}
-    stale, unsearched, crops = [], [], []
+    stale, unsearched, crops, networks = [], [], [], set()
     for path in files:
         with np.load(path) as z:
+            networks.add(_network(z))
             if _features_version(z) != FEATURES_VERSION:
                 stale.append(path.name)
             if _search_version(z) != SEARCH_VERSION:
@@ -615,7 +622,12 @@ def load(out) -> dict:
             f"version than {SEARCH_VERSION}: python -m dmd_jax.data.smoothing_set --out "
             f"{files[0].parents[1]} --research"
         )
+    if len(networks) > 1:
+        raise ValueError(
+            f"{files[0].parents[1]} mixes searches of several networks: {sorted(networks)}"
+        )
     out = {k: v if k == "specs" else np.array(v) for k, v in out.items()}
+    out["network"] = networks.pop() if networks else BUNDLED_NETWORK
     width = max((len(c) for c in crops), default=1)
     out["crop_features"] = np.zeros((len(crops), width, out["features"].shape[-1]))
     out["crop_mask"] = np.zeros((len(crops), width), bool)
@@ -765,6 +777,98 @@ def research(out, *, sources: Sources, bundle=None, reverse: bool = False, say=p
     return report
 
 
+def network_digest(path) -> str:
+    """The first 12 hex digits of a weights file's SHA-256: which network an example's
+    search ran (`search_with`); an example without the field ran the bundled one."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()[:12]
+
+
+def _network(z) -> str:
+    return str(z["network"]) if "network" in z.files else BUNDLED_NETWORK
+
+
+# `network` of the examples searched with the bundled weights (every example `build` writes).
+BUNDLED_NETWORK = "bundled"
+
+
+def search_with(
+    src,
+    out,
+    weights,
+    *,
+    sources: Sources,
+    shard: tuple[int, int] = (0, 1),
+    reverse: bool = False,
+    say=print,
+) -> int:
+    """Copies the examples of the set `src` to `out` with the search and the default
+    call's error redone for the network of the weights file `weights` (a long run's
+    milestone: the controller it would need). Each example's noisy mesh is regenerated
+    and checked against its digest; statistics and spec are kept (they do not depend on
+    the network). Resumable (an example `out` holds is skipped); `shard=(k, n)` takes
+    every n-th example of `src` from the k-th (one process per core), and a second
+    process with `reverse` (from the last example back: the whole meshes first) shares
+    the work with a first one. Returns how many it wrote.
+
+    Raises:
+      ValueError: `src` was built from other sources, or `out` holds a set of another
+        source or network.
+    """
+    from dmd_jax import denoise
+    from dmd_jax.checkpoints import load_model
+    from dmd_jax.io._files import atomic_write, write_text_atomic
+    from dmd_jax.metrics import face_normal_errors_deg
+
+    src, out = Path(src), Path(out)
+    manifest = json.loads((src / "manifest.json").read_text())
+    if manifest["sources"] != sources.counts():
+        raise ValueError(f"the sources changed since {src} was built: {sources.counts()}")
+    digest = network_digest(weights)
+    manifest = {**manifest, "network": digest, "searched_from": str(src)}
+    old = out / "manifest.json"
+    if old.is_file() and json.loads(old.read_text()) != json.loads(json.dumps(manifest)):
+        raise ValueError(f"{out} holds a set of another source or network (manifest.json)")
+    (out / "examples").mkdir(parents=True, exist_ok=True)
+    write_text_atomic(old, json.dumps(manifest, indent=2))
+    bundle = load_model(weights)
+    written, t0 = 0, time.time()
+    files = _example_files(src)[shard[0] :: shard[1]]
+    for path in reversed(files) if reverse else files:
+        target = out / "examples" / path.name
+        if target.exists():
+            continue
+        with np.load(path) as z:
+            fields = {k: z[k] for k in z.files}
+            if _search_version(z) != SEARCH_VERSION:
+                raise ValueError(f"{path}: searched by an older version (run --research)")
+        spec = json.loads(str(fields["spec"]))
+        clean, faces = sources.mesh(spec)
+        clean, noisy, faces = noisy_example(spec, clean, faces)
+        if str(fields["noisy_digest"]) != mesh_digest(noisy, faces):
+            say(f"{path.name} skipped: its noisy mesh no longer regenerates")
+            continue
+        held = held_vertices(noisy, faces)
+        fields["errors"], fields["first_pass"] = pass_errors(noisy, clean, faces, bundle, held)
+        fields["default_error"] = float(
+            np.mean(face_normal_errors_deg(denoise(noisy, faces, bundle), clean, faces))
+        )
+        fields["network"] = digest
+
+        def write(tmp, fields=fields):
+            with open(tmp, "wb") as fh:
+                np.savez(fh, **fields)
+
+        atomic_write(target, write, overwrite=False)
+        written += 1
+        if written % 25 == 0:
+            say(f"{written} examples searched again ({(time.time() - t0) / written:.2f} s each)")
+    return written
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, required=True)
@@ -785,8 +889,17 @@ def main(argv=None) -> int:
         help="redo the search of examples of an older search version where vertices are held",
     )
     parser.add_argument(
-        "--reverse", action="store_true", help="with --research: from the last example back"
+        "--reverse",
+        action="store_true",
+        help="with --research or --network: from the last example back",
     )
+    parser.add_argument(
+        "--network",
+        type=Path,
+        help="with --from: redo the search of that set's examples for this weights file's "
+        "network into --out (resumable; --shard splits it)",
+    )
+    parser.add_argument("--from", dest="src", type=Path, help="the set --network searches again")
     args = parser.parse_args(argv)
     sources = Sources(
         args.data if Path(args.data).is_dir() else None,
@@ -799,6 +912,20 @@ def main(argv=None) -> int:
             f"checked by digest, the others by face count); {len(report['rejected'])} moved to "
             "rejected/"
         )
+        return 0
+    if args.network or args.src:
+        if not (args.network and args.src):
+            parser.error("--network and --from go together")
+        k, _, n = args.shard.partition("/")
+        wrote = search_with(
+            args.src,
+            args.out,
+            args.network,
+            sources=sources,
+            shard=(int(k), int(n)),
+            reverse=args.reverse,
+        )
+        print(f"searched {wrote} examples of {args.src} with {args.network} into {args.out}")
         return 0
     if args.research:
         report = research(args.out, sources=sources, reverse=args.reverse)
