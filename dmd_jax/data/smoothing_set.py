@@ -862,7 +862,11 @@ def search_with(
             with open(tmp, "wb") as fh:
                 np.savez(fh, **fields)
 
-        atomic_write(target, write, overwrite=False)
+        try:
+            atomic_write(target, write, overwrite=False)
+        except FileExistsError:  # the other process (`reverse`) met this one here
+            say(f"{path.name}: written by another process meanwhile")
+            continue
         written += 1
         if written % 25 == 0:
             say(f"{written} examples searched again ({(time.time() - t0) / written:.2f} s each)")
