@@ -437,9 +437,13 @@ def report(
     path=DEFAULT_REPORT,
     controller_weights=DEFAULT_CONTROLLER,
     ctrl_csvs=CTRL_CSVS,
+    network=None,
+    source_csv=DEFAULT_CSV,
 ):
     """Writes the markdown report of the oracle's CSV (`path`); the controller's errors
-    are its `denoise` rows of `ctrl_csvs` where they hold the case, else the grid's."""
+    are its `denoise` rows of `ctrl_csvs` where they hold the case, else the grid's.
+    `network`: the weights whose network the grid was searched for (`--network`), None
+    for the bundled one; `source_csv`: the grid `--repick` read."""
     by_cond = read_cases(out_csv, ctrl_csvs)
     if not by_cond:
         raise ValueError(f"{out_csv}: no case to report")
@@ -574,8 +578,16 @@ def report(
         "# The grid oracle of the smoothing controller on the validation split",
         "",
         provenance(controller_weights)
-        + " The network is the bundled one (`dmd_small.msgpack`, unchanged); the "
-        "controller is the one in that file (not bundled).",
+        + (
+            " The network is the bundled one (`dmd_small.msgpack`, unchanged); the "
+            "controller is the one in that file (not bundled)."
+            if network is None
+            else f" The grid was searched for the network of `{_rel(network)}` (SHA-256 "
+            f"`{file_sha256(network)[:12]}`), not the bundled one; the controller is the one "
+            "in the weights file above (not bundled); the `default` column stays the "
+            "bundled network's default call (the sota_lite CSVs), so the capture is of "
+            "the gain of this network's oracle over the bundled default."
+        ),
         "",
         "The 20 meshes of the real validation split (`sota_lite.py --sets val`), cropped "
         f"to {protocol.MAX_FACES:,} faces (Gaussian, impulse) and {SCAN_MAX_FACES:,} "
@@ -607,13 +619,14 @@ def report(
         + (
             ""
             if ctrl_csvs
-            else f"\npython benchmarks/quality/oracle_val.py --repick {_rel(DEFAULT_CSV)} "
+            else f"\npython benchmarks/quality/oracle_val.py --repick {_rel(source_csv)} "
             f"--csv {_rel(out_csv)} --controller-weights {_rel(controller_weights)}"
             + (
                 ""
                 if Path(out_csv).resolve() == DEFAULT_CSV.resolve()
                 else f" --report {_rel(path)}"
             )
+            + ("" if network is None else f" --network {_rel(network)}")
         ),
         "```",
         "",
@@ -898,7 +911,8 @@ def main(argv=None) -> int:
     parser.add_argument(
         "--network",
         help="search this weights file's network instead of the bundled one (a long run's "
-        "milestone: how far a better network lifts the oracle); writes the CSV, no report",
+        "milestone: how far a better network lifts the oracle); writes the CSV, no report. "
+        "With --repick or --report-only: the network the CSV's grid was searched for",
     )
     args = parser.parse_args(argv)
     ctrl_csvs = CTRL_CSVS
@@ -926,8 +940,8 @@ def main(argv=None) -> int:
                 only=tuple(args.only),
                 network_weights=args.network,
             )
-        if args.network:
-            # The report's default and controller columns are the bundled network's.
+        if args.network and not (args.repick or args.report_only):
+            # A search: the report waits for a controller's picks (--repick).
             print(f"searched {args.network}'s grid into {args.csv}; no report")
             return 0
         if args.controller_weights == "none":
@@ -939,7 +953,15 @@ def main(argv=None) -> int:
         if path is None:
             print(f"wrote {args.csv}; no report (--report names one)")
             return 0
-        print(f"wrote {report(args.csv, path, args.controller_weights, ctrl_csvs)}")
+        written = report(
+            args.csv,
+            path,
+            args.controller_weights,
+            ctrl_csvs,
+            args.network,
+            args.repick or DEFAULT_CSV,
+        )
+        print(f"wrote {written}")
     except (ValueError, FileNotFoundError) as exc:
         print(f"oracle_val: error: {exc}", file=sys.stderr)
         return 2
