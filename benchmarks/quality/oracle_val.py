@@ -614,7 +614,13 @@ def report(
         + f". The per-mesh rows: `{_rel(out_csv)}` (not committed).",
         "",
         "```bash",
-        "python benchmarks/quality/oracle_val.py --conditions "
+        "python benchmarks/quality/oracle_val.py "
+        + (
+            ""
+            if network is None
+            else f"--network {_rel(network)} --controller-weights none --csv {_rel(source_csv)} "
+        )
+        + "--conditions "
         + " ".join(c for c in ALL_CONDITIONS if protocol.parse_condition(c).label in run_labels)
         + (
             ""
