@@ -260,6 +260,15 @@ def _git(*args) -> str:
     return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True).stdout.strip()
 
 
+def _controller(weights: Path) -> bool:
+    """Whether the weights' default call lets a stored smoothing controller choose
+    (a milestone scored with the controller trained for its network)."""
+    from dmd_jax.checkpoints import load_model
+
+    bundle = load_model(weights)
+    return bundle.controller is not None and bool(bundle.policy.controller)
+
+
 def report(args, families: dict, clean_csvs, seconds: float, dirty: str) -> str:
     from benchmarks.common import file_sha256
 
@@ -312,12 +321,16 @@ def report(args, families: dict, clean_csvs, seconds: float, dirty: str) -> str:
     step = f"{args.step:,}"
     milestone = f"{args.milestone:,}" if args.milestone else step
     commit = _git("rev-parse", "--short=7", "HEAD")
+    chooser = _controller(args.weights)
     lines = [
-        f"### Milestone {milestone} (step {step}): {'bundle' if bundle else 'not bundled'}",
+        f"### Milestone {milestone}{' with its controller' if chooser else ''} (step {step}): "
+        f"{'bundle' if bundle else 'not bundled'}",
         "",
         f"Commit `{commit}`{' (uncommitted changes: ' + dirty + ')' if dirty else ''}; "
         f"milestone weights `{args.weights}` (SHA-256 `{file_sha256(args.weights)}`, the run's "
-        f"step {step} exported with the bundled weights' policy) against the bundled "
+        f"step {step} exported with the bundled weights' policy"
+        + (" and the smoothing controller trained for its network, switched on" if chooser else "")
+        + ") against the bundled "
         f"`{args.baseline.name}` (SHA-256 `{file_sha256(args.baseline)}`), both run in one "
         f"process; {seconds / 60:.0f} min on one core. The 20 meshes of the validation split "
         "(cropped to 15,000 faces for Gaussian and impulse noise, 5,000 for scanner noise "
