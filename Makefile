@@ -150,7 +150,7 @@ train-long-milestone: $(STAMP)
 	STEP=$(STEP) scripts/train_long_milestone.sh $(if $(OUT),$(OUT),runs/long)
 
 # The milestone scored with the smoothing controller trained for its network (the bundling
-# rule's "controller retrained for it"): its set searched again (~40 min on 2 cores), the
+# rule's "controller retrained for it"): its set searched again (~55 min on 2 cores), the
 # controller trained, exported, scored; after train-long-milestone STEP=N.
 train-long-candidate: $(STAMP)
 	STEP=$(STEP) scripts/train_long_candidate.sh $(if $(OUT),$(OUT),runs/long)

@@ -11,8 +11,8 @@
 #
 # 1. The controller's set (SET, default data/smoothing: `make controller-data`) searched again
 #    for the milestone's network into SET_mNNNNNN (`smoothing_set --network`; two processes,
-#    one from each end, one core each: about 40 min for 2,000 examples on 2 otherwise idle
-#    cores). Resumable.
+#    one from each end, one core each: 55 min for 2,000 examples on 2 cores with the long run
+#    beside them at nice 19). Resumable.
 # 2. The controller trained on it (`scripts/train_controller.py`, chosen on its generated
 #    validation split; never the real validation meshes) -> DIR/controller/controller.npz
 #    and its report controller.md.
