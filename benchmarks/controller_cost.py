@@ -3,6 +3,7 @@
 81,920-face noisy icosphere (medians of 3 after a warm-up, one process).
 
     python benchmarks/controller_cost.py --controller runs/controller.npz   # make controller
+    python benchmarks/controller_cost.py --weights W   # also W's default call (its controller)
 """
 
 from __future__ import annotations
@@ -32,6 +33,11 @@ def main(argv=None) -> int:
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--controller", default="runs/controller.npz")
+    parser.add_argument(
+        "--weights",
+        help="also time this weights file's default call (a milestone with its controller "
+        "switched on) on the same mesh, and say what it chose",
+    )
     args = parser.parse_args(argv)
     with np.load(args.controller) as z:
         fields = {k: z[k] for k in z.files}
@@ -51,6 +57,15 @@ def main(argv=None) -> int:
         f"{len(f):,} faces: default call {default:.3f} s, bnf {bnf:.3f} s, controller "
         f"statistics {stats:.3f} s ({100 * stats / default:.0f} % of the default call)"
     )
+    if args.weights:
+        other = dmd_jax.load_weights(args.weights)
+        _, info = dmd_jax.denoise(noisy, f, other, return_info=True)
+        took = median_time(lambda: dmd_jax.denoise(noisy, f, other))
+        chose = info.controller or f"{info.passes} passes (no controller)"
+        print(
+            f"  {args.weights}: default call {took:.3f} s ({took / bnf:.2f}x bnf, "
+            f"{took / default:.2f}x the bundled default); {chose}"
+        )
     for update in ("jacobi", "solve"):
         model = bundle.config.model.replace(vertex_update=update)
         b = bundle._replace(config=bundle.config.replace(model=model))
