@@ -246,7 +246,11 @@ def test_design_bounds_reads_each_designs_best_off_the_grid(tmp_path, monkeypatc
             errs = {k: 10.0 for k in labels}
             errs[anywhere], errs[solve] = e_any, e_solve
             errs["p0_jacobi_4"] = min(errs["p0_jacobi_4"], 6.0)
-            w.writerow({"set": "val", "mesh": mesh, "noise": "gaussian", "level": "0.2", **errs})
+            # As `oracle_val.py --controller-weights none` writes a row: no controller pick.
+            row = {"set": "val", "mesh": mesh, "noise": "gaussian", "level": "0.2", **errs}
+            row.update(noisy_deg=20.0, held_vertices=0, controller_option="")
+            row.update(oracle_option=anywhere, oracle_deg=e_any)
+            w.writerow(row)
     with open(sota, "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=["set", "mesh", "noise", "level", "method", "normal_deg"])
         w.writeheader()

@@ -268,7 +268,7 @@ class Case(NamedTuple):
     controller: float  # the controller's `denoise` row (or the grid at its option)
     grid_controller: float  # the grid's error at the controller's option
     oracle: float
-    chosen: int  # the controller's option (index into the grid)
+    chosen: int  # the controller's option (index into the grid); -1: the CSV holds no pick
     errors: np.ndarray  # [68] every option's error
     noisy_diff: float  # our input's error minus the CSV's
     held: int
@@ -395,13 +395,17 @@ def _update(o) -> str:
     return o[1] or "none"
 
 
-def read_cases(out_csv=DEFAULT_CSV, ctrl_csvs=CTRL_CSVS) -> dict[str, list[Case]]:
+def read_cases(
+    out_csv=DEFAULT_CSV, ctrl_csvs=CTRL_CSVS, sota_csvs=SOTA_CSVS
+) -> dict[str, list[Case]]:
     """`{condition label: [Case]}` of the oracle's CSV joined with the sota_lite CSVs
-    (default, best other) and the controller's rows, conditions in `ALL_CONDITIONS`
-    order, meshes by name; a case the sota_lite CSVs lack is left out."""
+    `sota_csvs` (default, best other) and the controller's rows, conditions in
+    `ALL_CONDITIONS` order, meshes by name; a case the sota_lite CSVs lack is left out.
+    A grid searched without a controller (no pick in the CSV) gives cases whose
+    controller fields are NaN and `chosen` -1."""
     rows = read_rows(out_csv)
     labels = [o.label for o in grid_options()]
-    sota, ctrl = method_errors(SOTA_CSVS), method_errors(ctrl_csvs)
+    sota, ctrl = method_errors(sota_csvs), method_errors(ctrl_csvs)
     out: dict[str, list[Case]] = {protocol.parse_condition(c).label: [] for c in ALL_CONDITIONS}
     for r in sorted(rows, key=lambda r: r["mesh"]):
         key = case_key(r["noise"], r["level"], r["mesh"])
@@ -410,7 +414,8 @@ def read_cases(out_csv=DEFAULT_CSV, ctrl_csvs=CTRL_CSVS) -> dict[str, list[Case]
         if "dmd" not in errs or not rivals:
             continue
         e = np.array([float(r[k]) for k in labels])
-        i = labels.index(r["controller_option"])
+        i = labels.index(r["controller_option"]) if r["controller_option"] else -1
+        picked = float(e[i]) if i >= 0 else np.nan
         mine = ctrl.get(key, {}).get("dmd")
         label = protocol.NoiseCondition(r["noise"], float(r["level"])).label
         out.setdefault(label, []).append(
@@ -419,8 +424,8 @@ def read_cases(out_csv=DEFAULT_CSV, ctrl_csvs=CTRL_CSVS) -> dict[str, list[Case]
                 mesh=r["mesh"],
                 default=errs["dmd"],
                 other=min(rivals),
-                controller=e[i] if mine is None else mine,
-                grid_controller=float(e[i]),
+                controller=picked if mine is None else mine,
+                grid_controller=picked,
                 oracle=float(r["oracle_deg"]),
                 chosen=i,
                 errors=e,
@@ -739,37 +744,18 @@ DEFAULT_BOUNDS_REPORT = RESULTS_DIR / "controller_design_bounds.md"
 def _design_table(out_csv, sota_csvs=SOTA_CSVS) -> tuple[list, Counter, int]:
     """The rows of one grid's design table, how many conditions' targets each design
     meets, and how many conditions the grid holds; the default call and the best other
-    method are the `dmd` and best rival rows of `sota_csvs`."""
-    rows = read_rows(out_csv)
-    if not rows:
-        raise ValueError(f"{out_csv}: no case to read")
-    opts = grid_options()
-    labels = [o.label for o in opts]
-    subsets = [np.array([pick(o) for o in opts]) for _, pick in DESIGNS]
-    sota = method_errors(sota_csvs)
-    floor = comparison.RATIO_FLOOR_DEG
-    by_cond: dict[str, list] = {}
-    for r in sorted(rows, key=lambda r: r["mesh"]):
-        errs = sota.get(case_key(r["noise"], r["level"], r["mesh"]), {})
-        rivals = [e for m, e in errs.items() if protocol.is_rival(m)]
-        if "dmd" not in errs or not rivals:
-            continue
-        e = np.array([float(r[k]) for k in labels])
-        label = protocol.NoiseCondition(r["noise"], float(r["level"])).label
-        by_cond.setdefault(label, []).append((label, r["mesh"], errs["dmd"], min(rivals), e))
+    method are the `dmd` and best rival rows of `sota_csvs` (`read_cases`)."""
+    by_cond = read_cases(out_csv, (), sota_csvs)
     if not by_cond:
         raise ValueError(f"{out_csv}: no case the sota_lite CSVs hold")
+    subsets = [np.array([pick(o) for o in grid_options()]) for _, pick in DESIGNS]
     table, meets = [], Counter()
     every = [x for xs in by_cond.values() for x in xs]
     for cond, cases in [*by_cond.items(), ("all", every)]:
-        cells = []
-        for design in [None, *subsets]:
-            ratios = {
-                (c, mesh): max(d if design is None else e[design].min(), floor) / max(other, floor)
-                for c, mesh, d, other, e in cases
-            }
-            s = comparison.summarise_ratios(ratios)
-            cells.append((s.geometric_mean, s.worst))
+        cells = [_per_shape(cases, "default")[:2]] + [
+            _per_shape([x._replace(oracle=float(x.errors[d].min())) for x in cases], "oracle")[:2]
+            for d in subsets
+        ]
         target = None if cond == "all" else TARGETS[protocol.parse_condition(cond).kind]
         if target is not None:
             for k, (g, _) in enumerate(cells[1:]):
