@@ -780,11 +780,11 @@ def research(out, *, sources: Sources, bundle=None, reverse: bool = False, say=p
 def network_digest(path) -> str:
     """The first 12 hex digits of a weights file's SHA-256: which network an example's
     search ran (`search_with`); an example without the field ran the bundled one."""
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()[:12]
+    from dmd_jax.long_run import file_sha
+
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"no weights file {path}")
+    return file_sha(path)[:12]
 
 
 def _network(z) -> str:
