@@ -12,7 +12,9 @@
 # 1. The controller's set (SET, default data/smoothing: `make controller-data`) searched again
 #    for the milestone's network into SET_mNNNNNN (`smoothing_set --network`; two processes,
 #    one from each end, one core each: 55 min for 2,000 examples on 2 cores with the long run
-#    beside them at nice 19). Resumable.
+#    beside them at nice 19). Resumable. Without SET (a fresh machine: `data/` is not
+#    committed), the same examples are built for the milestone's network directly
+#    (`smoothing_set --network` without `--from`; the shards of `make controller-data`).
 # 2. The controller trained on it (`scripts/train_controller.py`, chosen on its generated
 #    validation split; never the real validation meshes) -> DIR/controller/controller.npz
 #    and its report controller.md.
@@ -31,9 +33,9 @@ SET=${SET:-data/smoothing}
 SEARCHED="${SET}_m$(printf '%06d' "$STEP")"
 CAND="$DIR/controller"
 REPORT=${REPORT:-benchmarks/results/train_long.md}
-for need in "$DIR/weights.msgpack" "$DIR/score/val_noise_bundled.csv" "$SET/manifest.json"; do
+for need in "$DIR/weights.msgpack" "$DIR/score/val_noise_bundled.csv"; do
   if [ ! -f "$need" ]; then
-    echo "error: $need is missing (make train-long-milestone STEP=$STEP; make controller-data)" >&2
+    echo "error: $need is missing (make train-long-milestone STEP=$STEP)" >&2
     exit 2
   fi
 done
@@ -41,11 +43,20 @@ read -r MILESTONE EXACT < <("$BIN/python" -c "import json,sys; m=json.load(open(
 print(m['milestone'], m['step'])" "$DIR/milestone.json")
 export XLA_FLAGS="${XLA_FLAGS:-} --xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
 export OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1
-SEARCH=("$BIN/python" -m dmd_jax.data.smoothing_set --out "$SEARCHED" --from "$SET"
-  --network "$DIR/weights.msgpack")
-nice -n 10 "${SEARCH[@]}" &
-nice -n 10 "${SEARCH[@]}" --reverse
-wait
+SEARCH=("$BIN/python" -m dmd_jax.data.smoothing_set --out "$SEARCHED" --network "$DIR/weights.msgpack")
+if [ -f "$SET/manifest.json" ]; then
+  nice -n 10 "${SEARCH[@]}" --from "$SET" &
+  nice -n 10 "${SEARCH[@]}" --from "$SET" --reverse
+  wait
+else
+  echo "no $SET: building $SEARCHED for the milestone's network"
+  EXAMPLES=${SMOOTHING_EXAMPLES:-2000} WHOLE=$((10000 + ${WHOLE_EXAMPLES:-1000}))
+  { nice -n 10 "${SEARCH[@]}" --examples "$EXAMPLES" --shard 0/4 &&
+    nice -n 10 "${SEARCH[@]}" --first 10000 --examples "$WHOLE" --shard 0/2; } &
+  nice -n 10 "${SEARCH[@]}" --examples "$EXAMPLES" --shard 2/4
+  nice -n 10 "${SEARCH[@]}" --first 10000 --examples "$WHOLE" --shard 1/2
+  wait
+fi
 mkdir -p "$CAND/score"
 nice -n 10 "$BIN/python" scripts/train_controller.py "$SEARCHED" --out "$CAND/controller.npz" \
   --report "$CAND/controller.md"

@@ -304,6 +304,50 @@ def test_a_set_searched_again_for_another_network(tmp_path, monkeypatch):
         smoothing_set.load(out)
 
 
+def test_a_set_built_for_another_network_is_the_set_searched_again_for_it(tmp_path, monkeypatch):
+    """`build(network=W)` writes what `build` then `search_with(W)` write: the same
+    examples, statistics and specs, searched for W, its digest in every example."""
+    import dmd_jax
+    from dmd_jax import checkpoints
+
+    ball = icosphere(2)
+    ball = np.asarray(ball[0], np.float64), np.asarray(ball[1], np.int32)
+
+    class OneMesh:
+        def counts(self):
+            return {"stress": 1}
+
+        def mesh(self, spec):
+            return ball
+
+    def fake_search(noisy, clean, faces, bundle, held):  # the network's name and the mesh
+        return np.full((2, 2, 3), len(str(bundle)) + float(noisy.sum())), np.ones(2)
+
+    monkeypatch.setattr(smoothing_set, "pass_errors", fake_search)
+    monkeypatch.setattr(checkpoints, "load_model", lambda path: f"network of {path}")
+    monkeypatch.setattr(dmd_jax, "denoise", lambda v, f, bundle: v)
+    weights = tmp_path / "milestone.msgpack"
+    weights.write_bytes(b"a network")
+    sources, quiet = OneMesh(), lambda *a: None
+    bundled, searched, built = tmp_path / "bundled", tmp_path / "searched", tmp_path / "built"
+    n = smoothing_set.build(bundled, 3, sources=sources, bundle="bundled", say=quiet)
+    assert n >= 2
+    smoothing_set.search_with(bundled, searched, weights, sources=sources, say=quiet)
+    assert smoothing_set.build(built, 3, sources=sources, network=weights, say=quiet) == n
+    a, b = smoothing_set.load(searched), smoothing_set.load(built)
+    assert b["network"] == a["network"] == smoothing_set.network_digest(weights)
+    assert b["specs"] == a["specs"]
+    for key in ("features", "errors", "first_pass", "default_error", "crop_features"):
+        np.testing.assert_array_equal(b[key], a[key])
+    assert not np.array_equal(b["errors"], smoothing_set.load(bundled)["errors"])
+    assert json.loads((built / "manifest.json").read_text())["network"] == b["network"]
+    # A build for another network into the same folder is refused.
+    other = tmp_path / "other.msgpack"
+    other.write_bytes(b"another network")
+    with pytest.raises(ValueError, match="other settings"):
+        smoothing_set.build(built, 4, sources=sources, network=other, say=quiet)
+
+
 def controller_features_version():
     from dmd_jax.controller_features import FEATURES_VERSION
 

@@ -37,10 +37,13 @@ redoes the search of those with held vertices (about a fifth) and stamps the oth
     python -m dmd_jax.data.smoothing_set --out data/smoothing --research
     python -m dmd_jax.data.smoothing_set --out data/smoothing_m --from data/smoothing \\
         --network runs/long/ft/milestones/step_030000/weights.msgpack   # another network
+    python -m dmd_jax.data.smoothing_set --out data/smoothing_m --examples 2000 \\
+        --network runs/long/ft/milestones/step_030000/weights.msgpack   # built for it
 
 A set searched for another network (`search_with`: a long run's milestone) keeps every
 example's statistics and spec and records the network's digest (`network`); `load`
-refuses a set that mixes networks.
+refuses a set that mixes networks. `build` with `network` writes the same examples
+searched for that network directly, when no bundled-network set is at hand.
 """
 
 from __future__ import annotations
@@ -447,6 +450,7 @@ def build(
     bundle=None,
     shard: tuple[int, int] = (0, 1),
     first: int = 0,
+    network=None,
     say=print,
 ) -> int:
     """Writes examples `first .. n_examples-1` that `out/examples/` lacks; returns how
@@ -454,14 +458,21 @@ def build(
 
     `shard=(k, n)` writes only the examples whose index is `k` modulo `n` (one process
     per core, each its own shard); `first` skips the indices below it (a build that
-    writes the newest examples first; a later build without it fills the gaps)."""
+    writes the newest examples first; a later build without it fills the gaps).
+    `network` (a weights file: a long run's milestone) searches with that network
+    instead of the bundled one and records its digest in the manifest and every example,
+    as `search_with` does: the same examples, built without a bundled-network set first.
+    """
     from dmd_jax import denoise, load_pretrained
+    from dmd_jax.checkpoints import load_model
     from dmd_jax.controller_features import FEATURES_VERSION, features
     from dmd_jax.io._files import atomic_write, write_text_atomic
     from dmd_jax.metrics import face_normal_errors_deg
 
     out = Path(out)
     (out / "examples").mkdir(parents=True, exist_ok=True)
+    if network is not None:
+        bundle, digest = load_model(network), network_digest(network)
     bundle = load_pretrained() if bundle is None else bundle
     counts = sources.counts()
     manifest = {
@@ -476,6 +487,8 @@ def build(
         "whole_from": WHOLE_FROM,
         "whole_faces": WHOLE_FACES,
     }
+    if network is not None:
+        manifest["network"] = digest
     check_manifest(out, manifest)
     write_text_atomic(out / "manifest.json", json.dumps(manifest, indent=2))
     written, t0 = 0, time.time()
@@ -494,42 +507,31 @@ def build(
         feats = features(noisy, faces)
         crop_feats = crop_statistics(noisy, faces)
         held = held_vertices(noisy, faces)
-        errors, first = pass_errors(noisy, clean, faces, bundle, held)
+        errors, first_pass = pass_errors(noisy, clean, faces, bundle, held)
         # Today's default call, for the controller's report (its gain over the default).
         default = float(
             np.mean(face_normal_errors_deg(denoise(noisy, faces, bundle), clean, faces))
         )
 
-        digest = mesh_digest(noisy, faces)
-        n_held = int(held.sum())
-
-        def write(
-            tmp,
-            feats=feats,
+        fields = dict(
+            features=feats,
+            crop_features=crop_feats,
+            features_version=FEATURES_VERSION,
             errors=errors,
-            spec=spec,
-            faces=faces,
-            first=first,
-            default=default,
-            digest=digest,
-            n_held=n_held,
-            crop_feats=crop_feats,
-        ):
+            search_version=SEARCH_VERSION,
+            held_vertices=int(held.sum()),
+            first_pass=first_pass,
+            default_error=default,
+            spec=json.dumps(spec),
+            n_faces=len(faces),
+            noisy_digest=mesh_digest(noisy, faces),
+        )
+        if network is not None:
+            fields["network"] = digest
+
+        def write(tmp, fields=fields):
             with open(tmp, "wb") as fh:
-                np.savez(
-                    fh,
-                    features=feats,
-                    crop_features=crop_feats,
-                    features_version=FEATURES_VERSION,
-                    errors=errors,
-                    search_version=SEARCH_VERSION,
-                    held_vertices=n_held,
-                    first_pass=first,
-                    default_error=default,
-                    spec=json.dumps(spec),
-                    n_faces=len(faces),
-                    noisy_digest=digest,
-                )
+                np.savez(fh, **fields)
 
         atomic_write(path, write, overwrite=False)
         written += 1
@@ -900,8 +902,8 @@ def main(argv=None) -> int:
     parser.add_argument(
         "--network",
         type=Path,
-        help="with --from: redo the search of that set's examples for this weights file's "
-        "network into --out (resumable; --shard splits it)",
+        help="search with this weights file's network instead of the bundled one: with "
+        "--from, that set's examples searched again into --out; without, a build",
     )
     parser.add_argument("--from", dest="src", type=Path, help="the set --network searches again")
     args = parser.parse_args(argv)
@@ -917,9 +919,9 @@ def main(argv=None) -> int:
             "rejected/"
         )
         return 0
-    if args.network or args.src:
-        if not (args.network and args.src):
-            parser.error("--network and --from go together")
+    if args.src:
+        if not args.network:
+            parser.error("--from needs --network")
         k, _, n = args.shard.partition("/")
         wrote = search_with(
             args.src,
@@ -946,6 +948,7 @@ def main(argv=None) -> int:
         sources=sources,
         shard=(int(k), int(n)),
         first=args.first,
+        network=args.network,
     )
     print(f"wrote {wrote} examples to {args.out}", file=sys.stderr)
     return 0
