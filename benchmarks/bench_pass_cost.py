@@ -63,10 +63,7 @@ def main(argv=None) -> int:
 
     v, f = noisy_grid(args.faces)
     bundle = load_pretrained()
-    solve = bundle._replace(
-        config=bundle.config.replace(model=bundle.config.model.replace(vertex_update="solve"))
-    )
-    bundles = {"jacobi": bundle, "solve": solve}
+    bundles = {u: bundle.with_vertex_update(u) for u in ("jacobi", "solve")}
     cases = {"bnf": lambda: bnf(v, f), "denoise (default)": lambda: dmd_jax.denoise(v, f, bundle)}
     for update in UPDATES:
         for k in PASSES:

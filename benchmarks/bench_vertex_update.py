@@ -60,9 +60,7 @@ def run(n_face: int, repeat: int, name: str, out_dir=RESULTS_DIR, echo=print) ->
     model_cfg = bundle.config.model
     if model_cfg.head != "normal":
         raise ValueError("the bundled model has no normal-first head: no vertex update to time")
-    solve_bundle = bundle._replace(
-        config=bundle.config.replace(model=model_cfg.replace(vertex_update="solve"))
-    )
+    solve_bundle = bundle.with_vertex_update("solve")
 
     # The network's own normals, in its frame, as the update sees them inside `denoise`.
     x = jnp.asarray(mesh_frame(model_cfg.encoding, v, f).apply(v), jnp.float32)

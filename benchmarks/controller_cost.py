@@ -67,8 +67,7 @@ def main(argv=None) -> int:
             f"{took / default:.2f}x the bundled default); {chose}"
         )
     for update in ("jacobi", "solve"):
-        model = bundle.config.model.replace(vertex_update=update)
-        b = bundle._replace(config=bundle.config.replace(model=model))
+        b = bundle.with_vertex_update(update)
 
         def passes(k, b=b):
             return list(network_passes(noisy, f, b, k))

@@ -60,6 +60,21 @@ class ModelBundle(NamedTuple):
     # beside the network, or None.
     controller: Any = None
 
+    def with_vertex_update(self, update: str) -> ModelBundle:
+        """The same network run with another vertex update (`"jacobi"` or `"solve"`):
+        a controller's option, a search over both."""
+        model = self.config.model.replace(vertex_update=update)
+        return self._replace(config=self.config.replace(model=model))
+
+    def vertex_updates(self) -> tuple[str, ...]:
+        """Every vertex update a default `denoise` call may run these weights with: the
+        config's, and those of the controller's options that run the network when the
+        policy switches the controller on (what `dmd-jax warmup` compiles)."""
+        updates = [self.config.model.vertex_update]
+        if self.controller is not None and self.policy.controller:
+            updates += [o.update for o in self.controller.options if o.passes and o.update]
+        return tuple(dict.fromkeys(updates))
+
 
 def write_weights_file(
     path,

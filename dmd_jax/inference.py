@@ -518,8 +518,7 @@ def _denoise_referenced(
         decision = decide(chooser, x, f)
         presmooth = decision.option.presmooth
         if decision.option.passes:
-            model = bundle.config.model.replace(vertex_update=decision.option.update)
-            bundle = bundle._replace(config=bundle.config.replace(model=model))
+            bundle = bundle.with_vertex_update(decision.option.update)
             run = run.replace(max_passes=decision.option.passes, pass_tolerance=0.0)
     network = decision is None or decision.option.passes > 0
     if decision is not None and network:

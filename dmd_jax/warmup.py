@@ -36,12 +36,14 @@ class Warmed(NamedTuple):
       seconds: wall time to compile or load it.
       compiled: True if compiled here, False if loaded from the cache (or already in
         this process).
+      update: the vertex update the program runs.
     """
 
     rung: int
     widths: tuple
     seconds: float
     compiled: bool
+    update: str = ""
 
 
 def warm_up(
@@ -54,7 +56,9 @@ def warm_up(
     report: Callable[[Warmed], None] | None = None,
 ) -> list[Warmed]:
     """Compiles (or loads) the whole-mesh program of every rung from `min_faces` to
-    `max_faces` faces, for each table layout of `layouts`.
+    `max_faces` faces, for each table layout of `layouts` and each vertex update a
+    default call may run (`ModelBundle.vertex_updates`: two when the weights carry a
+    smoothing controller whose options use both).
 
     Args:
       bundle: a `ModelBundle` (default: the bundled weights).
@@ -65,7 +69,7 @@ def warm_up(
       report: called with each `Warmed` as it finishes.
 
     Returns:
-      A `Warmed` per program, in ladder order.
+      A `Warmed` per program, in ladder order (for each rung and layout, one per update).
 
     Raises:
       ValueError: a bad range or `jobs`, a cache that is off or refused, or more
@@ -88,31 +92,36 @@ def warm_up(
             f"{compile_cache.ENV}): a warm-up would compile programs no later process "
             "can load"
         )
-    need = len(rungs) * len(layouts) * PROGRAM_BYTES
+    bundle = as_bundle(bundle)
+    n_programs = len(rungs) * len(layouts) * len(bundle.vertex_updates())
+    need = n_programs * PROGRAM_BYTES
     if need > settings.max_bytes:
         raise ValueError(
-            f"{len(rungs) * len(layouts)} programs take about {need / 2**20:.0f} MiB, more "
+            f"{n_programs} programs take about {need / 2**20:.0f} MiB, more "
             f"than the cache holds ({settings.max_bytes / 2**20:.0f} MiB): the first would "
             f"be evicted by the last; raise {compile_cache.ENV_MAX_MB} or narrow the range"
         )
-    bundle = as_bundle(bundle)
-    program = predictor(bundle.config)
+    # One program per vertex update a default call may run (a controller's options may
+    # run another update than the config's: each is its own program).
+    updates = bundle.vertex_updates()
+    programs = [(u, predictor(bundle.with_vertex_update(u).config)) for u in updates]
     # The memory plan's measurement (a small compile of its own), kept on disk too.
     network_bytes_per_vertex(bundle.config.model)
 
     def one(task) -> Warmed:
-        rung, widths = task
+        rung, widths, (update, program) = task
         # As `inference` passes them: float32 positions, the padded graph's arrays.
         noisy = jax.ShapeDtypeStruct((rung, 3), np.float32)
         graph = shape_ladder.abstract_graph(rung, widths)
         start = time.perf_counter()
         how = program.prepare(bundle.params, noisy, graph)
-        out = Warmed(rung, tuple(widths), time.perf_counter() - start, how == "compiled")
+        seconds = time.perf_counter() - start
+        out = Warmed(rung, tuple(widths), seconds, how == "compiled", update)
         if report is not None:
             report(out)
         return out
 
-    tasks = [(r, tuple(w)) for r in rungs for w in layouts]
+    tasks = [(r, tuple(w), p) for r in rungs for w in layouts for p in programs]
     if jobs == 1:
         return [one(t) for t in tasks]
     with ThreadPoolExecutor(max_workers=jobs) as pool:

@@ -695,7 +695,9 @@ def test_export_weights_says_which_step(capsys, tmp_path):
     code, _, err = run(capsys, *args, "--policy-from", checkpoints.pretrained_path())
     assert code == 0, err
     tuned = checkpoints.load_weights(tmp_path / "f.msgpack")
-    assert tuned.policy == bundled and tuned.config == TINY_CONFIG
+    # The rules, not a controller trained for the donor's network (nor its switch).
+    assert tuned.policy == bundled.replace(controller=False) and tuned.config == TINY_CONFIG
+    assert tuned.controller is None
     assert tuned.meta["policy_from"] == str(checkpoints.pretrained_path())
     code, _, err = run(capsys, *args, "--overwrite", "--policy-from", tmp_path / "r.msgpack")
     assert code == 0, err

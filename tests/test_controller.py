@@ -125,7 +125,7 @@ def test_the_search_is_what_denoise_does(sphere):
     grid = smoothing_set.PRESMOOTH_GRID
     assert errors.shape == (len(grid), 2, smoothing_set.SEARCH_PASSES + 1)
     for p, u, k in ((0, 0, 1), (1, 1, 3)):
-        b = smoothing_set._with_update(bundle, smoothing_set.UPDATES[u])
+        b = bundle.with_vertex_update(smoothing_set.UPDATES[u])
         out = denoise(noisy, f, b, presmooth=grid[p], iterations=k)
         want = float(np.mean(face_normal_errors_deg(out, v, f)))
         assert errors[p, u, k] == pytest.approx(want, rel=1e-4)
@@ -168,7 +168,7 @@ def test_the_search_holds_what_denoise_holds(impulse_part):
     errors, _ = smoothing_set.pass_errors(noisy, v, f, bundle)
     grid = smoothing_set.PRESMOOTH_GRID
     for p, u, k in ((0, 0, 2), (1, 1, 1), (3, 0, 1)):
-        b = smoothing_set._with_update(bundle, smoothing_set.UPDATES[u])
+        b = bundle.with_vertex_update(smoothing_set.UPDATES[u])
         out = denoise(noisy, f, b, presmooth=grid[p], iterations=k)
         want = float(np.mean(face_normal_errors_deg(out, v, f)))
         assert errors[p, u, k] == pytest.approx(want, rel=1e-4)
@@ -591,10 +591,16 @@ def _always(option, opts, n_feat=N_FEATURES):
     )
 
 
+def _plain(bundle):
+    """The network and rules of `bundle` without a controller (the bundled weights may
+    carry one, switched on)."""
+    return bundle._replace(controller=None, policy=bundle.policy.replace(controller=False))
+
+
 def test_denoise_runs_what_the_controller_chooses(sphere, tmp_path):
     v, f = sphere
     noisy = add_noise(5, v, f, "gaussian", 0.3, units="edge", direction="normal")
-    bundle = load_pretrained()
+    bundle = _plain(load_pretrained())
     opts = controller.options((0, 3), ("jacobi", "solve"), 3)
     pick = controller.Option(3, "solve", 2)
     stored = bundle._replace(controller=_always(pick, opts))  # stored, off by default
@@ -604,7 +610,7 @@ def test_denoise_runs_what_the_controller_chooses(sphere, tmp_path):
         denoise(noisy, f, stored, controller=True), denoise(noisy, f, with_ctrl)
     )
     out, info = denoise(noisy, f, with_ctrl, return_info=True)
-    solve = smoothing_set._with_update(bundle, "solve")
+    solve = bundle.with_vertex_update("solve")
     np.testing.assert_array_equal(out, denoise(noisy, f, solve, presmooth=3, iterations=2))
     assert info.passes == 2 and info.presmooth_steps == 3
     assert info.controller.startswith("controller: 3 pre-smoothing steps, 2 passes (solve")
@@ -652,7 +658,12 @@ def test_the_controller_travels_in_the_weights_file(tmp_path):
         == 0
     )
     back = load_weights(out).controller
-    assert back.options == params.options and not load_weights(out).policy.controller
+    # Stored with the base's switch (`--controller-default` sets it).
+    switch = load_weights(pretrained_path()).policy.controller
+    assert back.options == params.options and load_weights(out).policy.controller == switch
+    off = tmp_path / "off.msgpack"
+    args = ["export-weights", str(out), "-o", str(off), "--controller-default", "off"]
+    assert cli.main(args) == 0 and not load_weights(off).policy.controller
     on = tmp_path / "on.msgpack"
     args = ["export-weights", str(out), "-o", str(on), "--controller-default", "on"]
     assert cli.main(args) == 0 and load_weights(on).policy.controller
@@ -671,6 +682,41 @@ def test_the_controller_travels_in_the_weights_file(tmp_path):
         )
         == 2
     )
+
+
+def test_warmup_compiles_every_update_a_default_call_may_run(monkeypatch, tmp_path):
+    """A controller whose options run the Jacobi update beside a config of the solve (or
+    the other way round) needs two programs per rung: `dmd-jax warmup` compiles both."""
+    from dmd_jax import compile_cache, forward, memory_plan, warmup
+
+    bundle = _plain(load_pretrained())
+    own = bundle.config.model.vertex_update
+    opts = controller.options((0, 3), ("jacobi", "solve"), 3)
+    stored = bundle._replace(controller=_always(controller.Option(0, "jacobi", 1), opts))
+    on = stored._replace(policy=stored.policy.replace(controller=True))
+    assert bundle.vertex_updates() == stored.vertex_updates() == (own,)  # off: the config's
+    assert on.vertex_updates()[0] == own and set(on.vertex_updates()) == {"jacobi", "solve"}
+    only_none = controller.options((0,), (None,), 0)  # never runs the network
+    assert on._replace(controller=_always(only_none[0], only_none)).vertex_updates() == (own,)
+
+    prepared = []
+
+    class Program:
+        def __init__(self, config):
+            self.update = config.model.vertex_update
+
+        def prepare(self, params, noisy, graph):
+            prepared.append((noisy.shape[0], self.update))
+            return "compiled"
+
+    monkeypatch.setenv(compile_cache.ENV, str(tmp_path))
+    monkeypatch.setattr(forward, "predictor", Program)
+    monkeypatch.setattr(memory_plan, "network_bytes_per_vertex", lambda model: None)
+    done = warmup.warm_up(on, min_faces=1000, max_faces=3000)
+    rungs = sorted({w.rung for w in done})
+    assert len(rungs) >= 2 and len(done) == 2 * len(rungs)
+    assert sorted(prepared) == sorted((r, u) for r in rungs for u in ("jacobi", "solve"))
+    assert {(w.rung, w.update) for w in done} == set(prepared)
 
 
 def test_a_large_mesh_is_read_in_crops_of_the_training_size():

@@ -101,9 +101,7 @@ class Runner:
         self.cfg = cfg = bundle.config.model
         if cfg.head != "normal" or cfg.encoding != "local":
             raise ValueError("headroom needs a normal-first model with the local encoding")
-        self.solve_bundle = bundle._replace(
-            config=bundle.config.replace(model=cfg.replace(vertex_update="solve"))
-        )
+        self.solve_bundle = bundle.with_vertex_update("solve")
 
         def candidates(x, graph):
             return encoding.local_features(

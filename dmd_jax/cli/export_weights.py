@@ -40,10 +40,11 @@ def _cmd_export_weights(args: argparse.Namespace) -> int:
         if step is not None:
             meta["step"] = step
     if args.policy_from is not None:
-        # A fine-tune keeps the policy fitted for the weights it started from; the
-        # edits below still apply on top of it.
+        # A fine-tune keeps the rules fitted for the weights it started from; the
+        # edits below still apply on top of them. Not the donor's controller: it was
+        # trained on searches of the donor's network (`--controller` adds one).
         donor = load_weights(args.policy_from)
-        policy, controller = donor.policy, donor.controller
+        policy, controller = donor.policy.replace(controller=False), None
         meta["policy_from"] = str(args.policy_from)
     policy = _edited_policy(policy, args)
     if args.controller is not None:
@@ -188,7 +189,8 @@ def add_parser(sub) -> None:
         metavar="WEIGHTS",
         help="take the inference policy (pass and pre-smoothing rules) from this weights "
         "file instead of the checkpoint's trained policy, e.g. the weights a fine-tune "
-        "started from; the options above still edit it",
+        "started from; the options above still edit it. Not its smoothing controller "
+        "(trained for its network): --controller adds one",
     )
     p.add_argument(
         "--controller",

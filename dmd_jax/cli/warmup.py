@@ -38,7 +38,7 @@ def _cmd_warmup(args: argparse.Namespace) -> int:
             what = "compiled" if w.compiled else "ready"
             print(
                 f"  {w.rung:>9,d} padded vertices (up to {2 * w.rung:,d} faces), tables "
-                f"{_widths(w.widths)}: {what} in {w.seconds:.1f} s",
+                f"{_widths(w.widths)}, {w.update} update: {what} in {w.seconds:.1f} s",
                 flush=True,
             )
 

@@ -402,7 +402,7 @@ def pass_errors(noisy, clean, faces, bundle, held=None) -> np.ndarray:
     noisy = np.asarray(noisy, np.float64)
     held = held_vertices(noisy, faces) if held is None else np.asarray(held, bool)
     out = np.empty((len(PRESMOOTH_GRID), len(UPDATES), SEARCH_PASSES + 1))
-    bundles = [_with_update(bundle, u) for u in UPDATES]
+    bundles = [bundle.with_vertex_update(u) for u in UPDATES]
     x, done = noisy, 0
     first = None
     for p, steps in enumerate(PRESMOOTH_GRID):
@@ -433,12 +433,6 @@ def pass_change(before, after, faces) -> np.ndarray:
     mean_edge = float(np.linalg.norm(before[edges[:, 0]] - before[edges[:, 1]], axis=1).mean())
     move = float(np.linalg.norm(after - before, axis=1).mean()) / max(mean_edge, 1e-300)
     return np.array([move, float(np.mean(face_normal_errors_deg(after, before, faces)))])
-
-
-def _with_update(bundle, update: str):
-    cfg = bundle.config
-    model = cfg.model.replace(vertex_update=update)
-    return bundle._replace(config=cfg.replace(model=model))
 
 
 def build(
