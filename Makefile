@@ -155,6 +155,13 @@ train-long-milestone: $(STAMP)
 train-long-candidate: $(STAMP)
 	STEP=$(STEP) scripts/train_long_candidate.sh $(if $(OUT),$(OUT),runs/long)
 
+# Bundling new weights (scripts/bundle.sh; docs/training.md, "Milestones"): WEIGHTS copied
+# over the bundled file, then every report the README, model card and tests read rerun
+# with them (resumable; STEPS="stress table2" picks steps); ~2-2.5 h on 2 cores.
+.PHONY: bundle
+bundle: $(STAMP)
+	WEIGHTS=$(WEIGHTS) scripts/bundle.sh
+
 # The paper's Table II protocol, the same six meshes whole under scanner noise and as
 # simulated scans with the stress shapes (sota_scan.md), and the DMD-Net vs CNR table,
 # written to experiments/results/sota/ (benchmarks/quality/table2.py). WEIGHTS=path (weights file or

@@ -103,6 +103,12 @@ def shared_mesh_path(name: str) -> Path:
     return path
 
 
+def rules_only(bundle):
+    """`bundle` without a smoothing controller: its network and its fixed rules, what
+    a test of the rules runs whether or not the bundled weights carry a controller."""
+    return bundle._replace(controller=None, policy=bundle.policy.replace(controller=False))
+
+
 def tetrahedron() -> tuple[np.ndarray, np.ndarray]:
     v = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], dtype=np.float64)
     f = np.array([[0, 1, 2], [0, 3, 1], [0, 2, 3], [1, 3, 2]], dtype=np.int32)

@@ -8,7 +8,7 @@ import json
 
 import numpy as np
 import pytest
-from conftest import icosphere
+from conftest import icosphere, rules_only
 
 from dmd_jax import add_noise, controller, denoise, load_pretrained
 from dmd_jax.controller_features import FEATURE_NAMES, N_FEATURES, features
@@ -591,16 +591,10 @@ def _always(option, opts, n_feat=N_FEATURES):
     )
 
 
-def _plain(bundle):
-    """The network and rules of `bundle` without a controller (the bundled weights may
-    carry one, switched on)."""
-    return bundle._replace(controller=None, policy=bundle.policy.replace(controller=False))
-
-
 def test_denoise_runs_what_the_controller_chooses(sphere, tmp_path):
     v, f = sphere
     noisy = add_noise(5, v, f, "gaussian", 0.3, units="edge", direction="normal")
-    bundle = _plain(load_pretrained())
+    bundle = rules_only(load_pretrained())
     opts = controller.options((0, 3), ("jacobi", "solve"), 3)
     pick = controller.Option(3, "solve", 2)
     stored = bundle._replace(controller=_always(pick, opts))  # stored, off by default
@@ -689,7 +683,7 @@ def test_warmup_compiles_every_update_a_default_call_may_run(monkeypatch, tmp_pa
     the other way round) needs two programs per rung: `dmd-jax warmup` compiles both."""
     from dmd_jax import compile_cache, forward, memory_plan, warmup
 
-    bundle = _plain(load_pretrained())
+    bundle = rules_only(load_pretrained())
     own = bundle.config.model.vertex_update
     opts = controller.options((0, 3), ("jacobi", "solve"), 3)
     stored = bundle._replace(controller=_always(controller.Option(0, "jacobi", 1), opts))

@@ -352,7 +352,7 @@ def test_info_repr_is_a_short_summary_with_every_field_reachable():
     out, info = denoise(mesh.vertices, mesh.faces, return_info=True)
     text = repr(info)
     assert len(text) <= 2000 and INFO_REPR_MAX <= 2000
-    assert text.startswith("DenoiseInfo(path='whole', passes=")
+    assert text.startswith(f"DenoiseInfo(path={info.path!r}, passes=")
     assert "presmooth_steps=" in text and "policy=DenoisePolicy(max_passes=" in text
     assert info.policy.max_passes >= 1 and info.patch_size is None  # fields as they are
     # Arrays show by shape, long sequences by length, and the whole stays bounded.

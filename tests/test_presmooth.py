@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
-from conftest import icosphere
+from conftest import icosphere, rules_only
 
 from dmd_jax import baselines, load_pretrained
 from dmd_jax.inference import denoise
@@ -86,7 +86,8 @@ def test_steps_for_is_a_clipped_straight_line(rough, expected):
 
 @pytest.fixture(scope="module")
 def bundle():
-    return load_pretrained()
+    # The rule under test, whether or not the bundled weights let a controller choose.
+    return rules_only(load_pretrained())
 
 
 def test_denoise_follows_the_bundled_policy(bundle):
