@@ -251,3 +251,23 @@ def test_a_milestone_is_kept_once_and_not_on_resume(tmp_path, setup):
     h.on_checkpoint(at[25])
     assert [m["milestone"] for m in long_run.milestones(tmp_path)] == [10]
     assert long_run.LongRun(tmp_path, tmp_path / "x", {}).milestone_every == 10_000
+
+
+def test_the_kept_candidate_is_a_milestone_with_its_controller_switched_on():
+    """`training/candidate.msgpack` (docs/training.md, "The candidate"), while there is
+    one: a milestone of the long run, the bundled rules, a controller switched on, and a
+    network the bundled weights' shapes fit (what `make bundle` will copy in place)."""
+    from pathlib import Path
+
+    import jax
+
+    from dmd_jax import load_pretrained, load_weights
+
+    path = Path(__file__).resolve().parents[1] / "training" / "candidate.msgpack"
+    if not path.is_file():
+        pytest.skip("no candidate kept (the bundled weights are the last one)")
+    candidate, bundled = load_weights(path), load_pretrained()
+    assert candidate.meta["long_run_milestone"] % 10_000 == 0
+    assert candidate.controller is not None and candidate.policy.controller
+    shapes = lambda p: jax.tree.map(np.shape, p)  # noqa: E731
+    assert shapes(candidate.params) == shapes(bundled.params)
