@@ -229,6 +229,20 @@ def test_an_older_search_is_refused_and_redone_where_vertices_are_held(tmp_path,
     assert smoothing_set.research(tmp_path, sources=sources, bundle=object())["checked"] == 0
 
 
+class OneBall:
+    """Sources of a controller set holding one mesh, an icosphere (`smoothing_set.Sources`)."""
+
+    def __init__(self):
+        v, f = icosphere(2)
+        self.ball = np.asarray(v, np.float64), np.asarray(f, np.int32)
+
+    def counts(self):
+        return {"stress": 1}
+
+    def mesh(self, spec):
+        return self.ball
+
+
 def test_a_set_searched_again_for_another_network(tmp_path, monkeypatch):
     """`search_with` copies a set with the search and the default call's error redone
     for another network, records its digest, resumes, and `load` refuses a set mixing
@@ -239,17 +253,7 @@ def test_a_set_searched_again_for_another_network(tmp_path, monkeypatch):
     from dmd_jax import checkpoints
     from dmd_jax.metrics import face_normal_errors_deg
 
-    ball = icosphere(2)
-    ball = np.asarray(ball[0], np.float64), np.asarray(ball[1], np.int32)
-
-    class OneMesh:
-        def counts(self):
-            return {"stress": 1}
-
-        def mesh(self, spec):
-            return ball
-
-    sources, src, out = OneMesh(), tmp_path / "src", tmp_path / "out"
+    sources, src, out = OneBall(), tmp_path / "src", tmp_path / "out"
     (src / "examples").mkdir(parents=True)
     (src / "manifest.json").write_text(json.dumps({"sources": sources.counts()}))
     noisy_meshes = []
@@ -310,16 +314,6 @@ def test_a_set_built_for_another_network_is_the_set_searched_again_for_it(tmp_pa
     import dmd_jax
     from dmd_jax import checkpoints
 
-    ball = icosphere(2)
-    ball = np.asarray(ball[0], np.float64), np.asarray(ball[1], np.int32)
-
-    class OneMesh:
-        def counts(self):
-            return {"stress": 1}
-
-        def mesh(self, spec):
-            return ball
-
     def fake_search(noisy, clean, faces, bundle, held):  # the network's name and the mesh
         return np.full((2, 2, 3), len(str(bundle)) + float(noisy.sum())), np.ones(2)
 
@@ -328,7 +322,7 @@ def test_a_set_built_for_another_network_is_the_set_searched_again_for_it(tmp_pa
     monkeypatch.setattr(dmd_jax, "denoise", lambda v, f, bundle: v)
     weights = tmp_path / "milestone.msgpack"
     weights.write_bytes(b"a network")
-    sources, quiet = OneMesh(), lambda *a: None
+    sources, quiet = OneBall(), lambda *a: None
     bundled, searched, built = tmp_path / "bundled", tmp_path / "searched", tmp_path / "built"
     n = smoothing_set.build(bundled, 3, sources=sources, bundle="bundled", say=quiet)
     assert n >= 2
@@ -443,17 +437,8 @@ def test_stale_statistics_are_refused_and_recomputed(tmp_path, monkeypatch):
     regenerated mesh is not the one searched is moved aside."""
     from dmd_jax import controller_features
 
-    v, f = icosphere(2)
-    v, f = np.asarray(v, np.float64), np.asarray(f, np.int32)
-
-    class OneMesh:
-        def counts(self):
-            return {"stress": 1}
-
-        def mesh(self, spec):
-            return v, f
-
-    sources = OneMesh()
+    sources = OneBall()
+    v, f = sources.ball
     (tmp_path / "examples").mkdir()
     (tmp_path / "manifest.json").write_text(json.dumps({"sources": sources.counts()}))
     errors = np.arange(2 * 2 * 3, dtype=np.float64).reshape(2, 2, 3)
