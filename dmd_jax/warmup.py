@@ -93,7 +93,10 @@ def warm_up(
             "can load"
         )
     bundle = as_bundle(bundle)
-    n_programs = len(rungs) * len(layouts) * len(bundle.vertex_updates())
+    # One program per vertex update a default call may run (a controller's options may
+    # run another update than the config's: each is its own program).
+    updates = bundle.vertex_updates()
+    n_programs = len(rungs) * len(layouts) * len(updates)
     need = n_programs * PROGRAM_BYTES
     if need > settings.max_bytes:
         raise ValueError(
@@ -101,9 +104,6 @@ def warm_up(
             f"than the cache holds ({settings.max_bytes / 2**20:.0f} MiB): the first would "
             f"be evicted by the last; raise {compile_cache.ENV_MAX_MB} or narrow the range"
         )
-    # One program per vertex update a default call may run (a controller's options may
-    # run another update than the config's: each is its own program).
-    updates = bundle.vertex_updates()
     programs = [(u, predictor(bundle.with_vertex_update(u).config)) for u in updates]
     # The memory plan's measurement (a small compile of its own), kept on disk too.
     network_bytes_per_vertex(bundle.config.model)
