@@ -14,7 +14,7 @@
 #    one from each end, one core each: 55 min for 2,000 examples on 2 cores with the long run
 #    beside them at nice 19). Resumable. Without SET (a fresh machine: `data/` is not
 #    committed), the same examples are built for the milestone's network directly
-#    (`smoothing_set --network` without `--from`; the shards of `make controller-data`).
+#    (`make controller-data` with `NETWORK`: `smoothing_set --network` without `--from`).
 # 2. The controller trained on it (`scripts/train_controller.py`, chosen on its generated
 #    validation split; never the real validation meshes) -> DIR/controller/controller.npz
 #    and its report controller.md.
@@ -50,12 +50,8 @@ if [ -f "$SET/manifest.json" ]; then
   wait
 else
   echo "no $SET: building $SEARCHED for the milestone's network"
-  EXAMPLES=${SMOOTHING_EXAMPLES:-2000} WHOLE=$((10000 + ${WHOLE_EXAMPLES:-1000}))
-  { nice -n 10 "${SEARCH[@]}" --examples "$EXAMPLES" --shard 0/4 &&
-    nice -n 10 "${SEARCH[@]}" --first 10000 --examples "$WHOLE" --shard 0/2; } &
-  nice -n 10 "${SEARCH[@]}" --examples "$EXAMPLES" --shard 2/4
-  nice -n 10 "${SEARCH[@]}" --first 10000 --examples "$WHOLE" --shard 1/2
-  wait
+  nice -n 10 make --no-print-directory controller-data BIN="$BIN" SMOOTHING_SET="$SEARCHED" \
+    NETWORK="$DIR/weights.msgpack"
 fi
 mkdir -p "$CAND/score"
 nice -n 10 "$BIN/python" scripts/train_controller.py "$SEARCHED" --out "$CAND/controller.npz" \
