@@ -215,11 +215,13 @@ bench-device: $(STAMP)
 # example; resumable, one process per core; an older search brought to today's by
 # --research) into data/smoothing: the even indices below SMOOTHING_EXAMPLES (crops of
 # 400-1200 faces; the odd ones too with SMOOTHING_ALL=1) and WHOLE_EXAMPLES whole meshes
-# of 2,000-15,000 faces (indices from 10,000: smoothing_set.WHOLE_FROM), then the controller
+# of 2,000-15,000 faces (indices from 10,000: smoothing_set.WHOLE_FROM) and HEAVY_EXAMPLES
+# crops under per-coordinate noise of 0.6-3 edges (from 20,000: HEAVY_FROM), then the controller
 # trained on it (minutes; chosen on its validation split, reported on its test split) and
 # stored beside the bundled network in runs/dmd_controller.msgpack.
 SMOOTHING_EXAMPLES ?= 2000
 WHOLE_EXAMPLES ?= 1000
+HEAVY_EXAMPLES ?= 300
 SMALL_SHARDS = $(if $(SMOOTHING_ALL),0/2 1/2,0/4 2/4)
 # SMOOTHING_SET=dir NETWORK=weights: the same set searched for another network (a long
 # run's milestone: scripts/train_long_candidate.sh).
@@ -231,6 +233,8 @@ controller-data: $(STAMP)
 	$(BIN)/python -m dmd_jax.data.smoothing_set --out $(SMOOTHING_SET) $(SET_NETWORK) --examples $(SMOOTHING_EXAMPLES) --shard $(word 2,$(SMALL_SHARDS)); wait
 	$(BIN)/python -m dmd_jax.data.smoothing_set --out $(SMOOTHING_SET) $(SET_NETWORK) --first 10000 --examples $$((10000 + $(WHOLE_EXAMPLES))) --shard 0/2 & \
 	$(BIN)/python -m dmd_jax.data.smoothing_set --out $(SMOOTHING_SET) $(SET_NETWORK) --first 10000 --examples $$((10000 + $(WHOLE_EXAMPLES))) --shard 1/2; wait
+	$(BIN)/python -m dmd_jax.data.smoothing_set --out $(SMOOTHING_SET) $(SET_NETWORK) --first 20000 --examples $$((20000 + $(HEAVY_EXAMPLES))) --shard 0/2 & \
+	$(BIN)/python -m dmd_jax.data.smoothing_set --out $(SMOOTHING_SET) $(SET_NETWORK) --first 20000 --examples $$((20000 + $(HEAVY_EXAMPLES))) --shard 1/2; wait
 	$(BIN)/python -m dmd_jax.data.smoothing_set --out $(SMOOTHING_SET) $(SET_NETWORK) --research
 
 controller: $(STAMP)

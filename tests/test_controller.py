@@ -717,3 +717,29 @@ def test_a_large_mesh_is_read_in_crops_of_the_training_size():
         assert features(pv, pf)[FEATURE_NAMES.index("rough_q50")] == pytest.approx(whole, rel=0.15)
     small_v, small_f = icosphere(2)
     assert len(crops(small_v, small_f)) == 1  # read whole
+
+
+def test_heavy_noise_examples_draw_the_papers_kinds_beyond_the_other_kinds_levels():
+    counts = {"procedural": 50, "real": 40, "stress": 8}
+    first = smoothing_set.HEAVY_FROM
+    specs = [smoothing_set.example_spec(0, i, counts) for i in range(first, first + 200)]
+    assert specs == [smoothing_set.example_spec(0, i, counts) for i in range(first, first + 200)]
+    assert all(s["kind"] == "heavy" for s in specs)
+    assert {s["noise"] for s in specs} == set(smoothing_set.HEAVY_KINDS)
+    levels = np.array([s["level"] for s in specs])
+    lo, hi = smoothing_set.HEAVY_LEVELS
+    assert levels.min() >= lo and levels.max() <= hi and levels.min() < 0.8 and levels.max() > 2.2
+    assert all("whole" not in s and "triangulation" not in s for s in specs)
+    assert all(s["patch_faces"] <= smoothing_set.PATCH_FACES[1] for s in specs)
+    below = smoothing_set.example_spec(0, first - 1, counts)
+    assert below["kind"] != "heavy"
+    # The noise it names is drawn, per coordinate, at that level.
+    from conftest import icosphere
+
+    v, f = icosphere(2)
+    spec = {**specs[0], "noise_seed": 3}
+    clean, noisy, faces = smoothing_set.noisy_example(spec, v, f)
+    assert clean is v and faces is f and np.all(np.isfinite(noisy))
+    edge = np.linalg.norm(v[f[:, 0]] - v[f[:, 1]], axis=1).mean()
+    move = np.linalg.norm(noisy - v, axis=1)
+    assert move.mean() > 0.3 * spec["level"] * edge

@@ -103,6 +103,16 @@ PATCH_FACES = (400, 1200)
 WHOLE_FROM = 10_000
 WHOLE_FACES = (2_000, 15_000)
 
+# Heavy noise: from index HEAVY_FROM on, every example carries per-coordinate noise of
+# HEAVY_LEVELS mean edges (log-uniform), of one of the paper's kinds (HEAVY_KINDS), on a
+# small crop. The kinds above stop at 0.6 edges of Gaussian noise; the paper's Table II
+# goes to about 2.7, and there the controller trained without these chose too little
+# (Block: none, 88.68 deg, where the fallback rules' 20 pre-smoothing steps give 18.38;
+# docs/controller.md, "Limits").
+HEAVY_FROM = 20_000
+HEAVY_LEVELS = (0.6, 3.0)
+HEAVY_KINDS = ("gaussian", "uniform", "gamma")
+
 
 def example_spec(seed: int, index: int, sources: dict[str, int]) -> dict:
     """What example `index` is: a pure function of `(seed, index)` and the source counts.
@@ -150,6 +160,17 @@ def example_spec(seed: int, index: int, sources: dict[str, int]) -> dict:
         spec["triangulation"] = triangulation_spec(np.random.default_rng([seed, index, 1]))
         if kind == "scan":
             spec["triangulation"] = {"kind": "given"}
+    if index >= HEAVY_FROM:
+        # A stream of its own: the rest of the spec is what the index draws anyway.
+        heavy = np.random.default_rng([seed, index, 3])
+        spec["kind"] = "heavy"
+        spec["noise"] = HEAVY_KINDS[int(heavy.integers(len(HEAVY_KINDS)))]
+        spec["level"] = float(np.exp(heavy.uniform(*np.log(HEAVY_LEVELS))))
+        for key in ("correlation_length", "white_share", "grazing_max_gain", "spike_share"):
+            spec.pop(key, None)
+        spec.pop("resolution", None)
+        spec.pop("triangulation", None)
+        return spec
     if index >= WHOLE_FROM:
         lo, hi = np.log(WHOLE_FACES[0]), np.log(WHOLE_FACES[1])
         spec["patch_faces"] = int(np.exp(np.random.default_rng([seed, index, 2]).uniform(lo, hi)))
@@ -246,6 +267,12 @@ def noisy_example(spec: dict, clean: np.ndarray, faces: np.ndarray):
         return clean, add_noise(seed, clean, faces, "gaussian", spec["level"], units="edge"), faces
     if kind == "impulse":
         return clean, add_noise(seed, clean, faces, "impulse", spec["level"], units="edge"), faces
+    if kind == "heavy":
+        return (
+            clean,
+            add_noise(seed, clean, faces, spec["noise"], spec["level"], units="edge"),
+            faces,
+        )
     model = scanner_model(spec)
     if kind == "scan":
         # A view that sees nothing (a thin part edge-on) is refused by simulate_scan:
@@ -480,6 +507,9 @@ def build(
         "triangulation_from": TRIANGULATION_FROM,
         "whole_from": WHOLE_FROM,
         "whole_faces": WHOLE_FACES,
+        "heavy_from": HEAVY_FROM,
+        "heavy_levels": HEAVY_LEVELS,
+        "heavy_kinds": HEAVY_KINDS,
     }
     if network is not None:
         manifest["network"] = digest
@@ -539,7 +569,15 @@ def build(
 
 # Manifest fields added after the first build: a set built before them is the same set
 # (its examples all lie below TRIANGULATION_FROM, where the re-triangulation is off).
-_ADDED_FIELDS = ("triangulations", "triangulation_from", "whole_from", "whole_faces")
+_ADDED_FIELDS = (
+    "triangulations",
+    "triangulation_from",
+    "whole_from",
+    "whole_faces",
+    "heavy_from",
+    "heavy_levels",
+    "heavy_kinds",
+)
 
 
 def check_manifest(out, manifest: dict) -> None:
