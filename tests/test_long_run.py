@@ -271,3 +271,16 @@ def test_the_kept_candidate_is_a_milestone_with_its_controller_switched_on():
     assert candidate.controller is not None and candidate.policy.controller
     shapes = lambda p: jax.tree.map(np.shape, p)  # noqa: E731
     assert shapes(candidate.params) == shapes(bundled.params)
+
+
+def test_the_bundled_weights_are_a_milestone_of_the_long_run_with_its_controller():
+    """Issue 62: the bundled weights are a milestone of the long run (bundled 2026-12-08,
+    milestone 50,000), exported with the controller trained for its network, switched
+    on, and the network configured as the run trained it (the converged solve)."""
+    from dmd_jax import load_pretrained
+
+    bundled = load_pretrained()
+    assert bundled.meta["long_run_milestone"] % 10_000 == 0
+    assert bundled.meta["long_run_step"] == bundled.meta["long_run_milestone"]
+    assert bundled.controller is not None and bundled.policy.controller
+    assert bundled.config.model.vertex_update == "solve"

@@ -90,19 +90,25 @@ def test_dmd_passes_become_columns(sota):
     import dmd_jax
 
     methods = sota.build_methods(["dmd"], dmd_passes=[3])
-    assert [m.key for m in methods] == ["dmd", "dmd:net", "dmd:x3"]
+    # The bundled weights carry a smoothing controller: a column with it off.
+    assert [m.key for m in methods] == ["dmd", "dmd:rules", "dmd:net", "dmd:x3"]
     assert [m.label for m in methods] == [
         "DMD-Net",
+        "DMD-Net, controller off",
         "DMD-Net, network only",
         "DMD-Net, network only ×3",
     ]
-    assert "3 passes" in methods[2].status and "passes" not in methods[0].status
-    assert "defaults" in methods[0].status and "presmooth=0" in methods[1].status
+    assert "3 passes" in methods[3].status and "passes" not in methods[0].status
+    assert "defaults" in methods[0].status and "presmooth=0" in methods[2].status
+    assert "controller=False" in methods[1].status
     v, f = load_mesh(shared_mesh_path("decimated-knight.off"))
     bundle = dmd_jax.load_pretrained()
     np.testing.assert_array_equal(methods[0].fn(v, f), dmd_jax.denoise(v, f, bundle))
     np.testing.assert_array_equal(
-        methods[2].fn(v, f), dmd_jax.denoise(v, f, bundle, iterations=3, presmooth=0)
+        methods[1].fn(v, f), dmd_jax.denoise(v, f, bundle, controller=False)
+    )
+    np.testing.assert_array_equal(
+        methods[3].fn(v, f), dmd_jax.denoise(v, f, bundle, iterations=3, presmooth=0)
     )
 
 

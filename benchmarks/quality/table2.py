@@ -147,10 +147,16 @@ class Method(NamedTuple):
 
 
 def _dmd_method(
-    key: str, label: str, path: Path | None, passes: int | None = None, presmooth=None
+    key: str,
+    label: str,
+    path: Path | None,
+    passes: int | None = None,
+    presmooth=None,
+    controller: bool | None = None,
 ) -> Method:
-    """DMD-Net as `denoise(v, f, weights, iterations=passes, presmooth=presmooth)`: None
-    for either is the weights' own policy (the default call users make)."""
+    """DMD-Net as `denoise(v, f, weights, iterations=passes, presmooth=presmooth,
+    controller=controller)`: None for each is the weights' own policy (the default call
+    users make)."""
     from dmd_jax import inference
     from dmd_jax.checkpoints import load_model
 
@@ -163,12 +169,16 @@ def _dmd_method(
         how.append(f"{passes} passes (iterations={passes})")
     if presmooth is not None:
         how.append(f"presmooth={presmooth}" + (" (network only)" if presmooth == 0 else ""))
-    if passes is None and presmooth is None:
+    if controller is False:
+        how.append("controller=False (the policy's two fixed rules)")
+    if passes is None and presmooth is None and controller is None:
         how.append("denoise's defaults")
     return Method(
         key,
         label,
-        lambda v, f: inference.denoise(v, f, bundle, iterations=passes, presmooth=presmooth),
+        lambda v, f: inference.denoise(
+            v, f, bundle, iterations=passes, presmooth=presmooth, controller=controller
+        ),
         f"weights {Path(path).name}, " + ", ".join(how),
     )
 
@@ -194,7 +204,7 @@ def build_methods(
     from dmd_jax import baselines
     from dmd_jax.baselines import cascaded_regression
     from dmd_jax.baselines.meshlab import PYMESHLAB_FILTERS, pymeshlab_filter
-    from dmd_jax.checkpoints import pretrained_path
+    from dmd_jax.checkpoints import load_model, pretrained_path
 
     unknown = sorted(set(names) - set(METHODS))
     if unknown:
@@ -243,6 +253,11 @@ def build_methods(
             out.append(_dmd_method("dmd", label, path))
             if out[-1].fn is None:
                 continue  # no weights: one "pending" column, not one per variant
+            # Weights with a smoothing controller: what the fallback rules give instead.
+            if load_model(path).controller is not None:
+                out.append(
+                    _dmd_method("dmd:rules", f"{label}, controller off", path, controller=False)
+                )
             # What the pre-smoothing buys: the network alone, with its own pass policy
             # and with each requested fixed number of passes.
             out.append(_dmd_method("dmd:net", f"{label}, network only", path, presmooth=0))
