@@ -227,15 +227,16 @@ SMALL_SHARDS = $(if $(SMOOTHING_ALL),0/2 1/2,0/4 2/4)
 # run's milestone: scripts/train_long_candidate.sh).
 SMOOTHING_SET ?= data/smoothing
 SET_NETWORK = $(if $(NETWORK),--network $(NETWORK))
+SEARCH_SET = $(BIN)/python -m dmd_jax.data.smoothing_set --out $(SMOOTHING_SET) $(SET_NETWORK)
 .PHONY: controller-data controller controller-oracle
 controller-data: $(STAMP)
-	$(BIN)/python -m dmd_jax.data.smoothing_set --out $(SMOOTHING_SET) $(SET_NETWORK) --examples $(SMOOTHING_EXAMPLES) --shard $(word 1,$(SMALL_SHARDS)) & \
-	$(BIN)/python -m dmd_jax.data.smoothing_set --out $(SMOOTHING_SET) $(SET_NETWORK) --examples $(SMOOTHING_EXAMPLES) --shard $(word 2,$(SMALL_SHARDS)); wait
-	$(BIN)/python -m dmd_jax.data.smoothing_set --out $(SMOOTHING_SET) $(SET_NETWORK) --first 10000 --examples $$((10000 + $(WHOLE_EXAMPLES))) --shard 0/2 & \
-	$(BIN)/python -m dmd_jax.data.smoothing_set --out $(SMOOTHING_SET) $(SET_NETWORK) --first 10000 --examples $$((10000 + $(WHOLE_EXAMPLES))) --shard 1/2; wait
-	$(BIN)/python -m dmd_jax.data.smoothing_set --out $(SMOOTHING_SET) $(SET_NETWORK) --first 20000 --examples $$((20000 + $(HEAVY_EXAMPLES))) --shard 0/2 & \
-	$(BIN)/python -m dmd_jax.data.smoothing_set --out $(SMOOTHING_SET) $(SET_NETWORK) --first 20000 --examples $$((20000 + $(HEAVY_EXAMPLES))) --shard 1/2; wait
-	$(BIN)/python -m dmd_jax.data.smoothing_set --out $(SMOOTHING_SET) $(SET_NETWORK) --research
+	$(SEARCH_SET) --examples $(SMOOTHING_EXAMPLES) --shard $(word 1,$(SMALL_SHARDS)) & \
+	$(SEARCH_SET) --examples $(SMOOTHING_EXAMPLES) --shard $(word 2,$(SMALL_SHARDS)); wait
+	$(SEARCH_SET) --first 10000 --examples $$((10000 + $(WHOLE_EXAMPLES))) --shard 0/2 & \
+	$(SEARCH_SET) --first 10000 --examples $$((10000 + $(WHOLE_EXAMPLES))) --shard 1/2; wait
+	$(SEARCH_SET) --first 20000 --examples $$((20000 + $(HEAVY_EXAMPLES))) --shard 0/2 & \
+	$(SEARCH_SET) --first 20000 --examples $$((20000 + $(HEAVY_EXAMPLES))) --shard 1/2; wait
+	$(SEARCH_SET) --research
 
 controller: $(STAMP)
 	$(BIN)/python scripts/train_controller.py data/smoothing --out runs/controller.npz \

@@ -73,8 +73,13 @@ def table_with(path: Path, *columns: str, index: int = 0) -> list[dict]:
     return found[index]
 
 
+def number_text(cell: str) -> str:
+    """The leading number of a cell as written (`"13.80 (NIFP)"` -> `"13.80"`)."""
+    return re.match(r"[-+]?[\d,]*\.?\d+", cell.strip("*")).group()
+
+
 def number(cell: str) -> float:
-    return float(re.match(r"[-+]?[\d,]*\.?\d+", cell.strip("*")).group().replace(",", ""))
+    return float(number_text(cell).replace(",", ""))
 
 
 def said(phrase: str) -> str:
@@ -499,11 +504,6 @@ def test_scan_expectations_match_report():
     dmd = " / ".join(rows[s, "scan 0.5"]["DMD-Net crease"] for s in sets)
     said(f"at scan 0.5 NIFP keeps crease faces better ({nifp}° against {dmd}°")
     said("at scan 0.15 DMD-Net's crease error is the lowest")
-
-
-def number_text(cell: str) -> str:
-    """The leading number of a cell as written (`"13.80 (NIFP)"` -> `"13.80"`)."""
-    return re.match(r"[-+]?[\d,]*\.?\d+", cell.strip("*")).group()
 
 
 def test_stress_figures_match_report():

@@ -161,16 +161,16 @@ def example_spec(seed: int, index: int, sources: dict[str, int]) -> dict:
         if kind == "scan":
             spec["triangulation"] = {"kind": "given"}
     if index >= HEAVY_FROM:
-        # A stream of its own: the rest of the spec is what the index draws anyway.
+        # A stream of its own: the mesh, crop and seeds are what the index draws anyway;
+        # the drawn kind's own parameters (and any re-triangulation) do not apply.
         heavy = np.random.default_rng([seed, index, 3])
-        spec["kind"] = "heavy"
-        spec["noise"] = HEAVY_KINDS[int(heavy.integers(len(HEAVY_KINDS)))]
-        spec["level"] = float(np.exp(heavy.uniform(*np.log(HEAVY_LEVELS))))
-        for key in ("correlation_length", "white_share", "grazing_max_gain", "spike_share"):
-            spec.pop(key, None)
-        spec.pop("resolution", None)
-        spec.pop("triangulation", None)
-        return spec
+        base = ("index", "source", "mesh", "patch_faces", "patch_seed", "noise_seed")
+        return {
+            **{key: spec[key] for key in base},
+            "kind": "heavy",
+            "noise": HEAVY_KINDS[int(heavy.integers(len(HEAVY_KINDS)))],
+            "level": float(np.exp(heavy.uniform(*np.log(HEAVY_LEVELS)))),
+        }
     if index >= WHOLE_FROM:
         lo, hi = np.log(WHOLE_FACES[0]), np.log(WHOLE_FACES[1])
         spec["patch_faces"] = int(np.exp(np.random.default_rng([seed, index, 2]).uniform(lo, hi)))
